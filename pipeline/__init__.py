@@ -1,0 +1,1 @@
+"""scanreg framework: registries, configuration, I/O, runner, tracking and reports."""

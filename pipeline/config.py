@@ -1,0 +1,62 @@
+"""Configuration helpers shared by stages: distance units, the run context, paths to shared data."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+class Distances(str, Enum):
+    """How a stage reads its distance parameters."""
+
+    spacing = "spacing"
+    """Multiples of the run's sampling spacing (median nearest-neighbour distance, see ``estimate_spacing``)."""
+    absolute = "absolute"
+    """Input units (the units of the mesh or cloud files: mm for dental scans, m for the Stanford bunny)."""
+
+
+def to_abs(value: float | None, unit: Distances, spacing: float) -> float | None:
+    """Turn a distance parameter into input units."""
+    if value is None:
+        return None
+    return float(value) * spacing if unit == Distances.spacing else float(value)
+
+
+def shared_data_dir() -> Path:
+    """``$SCANREG_SHARED_DATA``, else ``../shared/data`` beside the project root."""
+    env = os.environ.get("SCANREG_SHARED_DATA")
+    return Path(env) if env else (PROJECT_ROOT.parent / "shared" / "data")
+
+
+def expand_path(s: str) -> str:
+    """``shared:REL`` -> a path under :func:`shared_data_dir`; other strings unchanged (``pkg:`` is io's)."""
+    if s.startswith("shared:"):
+        return str(shared_data_dir() / s[len("shared:") :])
+    return s
+
+
+@dataclass
+class Context:
+    """What a stage may use besides its own parameters; filled by the runner as the run proceeds."""
+
+    seed: int
+    run_dir: Path
+    spacing: float = float("nan")
+    """Sampling spacing of the run in input units (set after sampling)."""
+    diagonal: float = float("nan")
+    """Bounding-box diagonal of the target in input units."""
+    stages: dict[str, Any] = field(default_factory=dict)
+    """Built helper stages a coarse stage may use: ``salience``, ``descriptor``, ``matcher``."""
+    step_metrics: dict[str, list[float]] = field(default_factory=dict)
+    """Per-iteration metrics (e.g. ``icp_rms``), logged as MLflow step metrics."""
+    verbose: bool = False
+
+    def rng(self, salt: int = 0) -> np.random.Generator:
+        return np.random.default_rng([self.seed, salt])

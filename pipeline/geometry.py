@@ -1,0 +1,189 @@
+"""Geometry containers and rigid-transform helpers.
+
+Conventions: points are ``(N, 3)`` float64 arrays in the input's units; a transform ``T_a_b`` is a 4x4
+matrix mapping points given in frame ``b`` into frame ``a`` (``p_a = R p_b + t``). Functions that relate two
+point sets take ``(target, source)`` in that order and return ``T_target_source``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from pipeline.errors import InputError
+
+
+@dataclass
+class Mesh:
+    """Triangle mesh: ``vertices`` (N, 3) float64, ``faces`` (M, 3) int64 (counter-clockwise = outward)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    source: str = ""
+    """Where it came from (path or description), for messages."""
+
+    @property
+    def n_points(self) -> int:
+        return len(self.vertices)
+
+
+@dataclass
+class Cloud:
+    """Point cloud with optional unit normals (N, 3)."""
+
+    points: np.ndarray
+    normals: np.ndarray | None = None
+    source: str = ""
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_points(self) -> int:
+        return len(self.points)
+
+
+Geometry = Mesh | Cloud
+
+
+def points_of(g: Geometry) -> np.ndarray:
+    return g.vertices if isinstance(g, Mesh) else g.points
+
+
+def validate_points(pts: np.ndarray, what: str) -> np.ndarray:
+    """Check a coordinate array: (N, 3), non-empty, finite. Returns it as contiguous float64."""
+    pts = np.asarray(pts)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"{what}: expected N x 3 coordinates, got an array of shape {pts.shape}")
+    if len(pts) == 0:
+        raise InputError(f"{what}: contains no points")
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
+    bad = ~np.isfinite(pts).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{what}: {int(bad.sum())} point(s) with NaN or infinite coordinates (first: index {i})")
+    return pts
+
+
+def validate_mesh(mesh: Mesh) -> Mesh:
+    what = mesh.source or "mesh"
+    v = validate_points(mesh.vertices, what)
+    f = np.asarray(mesh.faces)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise InputError(f"{what}: expected M x 3 triangle indices, got an array of shape {f.shape}")
+    if len(f) == 0:
+        raise InputError(f"{what}: mesh has no faces")
+    f = f.astype(np.int64, copy=False)
+    if f.min() < 0 or f.max() >= len(v):
+        bad = int(((f < 0) | (f >= len(v))).any(axis=1).sum())
+        raise InputError(
+            f"{what}: {bad} face(s) index missing vertices (indices must be in 0..{len(v) - 1}, found {f.min()}..{f.max()})"
+        )
+    return Mesh(v, np.ascontiguousarray(f), mesh.source)
+
+
+def bbox_diagonal(pts: np.ndarray) -> float:
+    return float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+
+
+# ----------------------------------------------------------------------------------------------- transforms
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def apply_T(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return pts @ T[:3, :3].T + T[:3, 3]
+
+
+def rotate_normals(T: np.ndarray, normals: np.ndarray | None) -> np.ndarray | None:
+    return None if normals is None else normals @ T[:3, :3].T
+
+
+def transform_geometry(T: np.ndarray, g: Geometry) -> Geometry:
+    if isinstance(g, Mesh):
+        return Mesh(apply_T(T, g.vertices), g.faces, g.source)
+    return Cloud(apply_T(T, g.points), rotate_normals(T, g.normals), g.source, dict(g.extra))
+
+
+def invert_T(T: np.ndarray) -> np.ndarray:
+    R, t = T[:3, :3], T[:3, 3]
+    return make_T(R.T, -R.T @ t)
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees (robust near 0 and 180)."""
+    c = (np.trace(R) - 1.0) / 2.0
+    s = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    return float(np.degrees(np.arctan2(s, np.clip(c, -1.0, 1.0))))
+
+
+def transform_errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
+    """(rotation error in degrees, translation error in input units) of ``T_est`` against ``T_gt``."""
+    dR = T_est[:3, :3] @ T_gt[:3, :3].T
+    return rotation_angle_deg(dR), float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]))
+
+
+def random_pose(rng: np.random.Generator, max_angle_deg: float, max_translation: float) -> np.ndarray:
+    """A random rigid transform: rotation about a uniformly random axis by an angle uniform in
+    [0, max_angle_deg] (``max_angle_deg >= 180``: a rotation uniform over SO(3)), translation a uniformly random
+    direction times a length uniform in [0, max_translation]."""
+    if max_angle_deg >= 180.0:
+        R = Rotation.from_quat(_unit(rng.normal(size=4))).as_matrix()
+    else:
+        axis = _unit(rng.normal(size=3))
+        R = Rotation.from_rotvec(axis * np.radians(rng.uniform(0.0, max_angle_deg))).as_matrix()
+    t = _unit(rng.normal(size=3)) * rng.uniform(0.0, max_translation)
+    return make_T(R, t)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def horn_quaternion(target: np.ndarray, source: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares rigid transform ``T_target_source`` by Horn's closed form (1987).
+
+    With centred point sets and the cross-covariance ``S = sum w (s - s̄)(t - t̄)^T``, the rotation is the unit
+    quaternion of the largest eigenvalue of the symmetric 4x4 matrix ``Q(S)``; then ``t = t̄ - R s̄``.
+    """
+    if len(target) != len(source) or len(source) < 3:
+        raise ValueError("horn_quaternion needs at least 3 paired points")
+    w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
+    wsum = w.sum()
+    mu_s = (w @ source) / wsum
+    mu_t = (w @ target) / wsum
+    S = ((source - mu_s) * w[:, None]).T @ (target - mu_t)
+    (Sxx, Sxy, Sxz), (Syx, Syy, Syz), (Szx, Szy, Szz) = S
+    Q = np.array(
+        [
+            [Sxx + Syy + Szz, Syz - Szy, Szx - Sxz, Sxy - Syx],
+            [Syz - Szy, Sxx - Syy - Szz, Sxy + Syx, Szx + Sxz],
+            [Szx - Sxz, Sxy + Syx, -Sxx + Syy - Szz, Syz + Szy],
+            [Sxy - Syx, Szx + Sxz, Syz + Szy, -Sxx - Syy + Szz],
+        ]
+    )
+    evals, evecs = np.linalg.eigh(Q)
+    q0, qx, qy, qz = evecs[:, np.argmax(evals)]
+    R = np.array(
+        [
+            [q0 * q0 + qx * qx - qy * qy - qz * qz, 2 * (qx * qy - q0 * qz), 2 * (qx * qz + q0 * qy)],
+            [2 * (qy * qx + q0 * qz), q0 * q0 - qx * qx + qy * qy - qz * qz, 2 * (qy * qz - q0 * qx)],
+            [2 * (qz * qx - q0 * qy), 2 * (qz * qy + q0 * qx), q0 * q0 - qx * qx - qy * qy + qz * qz],
+        ]
+    )
+    return make_T(R, mu_t - R @ mu_s)
+
+
+def kabsch_svd(target: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """Least-squares rigid transform ``T_target_source`` by SVD (Kabsch/Umeyama), for cross-checks."""
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    H = (source - mu_s).T @ (target - mu_t)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return make_T(R, mu_t - R @ mu_s)

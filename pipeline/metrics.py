@@ -1,0 +1,59 @@
+"""Evaluation of a registration: one definition of every reported number."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.config import Distances, to_abs
+from pipeline.geometry import apply_T, transform_errors
+
+
+@dataclass
+class EvalParams:
+    inlier_distance: float = 3.0
+    """A source point is an inlier when its closest target point, after alignment, lies within this distance
+    (see ``distances``). ``fitness`` is the share of inliers, ``rms`` the RMS of their distances."""
+    distances: Distances = Distances.spacing
+    """Unit of ``inlier_distance``: multiples of the sampling spacing, or absolute input units."""
+    success_rotation_deg: float = 2.0
+    """A run with ground truth succeeds when its rotation error is below this (degrees) ..."""
+    success_translation: float = 0.01
+    """... and its translation error below this share of the target's bounding-box diagonal."""
+
+
+def estimate_spacing(points: np.ndarray, rng: np.random.Generator, n: int = 5000) -> float:
+    """Median distance from a point to its nearest other point (over a seeded subset of at most ``n``)."""
+    idx = rng.choice(len(points), size=min(n, len(points)), replace=False) if len(points) > n else np.arange(len(points))
+    d, _ = cKDTree(points).query(points[idx], k=2, workers=-1)
+    d = d[:, 1]
+    d = d[d > 0]
+    return float(np.median(d)) if len(d) else 0.0
+
+
+def alignment_metrics(
+    target: np.ndarray, source: np.ndarray, T: np.ndarray, p: EvalParams, spacing: float, tree: cKDTree | None = None
+) -> dict[str, float]:
+    """``rms`` and ``fitness`` (see :class:`EvalParams`) plus the mean closest-point distance of all points."""
+    tree = tree or cKDTree(target)
+    d, _ = tree.query(apply_T(T, source), workers=-1)
+    inl = d <= to_abs(p.inlier_distance, p.distances, spacing)
+    return {
+        "rms": float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan"),
+        "fitness": float(inl.mean()),
+        "mean_distance": float(d.mean()),
+    }
+
+
+def gt_metrics(T: np.ndarray, T_gt: np.ndarray, diagonal: float, p: EvalParams, prefix: str = "") -> dict[str, float]:
+    rot, trans = transform_errors(T, T_gt)
+    out = {
+        f"{prefix}rotation_error_deg": rot,
+        f"{prefix}translation_error": trans,
+        f"{prefix}translation_error_rel": trans / diagonal,
+    }
+    if not prefix:
+        out["success"] = float(rot < p.success_rotation_deg and trans < p.success_translation * diagonal)
+    return out

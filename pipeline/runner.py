@@ -1,0 +1,171 @@
+"""The pipeline: load -> repair -> sample -> coarse -> fine -> evaluate, every stage timed.
+
+``run_pipeline`` builds every stage from the composed config first (so a bad name or parameter fails before
+any work), then runs them, writes ``result.json``, ``T_target_source.txt`` and ``aligned_source.ply`` into the
+run directory, and returns the result. Tracking is the caller's business (``pipeline.app``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+from scipy.spatial import cKDTree
+
+from pipeline.config import Context
+from pipeline.errors import ConfigError, InputError
+from pipeline.geometry import Cloud, Mesh, bbox_diagonal, transform_geometry
+from pipeline.io import write_ply, write_transform
+from pipeline.metrics import EvalParams, alignment_metrics, estimate_spacing, gt_metrics
+from pipeline.registry import COARSE, DATA, ICP, REPAIR, SAMPLER, load_all, make_params, REGISTRIES
+
+MIN_POINTS = 10
+"""Fewest points a cloud may have after sampling (the coarse and fine stages need neighbourhoods)."""
+
+
+@dataclass
+class Result:
+    metrics: dict[str, float] = field(default_factory=dict)
+    T_target_source: np.ndarray | None = None
+    step_metrics: dict[str, list[float]] = field(default_factory=dict)
+    artifacts: list[Path] = field(default_factory=list)
+    stage_lines: list[tuple[str, str]] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        out = {"T_target_source": self.T_target_source.tolist() if self.T_target_source is not None else None}
+        out.update(self.metrics)
+        return out
+
+
+class Timer:
+    def __init__(self, metrics: dict):
+        self.metrics = metrics
+
+    @contextmanager
+    def __call__(self, stage: str):
+        t0 = time.perf_counter_ns()
+        try:
+            yield
+        finally:
+            self.metrics[f"time_{stage}_s"] = (time.perf_counter_ns() - t0) / 1e9
+
+
+def build_stages(cfg: DictConfig) -> dict:
+    """Instantiate every configured stage (validating names and parameters) without running anything."""
+    load_all()
+    stages = {
+        "data": DATA.build(cfg.data),
+        "repair": REPAIR.build(cfg.repair),
+        "sampler": SAMPLER.build(cfg.sampler),
+        "coarse": COARSE.build(cfg.coarse),
+        "icp": ICP.build(cfg.icp),
+    }
+    # helper families are built when the coarse stage uses them, but validated always
+    for fam in ("salience", "descriptor", "matcher"):
+        inst = REGISTRIES[fam].build(cfg[fam])
+        if fam in getattr(stages["coarse"], "uses", ()):
+            stages[fam] = inst
+    stages["evaluate"] = make_params(EvalParams, OmegaConf.to_container(cfg.evaluate, resolve=True), "evaluate")
+    return stages
+
+
+def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    res = Result()
+    m = res.metrics
+    timer = Timer(m)
+    t_start = time.perf_counter_ns()
+    st = build_stages(cfg)
+    ctx = Context(seed=int(cfg.seed), run_dir=run_dir, verbose=bool(cfg.get("verbose", False)))
+    ctx.stages = {k: st[k] for k in ("salience", "descriptor", "matcher") if k in st}
+
+    with timer("load"):
+        inputs = st["data"].load(ctx)
+
+    geoms = {"source": inputs.source, "target": inputs.target}
+    with timer("repair"):
+        if cfg.repair.name != "none":
+            from stages.repair import mesh_stats
+
+            for role, g in geoms.items():
+                if isinstance(g, Mesh):
+                    prefix = "repair_" if role == "source" else "target_repair_"
+                    before = mesh_stats(g)
+                    geoms[role] = st["repair"].run(g, ctx)
+                    after = mesh_stats(geoms[role])
+                    m.update({f"{prefix}before_{k}": v for k, v in before.items()})
+                    m.update({f"{prefix}after_{k}": v for k, v in after.items()})
+
+    clouds: dict[str, Cloud] = {}
+    with timer("sample"):
+        for role, g in geoms.items():
+            clouds[role] = st["sampler"].run(g, ctx) if isinstance(g, Mesh) else g
+            if clouds[role].n_points < MIN_POINTS:
+                raise InputError(
+                    f"{role} {g.source}: {clouds[role].n_points} point(s) after sampling; at least {MIN_POINTS} are needed"
+                )
+    src, tgt = clouds["source"], clouds["target"]
+    m["n_source_points"], m["n_target_points"] = src.n_points, tgt.n_points
+    spacing = max(estimate_spacing(tgt.points, ctx.rng(1)), estimate_spacing(src.points, ctx.rng(2)))
+    if not spacing > 0:
+        raise InputError(f"{src.source} / {tgt.source}: all points coincide; cannot estimate a sampling spacing")
+    ctx.spacing, ctx.diagonal = spacing, bbox_diagonal(tgt.points)
+    if not ctx.diagonal > 0:
+        raise InputError(f"{tgt.source}: degenerate geometry (zero extent)")
+    m["spacing"], m["diagonal"] = spacing, ctx.diagonal
+
+    with timer("coarse"):
+        T0, cm = st["coarse"].run(tgt, src, ctx)
+    m.update(cm)
+    with timer("icp"):
+        icp = st["icp"].run(tgt, src, T0, ctx)
+    T = icp.T_target_source
+    m["icp_iterations"] = icp.iterations
+    m["icp_converged"] = float(icp.converged)
+    m["icp_rms"] = icp.rms_history[-1]
+
+    with timer("evaluate"):
+        ev: EvalParams = st["evaluate"]
+        m.update(alignment_metrics(tgt.points, src.points, T, ev, spacing, cKDTree(tgt.points)))
+        if inputs.T_gt is not None:
+            m.update(gt_metrics(T0, inputs.T_gt, ctx.diagonal, ev, prefix="coarse_"))
+            m.update(gt_metrics(T, inputs.T_gt, ctx.diagonal, ev))
+    m["time_total_s"] = (time.perf_counter_ns() - t_start) / 1e9
+
+    res.T_target_source = T
+    res.step_metrics = dict(ctx.step_metrics)
+    res.artifacts = write_outputs(run_dir, res, transform_geometry(T, src), tgt if inputs.T_gt is not None and
+                                  cfg.data.name != "files" else None)
+    return res
+
+
+def write_outputs(run_dir: Path, res: Result, aligned: Cloud, generated_target: Cloud | None) -> list[Path]:
+    paths = [run_dir / "result.json", run_dir / "T_target_source.txt", run_dir / "aligned_source.ply"]
+    paths[0].write_text(json.dumps(res.to_json(), indent=2, allow_nan=True) + "\n")
+    write_transform(paths[1], res.T_target_source)
+    write_ply(paths[2], aligned)
+    if generated_target is not None:  # a made-up target (synthetic/stanford) is kept beside the result
+        paths.append(run_dir / "target.ply")
+        write_ply(paths[-1], generated_target)
+    return paths
+
+
+def summary_lines(res: Result) -> list[str]:
+    m = res.metrics
+    rows = [(s, f"{m[f'time_{s}_s']:.3f}") for s in ("load", "repair", "sample", "coarse", "icp", "evaluate", "total")
+            if f"time_{s}_s" in m]
+    lines = ["stage     time [s]"] + [f"{s:<9} {t:>8}" for s, t in rows]
+    keys = ["n_source_points", "n_target_points", "spacing", "icp_iterations", "rms", "fitness",
+            "coarse_rotation_error_deg", "rotation_error_deg", "translation_error", "translation_error_rel", "success"]
+    lines.append("")
+    lines += [f"{k:<26} {m[k]:.6g}" for k in keys if k in m]
+    rep = [k[len("repair_before_"):] for k in m if k.startswith("repair_before_")]
+    if rep:
+        lines += ["", f"{'repair (source)':<24} {'before':>12} {'after':>12}"]
+        lines += [f"{k:<24} {m['repair_before_' + k]:>12.6g} {m['repair_after_' + k]:>12.6g}" for k in rep]
+    return lines

@@ -1,0 +1,206 @@
+"""Experiment tracking with MLflow.
+
+One MLflow run per job. The store and the experiment are created once, before any job starts (in the single
+run itself, or by :class:`SweepCallback` in the launching process of a ``-m`` sweep), and every run is created
+with an explicit ``experiment_id``. A sweep has one parent run; each job's run is its child
+(``mlflow.parentRunId``). A failing job ends FAILED with its one-line reason in the tag ``error``; the sweep goes
+on, and the parent ends FAILED if any child failed.
+
+Default store: ``sqlite:///<cwd>/outputs/mlflow.db`` (absolute path), artifacts beside it in
+``outputs/mlartifacts``; ``$MLFLOW_TRACKING_URI`` or ``tracking.uri`` override it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.errors import ConfigError
+from pipeline.registry import TRACKING
+
+SWEEP_ENV = "SCANREG_SWEEP"
+"""Environment variable through which a sweep's jobs learn the store, experiment and parent run."""
+
+_sweep_outcome: dict[str, Any] = {}
+"""Set by SweepCallback.on_multirun_end in the launching process: ``{"failed": n, "total": n}``."""
+
+
+def _quiet_mlflow() -> None:
+    for name in ("alembic", "mlflow", "mlflow.store", "mlflow.tracking"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def flatten(d: Any, prefix: str = "") -> dict[str, str]:
+    out: dict[str, str] = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.update(flatten(v, f"{prefix}{k}."))
+    else:
+        out[prefix[:-1]] = "null" if d is None else str(d)
+    return out
+
+
+class RunLog:
+    """Logging into one MLflow run."""
+
+    def __init__(self, client, run_id: str):
+        self.client, self.run_id = client, run_id
+
+    def log_params(self, params: dict[str, str]) -> None:
+        from mlflow.entities import Param
+
+        items = [Param(k[:250], v[:6000]) for k, v in sorted(params.items())]
+        for i in range(0, len(items), 100):
+            self.client.log_batch(self.run_id, params=items[i : i + 100])
+
+    def set_tags(self, tags: dict[str, str]) -> None:
+        from mlflow.entities import RunTag
+
+        self.client.log_batch(self.run_id, tags=[RunTag(k, str(v)[:5000]) for k, v in tags.items()])
+
+    def log_metrics(self, metrics: dict[str, float], step_metrics: dict[str, list[float]] | None = None) -> None:
+        import math
+
+        from mlflow.entities import Metric
+
+        ts = int(time.time() * 1000)
+        items = [Metric(k, float(v), ts, 0) for k, v in sorted(metrics.items())
+                 if isinstance(v, (int, float)) and math.isfinite(float(v))]
+        for k, seq in (step_metrics or {}).items():
+            items += [Metric(f"{k}_step", float(v), ts, i) for i, v in enumerate(seq)]
+        for i in range(0, len(items), 500):
+            self.client.log_batch(self.run_id, metrics=items[i : i + 500])
+
+    def log_artifacts(self, paths: list[Path]) -> None:
+        for p in paths:
+            if Path(p).exists():
+                self.client.log_artifact(self.run_id, str(p))
+
+    def end(self, status: str, reason: str | None = None) -> None:
+        if reason:
+            self.set_tags({"error": reason})
+        self.client.set_terminated(self.run_id, status)
+
+
+@TRACKING.register("none")
+class NoTracking:
+    """Track nothing (results stay in the run directory)."""
+
+    @dataclass
+    class Params:
+        pass
+
+    def __init__(self, params: Params):
+        self.p = params
+
+    def prepare(self) -> None:
+        return None
+
+    def start_run(self, *a, **k) -> None:
+        return None
+
+
+@TRACKING.register("mlflow")
+class MlflowTracking:
+    """Log every run to MLflow: config as params, stage choices as tags, metrics, artifacts."""
+
+    @dataclass
+    class Params:
+        uri: Optional[str] = None
+        """Tracking URI; null: $MLFLOW_TRACKING_URI, else sqlite:///<cwd>/outputs/mlflow.db (absolute path)."""
+        experiment: str = "scanreg"
+        """MLflow experiment name the runs are filed under."""
+
+    def __init__(self, params: Params):
+        self.p = params
+        self.uri = params.uri or os.environ.get("MLFLOW_TRACKING_URI") or \
+            f"sqlite:///{(Path.cwd() / 'outputs' / 'mlflow.db').resolve()}"
+
+    def _client(self):
+        _quiet_mlflow()
+        from mlflow.tracking import MlflowClient
+
+        if self.uri.startswith("sqlite:///"):
+            Path(self.uri[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
+        return MlflowClient(tracking_uri=self.uri)
+
+    def prepare(self) -> tuple[Any, str]:
+        """Create the store and the experiment if needed; returns ``(client, experiment_id)``."""
+        client = self._client()
+        exp = client.get_experiment_by_name(self.p.experiment)
+        if exp is not None:
+            return client, exp.experiment_id
+        artifact_location = None
+        if self.uri.startswith("sqlite:///"):
+            root = Path(self.uri[len("sqlite:///"):]).parent / "mlartifacts" / self.p.experiment
+            artifact_location = root.resolve().as_uri()
+        try:
+            return client, client.create_experiment(self.p.experiment, artifact_location=artifact_location)
+        except Exception:  # created meanwhile by another process
+            exp = client.get_experiment_by_name(self.p.experiment)
+            if exp is None:
+                raise
+            return client, exp.experiment_id
+
+    def start_run(self, run_name: str, params: dict[str, str], tags: dict[str, str]) -> RunLog:
+        sweep = json.loads(os.environ[SWEEP_ENV]) if SWEEP_ENV in os.environ else None
+        if sweep and sweep["uri"] == self.uri and sweep["experiment"] == self.p.experiment:
+            client, eid = self._client(), sweep["experiment_id"]
+            tags = {**tags, "mlflow.parentRunId": sweep["parent_run_id"]}
+        else:
+            client, eid = self.prepare()
+        run = client.create_run(eid, run_name=run_name, tags=tags)
+        log = RunLog(client, run.info.run_id)
+        log.log_params(params)
+        return log
+
+
+class SweepCallback(Callback):
+    """Hydra callback for ``-m`` sweeps: creates store, experiment and parent run before the jobs start, and
+    ends the parent run (FAILED if any child failed) when they are done. Holds no state but plain values."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        _sweep_outcome.clear()
+        os.environ.pop(SWEEP_ENV, None)
+        try:
+            from pipeline.registry import TRACKING as T
+
+            cls, params = T.params(config.tracking)
+        except ConfigError:
+            return  # reported by each job
+        if cls is not MlflowTracking:
+            return
+        tr = MlflowTracking(params)
+        client, eid = tr.prepare()
+        sweep_dir = str(config.hydra.sweep.dir)
+        overrides = " ".join(config.hydra.overrides.task)
+        parent = client.create_run(eid, run_name=f"sweep: {overrides}"[:250],
+                                   tags={"scanreg.sweep_dir": sweep_dir, "scanreg.overrides": overrides,
+                                         "scanreg.sweep": "parent"})
+        os.environ[SWEEP_ENV] = json.dumps({"uri": tr.uri, "experiment": params.experiment,
+                                            "experiment_id": eid, "parent_run_id": parent.info.run_id})
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        info = json.loads(os.environ.pop(SWEEP_ENV, "null") or "null")
+        if not info:
+            return
+        tr = MlflowTracking(MlflowTracking.Params(uri=info["uri"], experiment=info["experiment"]))
+        client = tr._client()
+        children = client.search_runs([info["experiment_id"]],
+                                      filter_string=f"tags.mlflow.parentRunId = '{info['parent_run_id']}'",
+                                      max_results=50000)
+        failed = sum(r.info.status != "FINISHED" for r in children)
+        log = RunLog(client, info["parent_run_id"])
+        log.log_metrics({"sweep_runs": len(children), "sweep_failed": failed})
+        log.end("FAILED" if failed else "FINISHED", f"{failed} of {len(children)} runs failed" if failed else None)
+        _sweep_outcome.update(failed=failed, total=len(children))
+        print(f"sweep: {len(children)} run(s), {failed} failed; parent run {info['parent_run_id']} in experiment "
+              f"'{info['experiment']}' at {info['uri']}")

@@ -1,0 +1,172 @@
+"""Data providers: what a run registers (source, target, optional ground truth and landmarks)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from pipeline.config import Context, expand_path
+from pipeline.errors import ConfigError, InputError
+from pipeline.geometry import (
+    Cloud, Geometry, Mesh, apply_T, bbox_diagonal, invert_T, points_of, random_pose, transform_geometry,
+)
+from pipeline.io import read_geometry, read_landmarks, read_mesh, read_stanford_conf, read_transform, resolve_path
+from pipeline.registry import DATA
+from stages.sampler import barycentric_sample, triangle_areas_normals
+
+
+@dataclass
+class Inputs:
+    """A registration problem: find ``T_target_source``."""
+
+    source: Geometry
+    target: Geometry
+    T_gt: Optional[np.ndarray] = None
+    """Ground-truth ``T_target_source`` when known."""
+    landmarks: Optional[tuple[np.ndarray, np.ndarray]] = None
+    """Picked pairs ``(target points (K, 3), source points (K, 3))``."""
+    info: dict | None = None
+
+
+@DATA.register("files")
+class Files:
+    """Source and target read from files (meshes or point clouds), with optional ground truth and landmarks."""
+
+    @dataclass
+    class Params:
+        source: Optional[str] = None
+        """Path of the source (the scan to move): mesh (.ply .stl .obj .off) or cloud (.ply .pcd .xyz .npy).
+        ``pkg:PACKAGE/PATH`` names a file inside an installed package, ``shared:PATH`` one under ../shared/data."""
+        target: Optional[str] = None
+        """Path of the target (the fixed scan), same formats."""
+        gt: Optional[str] = None
+        """Optional ground-truth T_target_source: 4x4 text or .npy, mapping source points into the target frame
+        (translation in input units)."""
+        landmarks: Optional[str] = None
+        """Optional CSV of picked pairs: target x,y,z then source x,y,z per row (input units)."""
+
+    def __init__(self, params: Params):
+        self.p = params
+
+    def load(self, ctx: Context) -> Inputs:
+        for key in ("source", "target"):
+            if not getattr(self.p, key):
+                raise ConfigError(
+                    f"data=files: data.{key} is not set; run e.g. 'scanreg data.source=A.ply data.target=B.ply', "
+                    "or the demo: 'scanreg data=synthetic'"
+                )
+        src = read_geometry(expand_path(self.p.source), "source")
+        tgt = read_geometry(expand_path(self.p.target), "target")
+        gt = read_transform(expand_path(self.p.gt), "ground truth data.gt") if self.p.gt else None
+        lm = read_landmarks(expand_path(self.p.landmarks)) if self.p.landmarks else None
+        return Inputs(src, tgt, gt, lm)
+
+
+@dataclass
+class PoseParams:
+    max_angle_deg: float = 180.0
+    """Largest rotation of the random initial pose of the source, in degrees (>= 180: any rotation)."""
+    max_translation: float = 0.5
+    """Largest translation of the random initial pose, as a share of the bounding-box diagonal."""
+    pose_seed: int = 0
+    """Seed of the random initial pose; the same seed repeats the same case."""
+
+
+@DATA.register("synthetic")
+class Synthetic:
+    """A second "scan" made from one mesh: the source is the mesh itself (repaired and sampled by the run);
+    the target an independent resampling of the same surface with part cut away, Gaussian noise and outliers,
+    placed under a random pose that is the ground truth. The default mesh is pymeshfix's defective Stanford
+    bunny (units: mm-like, about 50 across)."""
+
+    @dataclass
+    class Params(PoseParams):
+        mesh: str = "pkg:pymeshfix/examples/StanfordBunny.ply"
+        """Mesh to make the case from (path, ``pkg:`` or ``shared:`` name)."""
+        n_points: int = 20000
+        """Points sampled on the surface for the target (before cropping)."""
+        keep: float = 0.8
+        """Share of the target's points kept; the rest, beyond a random plane, is cut away (partial overlap)."""
+        noise: float = 0.1
+        """Standard deviation of Gaussian noise per coordinate, in multiples of the target's sampling
+        spacing sqrt(area / n_points)."""
+        outliers: float = 0.0
+        """Share of outlier points added uniformly in the target's bounding box."""
+        seed: int = 1
+        """Seed of the target's sampling, cropping, noise and outliers."""
+
+        def check(self):
+            if not 0.05 <= self.keep <= 1.0:
+                raise ValueError(f"keep must be in [0.05, 1], got {self.keep}")
+            if self.n_points < 3:
+                raise ValueError(f"n_points must be >= 3, got {self.n_points}")
+
+    def __init__(self, params: Params):
+        self.p = params
+
+    def load(self, ctx: Context) -> Inputs:
+        p = self.p
+        mesh = read_mesh(expand_path(p.mesh), "data.mesh")
+        rng = np.random.default_rng([p.seed, 101])
+        pts, normals, _ = barycentric_sample(mesh, p.n_points, rng)
+        spacing = float(np.sqrt(triangle_areas_normals(mesh)[0].sum() / p.n_points))
+        if p.keep < 1.0:
+            d = rng.normal(size=3)
+            d /= np.linalg.norm(d)
+            h = pts @ d
+            keep = h <= np.quantile(h, p.keep)
+            pts, normals = pts[keep], normals[keep]
+        pts = pts + rng.normal(scale=p.noise * spacing, size=pts.shape)
+        n_out = int(round(p.outliers * len(pts)))
+        if n_out:
+            lo, hi = pts.min(0), pts.max(0)
+            out = rng.uniform(lo, hi, size=(n_out, 3))
+            on = rng.normal(size=(n_out, 3))
+            pts = np.vstack([pts, out])
+            normals = np.vstack([normals, on / np.linalg.norm(on, axis=1, keepdims=True)])
+        diag = bbox_diagonal(mesh.vertices)
+        T = random_pose(np.random.default_rng([p.pose_seed, 202]), p.max_angle_deg, p.max_translation * diag)
+        target = transform_geometry(T, Cloud(pts, normals, f"synthetic scan of {p.mesh}"))
+        return Inputs(mesh, target, T, None, {"target_spacing": spacing})
+
+
+@DATA.register("stanford")
+class Stanford:
+    """Two scans of a Stanford range-scan folder with a ``.conf`` (default: the bunny in ../shared/data); the
+    ground truth comes from the ``.conf`` poses, and the source is moved by a seeded random initial pose."""
+
+    @dataclass
+    class Params(PoseParams):
+        folder: str = "shared:stanford_bunny"
+        """Folder with the scans and the .conf (``shared:NAME`` = ../shared/data/NAME beside the project)."""
+        conf: str = "bun.conf"
+        """Name of the .conf file in the folder."""
+        source: str = "bun045.ply"
+        """Scan to move (file name in the folder)."""
+        target: str = "bun000.ply"
+        """Fixed scan (file name in the folder)."""
+
+    def __init__(self, params: Params):
+        self.p = params
+
+    def load(self, ctx: Context) -> Inputs:
+        folder = Path(expand_path(self.p.folder))
+        if not folder.is_dir():
+            raise InputError(
+                f"data.folder {self.p.folder}: no such folder ({folder}); the Stanford scans live in ../shared/data"
+            )
+        poses = read_stanford_conf(folder / self.p.conf)
+        for scan in (self.p.source, self.p.target):
+            if scan not in poses:
+                raise ConfigError(f"data=stanford: scan '{scan}' is not in {self.p.conf}; known: {', '.join(poses)}")
+        src = read_geometry(folder / self.p.source, "source")
+        tgt = read_geometry(folder / self.p.target, "target")
+        T_t_s = invert_T(poses[self.p.target]) @ poses[self.p.source]
+        diag = bbox_diagonal(points_of(tgt))
+        P = random_pose(np.random.default_rng([self.p.pose_seed, 303]), self.p.max_angle_deg,
+                        self.p.max_translation * diag)
+        src = transform_geometry(P, src)
+        return Inputs(src, tgt, T_t_s @ invert_T(P), None, {"pair": f"{self.p.target}<-{self.p.source}"})
