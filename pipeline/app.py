@@ -48,8 +48,8 @@ def run_job(cfg: DictConfig) -> dict | None:
             params=flatten(resolved),
             tags={**choices, "scanreg.run_dir": str(run_dir), "scanreg.overrides": overrides},
         )
-    except ScanregError as e:
-        _err(str(e))
+    except Exception as e:  # noqa: BLE001: a bad tracking setup is reported like any other error
+        _err(str(e) if isinstance(e, ScanregError) else f"tracking: {type(e).__name__}: {e}".splitlines()[0])
         if multirun:
             return None
         raise SystemExit(1)
@@ -115,11 +115,125 @@ def check_group_overrides(argv: list[str]) -> str | None:
     return None
 
 
+_FLAGS_WITH_VALUE = {"-cn", "--config-name", "-cp", "--config-path", "-cd", "--config-dir", "--info", "-i",
+                     "--experimental-rerun"}
+
+
+def _task_overrides(argv: list[str]) -> tuple[str, list[str]]:
+    """(config name, the command line's overrides) with every sweep reduced to its first value."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    name, raw, skip = "config", [], False
+    for i, a in enumerate(argv):
+        if skip:
+            skip = False
+            continue
+        if a in _FLAGS_WITH_VALUE:
+            skip = True
+            if a in ("-cn", "--config-name") and i + 1 < len(argv):
+                name = argv[i + 1]
+            continue
+        if a.startswith("-"):
+            continue
+        raw.append(a)
+    out = []
+    for o in OverridesParser.create().parse_overrides(raw):
+        if o.key_or_group.startswith("hydra"):
+            continue
+        if o.is_sweep_override():
+            try:
+                first = next(iter(o.sweep_string_iterator()))
+            except Exception:  # noqa: BLE001 (glob sweeps etc.): leave it to Hydra
+                continue
+            out.append(f"{o.get_key_element()}={first}")
+        else:
+            out.append(o.input_line)
+    return name, out
+
+
+def precheck(argv: list[str]) -> tuple[str, DictConfig | None] | None:
+    """Compose the config as Hydra will and turn a composition error into one line.
+
+    Returns ``(message, config composed without the offending override or None)``, or None when all is well.
+    """
+    import re
+
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+
+    msg = check_group_overrides(argv)
+    try:
+        name, overrides = _task_overrides(argv)
+    except HydraException as e:
+        return f"bad override: {str(e).splitlines()[0]}", None
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        def try_compose(ovs):
+            try:
+                return compose(name, overrides=ovs), None
+            except Exception as e:  # noqa: BLE001
+                return None, e
+
+        if msg:
+            bad = [o for o in overrides if o.lstrip("+").split("=")[0] not in STAGE_GROUPS + ("experiment",)]
+            return msg, try_compose(bad)[0]
+        cfg, err = try_compose(overrides)
+        if err is None:
+            return None
+        text = " ".join(str(err).split())
+        m = re.search(r"Could not override '([^']+)'", text)
+        if not m:
+            cause = " ".join(str(err.__cause__ or "").split())
+            return (text + (f" ({cause})" if cause else ""))[:500], None
+        key = m.group(1)
+        rest = [o for o in overrides if o.lstrip("+~").split("=")[0] != key]
+        good, _ = try_compose(rest)
+        group, _, param = key.partition(".")
+        if good is not None and group in STAGE_GROUPS and param:
+            from pipeline.errors import ConfigError
+            from pipeline.registry import REGISTRIES, load_all
+
+            load_all()
+            try:
+                cls = REGISTRIES[group].get(good[group].name)
+                import dataclasses
+
+                fields = [f.name for f in dataclasses.fields(cls.Params)]
+                return (f"{group}={good[group].name}: unknown parameter '{param.split('.')[0]}'; "
+                        f"valid parameters: {', '.join(fields) or '(none)'}"), good
+            except ConfigError as e:
+                return str(e), good
+        return f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)", good
+
+
+def record_failed_run(cfg: DictConfig | None, reason: str, argv: list[str]) -> None:
+    """Best effort: file a FAILED run with the reason, so that the failure shows in MLflow too."""
+    if cfg is None:
+        return
+    try:
+        from pipeline.registry import TRACKING, load_all
+        from pipeline.tracking import flatten
+
+        load_all()
+        run = TRACKING.build(cfg.tracking).start_run(
+            run_name=" ".join(argv)[:250] or "defaults",
+            params=flatten(OmegaConf.to_container(cfg, resolve=False)),
+            tags={"scanreg.overrides": " ".join(argv)},
+        )
+        if run:
+            run.end("FAILED", reason)
+    except Exception:  # noqa: BLE001: the error line below is what matters
+        pass
+
+
 def main() -> None:
-    msg = check_group_overrides(sys.argv[1:])
-    if msg:
-        _err(msg)
-        raise SystemExit(2)
+    argv = sys.argv[1:]
+    if not any(a in ("-h", "--help", "--hydra-help", "-c", "--cfg", "--info", "-i") for a in argv):
+        problem = precheck(argv)
+        if problem:
+            msg, cfg = problem
+            record_failed_run(cfg, msg, argv)
+            _err(msg)
+            raise SystemExit(2)
     from pipeline.tracking import _sweep_outcome
 
     _hydra_main()

@@ -82,7 +82,9 @@ def make_params(params_cls: type, values: dict, where: str) -> Any:
     fields = [f.name for f in dataclasses.fields(params_cls)]
     unknown = [k for k in values if k not in fields]
     if unknown:
-        raise ConfigError(f"{where}: unknown parameter '{unknown[0]}'; valid parameters: {', '.join(fields)}")
+        raise ConfigError(
+            f"{where}: unknown parameter '{unknown[0]}'; valid parameters: {', '.join(fields) or '(none)'}"
+        )
     try:
         merged = OmegaConf.merge(OmegaConf.structured(params_cls), values)
         obj = OmegaConf.to_object(merged)

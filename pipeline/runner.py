@@ -107,7 +107,7 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
             clouds[role] = st["sampler"].run(g, ctx) if isinstance(g, Mesh) else g
             if clouds[role].n_points < MIN_POINTS:
                 raise InputError(
-                    f"{role} {g.source}: {clouds[role].n_points} point(s) after sampling; at least {MIN_POINTS} are needed"
+                    f"{g.source}: {clouds[role].n_points} point(s) after sampling; at least {MIN_POINTS} are needed"
                 )
     src, tgt = clouds["source"], clouds["target"]
     m["n_source_points"], m["n_target_points"] = src.n_points, tgt.n_points

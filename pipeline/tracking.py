@@ -96,7 +96,10 @@ class NoTracking:
 
     @dataclass
     class Params:
-        pass
+        uri: Optional[str] = None
+        """Ignored; accepted so that configs written for ``tracking=mlflow`` also run untracked."""
+        experiment: str = "scanreg"
+        """Ignored; accepted so that experiment files that name their MLflow experiment also run untracked."""
 
     def __init__(self, params: Params):
         self.p = params

@@ -1,0 +1,42 @@
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("SCANREG_SHARED_DATA", ROOT.parent / "shared" / "data"))
+
+
+def shared(rel: str) -> Path:
+    """A file under ../shared/data, or skip the test with a clear message when the folder is absent."""
+    p = SHARED / rel
+    if not p.exists():
+        pytest.skip(f"real scan data not available: {p} (../shared/data beside the project root)")
+    return p
+
+
+def pkg_file(spec: str) -> Path:
+    from pipeline.io import resolve_path
+
+    return resolve_path(spec)
+
+
+@pytest.fixture(scope="session")
+def mlflow_uri(tmp_path_factory) -> str:
+    return f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
+
+
+def run_cli(args: list[str], cwd: Path, uri: str | None = None, timeout: int = 300, module: str = "pipeline.app"):
+    env = dict(os.environ)
+    env.pop("SCANREG_SWEEP", None)
+    if uri:
+        env["MLFLOW_TRACKING_URI"] = uri
+    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def rng(seed=0):
+    return np.random.default_rng(seed)

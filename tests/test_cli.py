@@ -1,0 +1,202 @@
+"""Level 3: the command line end to end (subprocesses): demo, file inputs, bad inputs, sweeps, reports."""
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, run_cli, shared
+from pipeline.geometry import Cloud, apply_T, random_pose, transform_geometry
+from pipeline.io import read_mesh, write_ply, write_transform
+from stages.sampler import barycentric_sample
+
+RESULT_KEYS = {
+    "T_target_source", "rms", "fitness", "n_source_points", "n_target_points", "icp_iterations",
+    "time_load_s", "time_repair_s", "time_sample_s", "time_coarse_s", "time_icp_s", "time_total_s",
+}
+
+
+def runs(uri, experiment):
+    import mlflow
+
+    mlflow.set_tracking_uri(uri)
+    exp = mlflow.get_experiment_by_name(experiment)
+    assert exp is not None, f"experiment {experiment} was not created"
+    return mlflow.search_runs([exp.experiment_id])
+
+
+@pytest.mark.slow
+def test_demo_recovers_random_pose_and_logs(tmp_path, mlflow_uri):
+    out = tmp_path / "run"
+    r = run_cli(["data=synthetic", f"hydra.run.dir={out}", "tracking.experiment=demo"], tmp_path, mlflow_uri)
+    assert r.returncode == 0, r.stderr
+    res = json.loads((out / "result.json").read_text())
+    assert RESULT_KEYS | {"rotation_error_deg", "translation_error"} <= set(res)
+    assert res["rotation_error_deg"] < 1.0 and res["translation_error_rel"] < 0.01
+    assert res["time_total_s"] < 60
+    assert res["repair_before_boundary_loops"] == 70 and res["repair_after_boundary_loops"] == 0
+    T = np.loadtxt(out / "T_target_source.txt")
+    assert np.array_equal(T, np.array(res["T_target_source"]))
+    for f in ("aligned_source.ply", "target.ply", "config.yaml"):
+        assert (out / f).exists(), f
+    assert "rotation_error_deg" in r.stdout and "stage" in r.stdout
+    df = runs(mlflow_uri, "demo")
+    row = df.iloc[0]
+    assert row["status"] == "FINISHED"
+    assert row["tags.group.icp"] == "horn" and row["tags.group.coarse"] == "open3d_fpfh_ransac"
+    assert row["params.icp.max_iterations"] == "100"
+    for k in RESULT_KEYS - {"T_target_source"}:
+        assert row[f"metrics.{k}"] == pytest.approx(res[k]), k
+    import mlflow
+
+    arts = {a.path for a in mlflow.MlflowClient(mlflow_uri).list_artifacts(row["run_id"])}
+    assert {"config.yaml", "result.json", "T_target_source.txt", "aligned_source.ply"} <= arts
+    hist = mlflow.MlflowClient(mlflow_uri).get_metric_history(row["run_id"], "icp_rms_step")
+    assert len(hist) == res["icp_iterations"] + 1
+
+
+@pytest.mark.slow
+def test_deterministic_transform(tmp_path):
+    Ts = []
+    for i in range(2):
+        out = tmp_path / f"r{i}"
+        r = run_cli(["data=synthetic", "tracking=none", "seed=5", f"hydra.run.dir={out}"], tmp_path)
+        assert r.returncode == 0, r.stderr
+        Ts.append((out / "T_target_source.txt").read_bytes())
+    assert Ts[0] == Ts[1]
+
+
+def make_case(tmp_path, seed=0):
+    """A bunny mesh, a resampled cloud of it under a random pose, and the ground truth."""
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    rng = np.random.default_rng(seed)
+    pts, n, _ = barycentric_sample(m, 15000, rng)
+    T = random_pose(rng, 180, 20)
+    return m, Cloud(pts, n), T
+
+
+@pytest.mark.slow
+def test_files_mesh_to_cloud_and_cloud_to_mesh(tmp_path, mlflow_uri):
+    m, cloud, T = make_case(tmp_path)
+    np.save(tmp_path / "target.npy", apply_T(T, cloud.points))
+    write_transform(tmp_path / "gt.txt", T)
+    write_ply(tmp_path / "mesh_moved.ply", transform_geometry(T, m))
+    np.savetxt(tmp_path / "source.xyz", cloud.points)
+    cases = {
+        "mesh_to_cloud": ["data.source=pkg:pymeshfix/examples/StanfordBunny.ply", "data.target=target.npy"],
+        "cloud_to_mesh": ["data.source=source.xyz", "data.target=mesh_moved.ply", "repair=none"],
+    }
+    for name, args in cases.items():
+        out = tmp_path / name
+        r = run_cli([*args, "data.gt=gt.txt", f"hydra.run.dir={out}", "tracking.experiment=files"], tmp_path, mlflow_uri)
+        assert r.returncode == 0, r.stderr
+        res = json.loads((out / "result.json").read_text())
+        assert RESULT_KEYS <= set(res)
+        assert res["rotation_error_deg"] < 1.0, (name, res["rotation_error_deg"])
+    assert set(runs(mlflow_uri, "files")["status"]) == {"FINISHED"}
+
+
+def _write(tmp_path, name, data):
+    p = tmp_path / name
+    if isinstance(data, bytes):
+        p.write_bytes(data)
+    else:
+        np.save(p, data)
+    return name
+
+
+PLY_HEAD = b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n" \
+           b"element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+BAD_CASES = {
+    "missing": (["data.source=nope.ply"], "source nope.ply: no such file"),
+    "corrupt": (["data.source=corrupt.ply"], "source corrupt.ply: not a PLY file"),
+    "empty": (["data.source=empty.stl"], "source empty.stl: file is empty"),
+    "nan": (["data.source=nan.ply"], "source nan.ply: 1 point(s) with NaN or infinite coordinates"),
+    "bad_index": (["data.source=idx.ply"], "source idx.ply: 1 face(s) index missing vertices"),
+    "too_few_points": (["data.source=two.npy"], "source two.npy: 2 point(s) after sampling; at least 10"),
+    "degenerate": (["data.source=flat.ply", "repair=none"], "no triangle has an area above 0"),
+    "unknown_group_choice": (["icp=bogus"], "unknown icp 'bogus'; valid icp choices: horn"),
+    "unknown_stage_name": (["coarse.name=bogus"], "unknown coarse 'bogus'; valid coarse names: none, open3d_fpfh_ransac"),
+    "wrong_type": (["icp.max_iterations=many"], "icp=horn: parameter 'max_iterations' expects int, got 'many'"),
+    "unknown_param": (["sampler.n_pionts=5"], "sampler=barycentric: unknown parameter 'n_pionts'"),
+    "no_source": (["data.source=null"], "data=files: data.source is not set"),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(BAD_CASES))
+def test_bad_input_one_line_error_and_failed_run(tmp_path, mlflow_uri, case):
+    _write(tmp_path, "corrupt.ply", b"this is not a mesh\n")
+    _write(tmp_path, "empty.stl", b"")
+    _write(tmp_path, "nan.ply", PLY_HEAD + b"0 0 0\n1 0 0\nnan 1 0\n3 0 1 2\n")
+    _write(tmp_path, "idx.ply", PLY_HEAD + b"0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n")
+    _write(tmp_path, "flat.ply", PLY_HEAD + b"0 0 0\n1 0 0\n2 0 0\n3 0 1 2\n")
+    _write(tmp_path, "two.npy", np.random.default_rng(0).normal(size=(2, 3)))
+    args, message = BAD_CASES[case]
+    base = ["data.source=pkg:pymeshfix/examples/StanfordBunny.ply", "data.target=pkg:pymeshfix/examples/StanfordBunny.ply"]
+    keys = {a.split("=")[0] for a in args}
+    argv = [a for a in base if a.split("=")[0] not in keys] + args
+    r = run_cli([*argv, f"hydra.run.dir={tmp_path / 'out'}", f"tracking.experiment=bad_{case}"], tmp_path, mlflow_uri)
+    assert r.returncode != 0
+    assert "Traceback" not in r.stderr + r.stdout
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert lines and lines[-1].startswith("error: ") and message in lines[-1], r.stderr
+    assert sum(ln.startswith("error:") for ln in lines) == 1
+    df = runs(mlflow_uri, f"bad_{case}")
+    assert list(df["status"]) == ["FAILED"]
+    assert message in df.iloc[0]["tags.error"]
+
+
+@pytest.mark.slow
+def test_sweep_parent_children_and_report(tmp_path, mlflow_uri):
+    r = run_cli(["-m", "data=synthetic", "sampler.n_points=3000,6000", "tracking.experiment=sweep",
+                 f"hydra.sweep.dir={tmp_path / 'sweep'}"], tmp_path, mlflow_uri)
+    assert r.returncode == 0, r.stderr
+    df = runs(mlflow_uri, "sweep")
+    parent = df[df["tags.scanreg.sweep"] == "parent"]
+    children = df[df["tags.mlflow.parentRunId"] == parent.iloc[0]["run_id"]]
+    assert len(parent) == 1 and parent.iloc[0]["status"] == "FINISHED"
+    assert sorted(children["params.sampler.n_points"]) == ["3000", "6000"]
+    assert set(children["status"]) == {"FINISHED"}
+    rep = run_cli(["--experiment", "sweep", "--uri", mlflow_uri, "--out", str(tmp_path / "rep")], tmp_path,
+                  module="pipeline.report")
+    assert rep.returncode == 0, rep.stderr
+    import pandas as pd
+
+    table = pd.read_csv(tmp_path / "rep" / "report.csv")
+    assert list(table["sampler.n_points"]) == [3000, 6000] and list(table["runs"]) == [1, 1]
+    for _, row in table.iterrows():
+        child = children[children["params.sampler.n_points"] == str(int(row["sampler.n_points"]))].iloc[0]
+        assert row["rotation_error_deg_median"] == pytest.approx(child["metrics.rotation_error_deg"])
+    assert "sampler.n_points" in (tmp_path / "rep" / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_sweep_goes_on_after_a_failed_job(tmp_path, mlflow_uri):
+    r = run_cli(["-m", "data=synthetic", "sampler.n_points=-1,3000", "tracking.experiment=sweepfail",
+                 f"hydra.sweep.dir={tmp_path / 'sweep'}"], tmp_path, mlflow_uri)
+    assert r.returncode == 1
+    assert "n_points must be >= 1" in r.stderr and "1 failed" in r.stdout
+    df = runs(mlflow_uri, "sweepfail")
+    parent = df[df["tags.scanreg.sweep"] == "parent"].iloc[0]
+    children = df[df["tags.mlflow.parentRunId"] == parent["run_id"]]
+    assert sorted(children["status"]) == ["FAILED", "FINISHED"]
+    assert parent["status"] == "FAILED"
+    assert (tmp_path / "sweep" / "1" / "result.json").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("pose_seed", [0, 1])
+def test_stanford_bun045_to_bun000_from_random_pose(tmp_path, pose_seed):
+    shared("stanford_bunny/bun.conf")
+    out = tmp_path / "run"
+    r = run_cli(["data=stanford", "repair=none", "tracking=none", f"seed={pose_seed}", f"hydra.run.dir={out}"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    res = json.loads((out / "result.json").read_text())
+    assert res["rotation_error_deg"] < 2.0 and res["translation_error_rel"] < 0.01, res
+
+
+def test_readme_starts_with_the_two_commands():
+    lines = [ln.strip() for ln in (ROOT / "README.md").read_text().splitlines()]
+    code = [ln for ln in lines if ln.startswith("./run ")]
+    assert code[:2] == ["./run demo", "./run test"]

@@ -1,0 +1,226 @@
+"""Level 2: each stage on known answers."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from conftest import shared
+from pipeline.config import Context, Distances
+from pipeline.geometry import (
+    Cloud, Mesh, apply_T, horn_quaternion, invert_T, kabsch_svd, make_T, random_pose, rotation_angle_deg,
+    transform_errors,
+)
+from pipeline.io import read_mesh, read_stanford_conf
+from pipeline.metrics import estimate_spacing
+from stages.repair import MeshFix, mesh_stats
+from stages.sampler import Barycentric, barycentric_sample, triangle_areas_normals
+
+TET = Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float), np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+
+
+def ctx(tmp_path=None, spacing=1.0, seed=0):
+    c = Context(seed=seed, run_dir=tmp_path)
+    c.spacing = spacing
+    return c
+
+
+# ---------------------------------------------------------------------------------------------- geometry
+
+
+def test_horn_matches_svd_on_random_pairs():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        T = random_pose(rng, 180, 10)
+        s = rng.normal(size=(40, 3)) * rng.uniform(0.1, 10)
+        t = apply_T(T, s) + rng.normal(scale=0.05, size=s.shape)
+        assert np.abs(horn_quaternion(t, s) - kabsch_svd(t, s)).max() < 1e-9
+
+
+def test_horn_exact_on_noise_free_pairs():
+    rng = np.random.default_rng(1)
+    T = random_pose(rng, 180, 3)
+    s = rng.normal(size=(10, 3))
+    rot, trans = transform_errors(horn_quaternion(apply_T(T, s), s), T)
+    assert rot < 1e-6 and trans < 1e-12
+
+
+def test_random_pose_respects_bounds_and_errors():
+    rng = np.random.default_rng(2)
+    for _ in range(100):
+        T = random_pose(rng, 30, 2)
+        assert rotation_angle_deg(T[:3, :3]) <= 30 + 1e-9 and np.linalg.norm(T[:3, 3]) <= 2 + 1e-12
+        assert np.allclose(T @ invert_T(T), np.eye(4))
+    R = make_T(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))
+    assert abs(rotation_angle_deg(R[:3, :3]) - 180) < 1e-9
+    assert transform_errors(np.eye(4), make_T(np.eye(3), [3, 4, 0])) == (0.0, 5.0)
+
+
+# ---------------------------------------------------------------------------------------------- sampler
+
+
+def test_sampled_points_lie_on_their_triangles_inside():
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    pts, normals, face = barycentric_sample(m, 20000, np.random.default_rng(0))
+    a, b, c = (m.vertices[m.faces[face, i]] for i in range(3))
+    # solve p = a + u (b - a) + v (c - a) by least squares per point
+    M = np.stack([b - a, c - a], axis=2)
+    uv = np.linalg.lstsq(M[0], (pts - a)[0], rcond=None)[0]  # smoke for one
+    sol = np.einsum("nij,nj->ni", np.linalg.pinv(M), pts - a)
+    resid = np.linalg.norm(np.einsum("nij,nj->ni", M, sol) - (pts - a), axis=1)
+    assert resid.max() < 1e-9 * np.abs(m.vertices).max()
+    assert (sol >= -1e-9).all() and (sol.sum(axis=1) <= 1 + 1e-9).all(), "reflection must keep points inside"
+    assert uv.shape == (2,)
+    _, fn = triangle_areas_normals(m)
+    assert np.array_equal(normals, fn[face])
+
+
+def test_counts_follow_area_chi_square():
+    rng = np.random.default_rng(5)
+    v = rng.uniform(size=(60, 3))
+    f = rng.integers(0, 60, size=(40, 3))
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    m = Mesh(v, f)
+    areas, _ = triangle_areas_normals(m)
+    n = 200000
+    _, _, face = barycentric_sample(m, n, np.random.default_rng(7))
+    observed = np.bincount(face, minlength=len(f))
+    expected = n * areas / areas.sum()
+    assert stats.chisquare(observed, expected).pvalue > 1e-3
+    # a sampler ignoring area fails the same test
+    uniform = np.bincount(np.random.default_rng(7).integers(0, len(f), n), minlength=len(f))
+    assert stats.chisquare(uniform, expected).pvalue < 1e-6
+
+
+def test_sampler_seed_density_and_small_triangles():
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    s = lambda **kw: Barycentric(Barycentric.Params(**kw)).run(m, ctx())  # noqa: E731
+    a, b, c = s(seed=3), s(seed=3), s(seed=4)
+    assert np.array_equal(a.points, b.points) and not np.array_equal(a.points, c.points)
+    areas, _ = triangle_areas_normals(m)
+    d = s(n_points=None, density=2.0)
+    assert d.n_points == round(2.0 * areas.sum())
+    q = s(min_triangle_area=0.5, min_area_quantile=True)
+    thr = np.quantile(areas, 0.5)
+    assert (areas[q.extra["face"]] > thr).all() and q.extra["skipped_faces"] >= len(areas) // 2
+
+
+# ---------------------------------------------------------------------------------------------- repair
+
+
+def test_mesh_stats_known_answers():
+    s = mesh_stats(TET)
+    assert (s["components"], s["boundary_loops"], s["non_manifold_edges"], s["faces"]) == (1, 0, 0, 4)
+    open_tet = Mesh(TET.vertices, TET.faces[:3])
+    assert (mesh_stats(open_tet)["boundary_loops"], mesh_stats(open_tet)["boundary_edges"]) == (1, 3)
+    two = Mesh(np.vstack([TET.vertices, TET.vertices + 5]), np.vstack([TET.faces, TET.faces + 4]))
+    assert mesh_stats(two)["components"] == 2
+    fin = Mesh(np.vstack([TET.vertices, [[1, 1, 1]]]), np.vstack([TET.faces, [[1, 2, 4]]]))
+    assert mesh_stats(fin)["non_manifold_edges"] == 1
+    assert abs(mesh_stats(TET)["area"] - (1.5 + np.sqrt(3) / 2)) < 1e-12
+
+
+@pytest.mark.parametrize("path", ["pkg:pymeshfix/examples/StanfordBunny.ply", "meshlab_defects/many_small_holes.ply",
+                                  "meshlab_defects/non_manif_hole.ply"])
+def test_meshfix_makes_one_closed_manifold(path):
+    if not path.startswith("pkg:"):
+        path = shared(path)
+    m = read_mesh(path)
+    before = mesh_stats(m)
+    out = MeshFix(MeshFix.Params()).run(m, ctx())
+    after = mesh_stats(out)
+    assert before["boundary_loops"] > 0
+    assert after["components"] == 1 and after["boundary_edges"] == 0 and after["non_manifold_edges"] == 0
+    assert after["degenerate_faces"] == 0
+    assert after["area"] >= 0.9 * before["area"]  # repair removed no more than 10 % of the surface
+
+
+# ---------------------------------------------------------------------------------------------- keypoints, descriptors, matcher
+
+
+def test_uniform_keypoints_one_per_voxel():
+    from stages.salience import Uniform
+
+    pts = np.random.default_rng(0).uniform(0, 10, size=(5000, 3))
+    idx = Uniform(Uniform.Params(voxel=2.0, distances=Distances.absolute)).keypoints(Cloud(pts), ctx())
+    keys = np.floor((pts[idx] - pts.min(0)) / 2.0)
+    assert len(idx) == len(np.unique(keys, axis=0)) == 125
+    assert np.array_equal(idx, Uniform(Uniform.Params(voxel=2.0, distances=Distances.absolute)).keypoints(Cloud(pts), ctx()))
+
+
+def test_mutual_knn_recovers_a_permutation():
+    from stages.matcher import MutualKNN
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(300, 33))
+    perm = rng.permutation(300)
+    pairs = MutualKNN(MutualKNN.Params(k=1)).match(d[perm], d, ctx())
+    assert len(pairs) == 300 and np.array_equal(perm[pairs[:, 0]], pairs[:, 1])
+    k3 = MutualKNN(MutualKNN.Params(k=3)).match(d[perm], d, ctx())
+    assert len(k3) >= 300 and {tuple(p) for p in pairs} <= {tuple(p) for p in k3}
+
+
+def test_fpfh_is_rotation_invariant():
+    from stages.descriptor import FPFH
+    from stages.salience import Uniform
+
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    pts, n, _ = barycentric_sample(m, 8000, np.random.default_rng(0))
+    c = ctx(spacing=estimate_spacing(pts, np.random.default_rng(0)))
+    idx = Uniform(Uniform.Params(voxel=6.0)).keypoints(Cloud(pts, n), c)
+    T = random_pose(np.random.default_rng(1), 180, 30)
+    moved = Cloud(apply_T(T, pts), n @ T[:3, :3].T)
+
+    def rel_change(**kw):
+        f = FPFH(FPFH.Params(**kw))
+        d0, d1 = f.compute(Cloud(pts, n), idx, c), f.compute(moved, idx, c)
+        return np.median(np.linalg.norm(d0 - d1, axis=1) / np.linalg.norm(d0, axis=1))
+
+    # on the full cloud the descriptor is invariant up to rounding; an axis-aligned voxel support grid moves
+    # with the rotation, so there it changes a little (a property of voxel downsampling, not of FPFH)
+    assert rel_change(support_voxel=0.0, radius=8.0) < 1e-3
+    assert rel_change() < 0.2
+
+
+# ---------------------------------------------------------------------------------------------- ICP
+
+
+def stanford_pair(src="bun045.ply", tgt="bun000.ply"):
+    folder = shared("stanford_bunny")
+    poses = read_stanford_conf(folder / "bun.conf")
+    s, t = read_mesh(folder / src), read_mesh(folder / tgt)
+    return Cloud(t.vertices), Cloud(s.vertices), invert_T(poses[tgt]) @ poses[src]
+
+
+@pytest.mark.parametrize("angle", [5.0, 10.0])
+def test_horn_icp_recovers_stanford_pose(angle):
+    from stages.icp import Horn
+
+    tgt, src, T_gt = stanford_pair()
+    c = ctx(spacing=estimate_spacing(tgt.points, np.random.default_rng(0)))
+    rng = np.random.default_rng(int(angle))
+    axis = rng.normal(size=3)
+    from scipy.spatial.transform import Rotation
+
+    off = make_T(Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(angle)).as_matrix(), np.zeros(3))
+    centre = apply_T(T_gt, src.points).mean(0)
+    off = make_T(np.eye(3), centre) @ off @ make_T(np.eye(3), -centre)  # rotate about the scan's centre
+    res = Horn(Horn.Params(max_correspondence_distance=3.0)).run(tgt, src, off @ T_gt, c)
+    rot, trans = transform_errors(res.T_target_source, T_gt)
+    assert transform_errors(off @ T_gt, T_gt)[0] > angle - 1e-6
+    assert rot < 0.5 and trans < 1e-3, (rot, trans)
+
+
+def test_horn_rms_never_increases_without_distance_limit():
+    from stages.icp import Horn
+
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    rng = np.random.default_rng(0)
+    a, _, _ = barycentric_sample(m, 5000, rng)
+    b, _, _ = barycentric_sample(m, 5000, rng)
+    T = random_pose(rng, 15, 2)
+    c = ctx(spacing=estimate_spacing(a, rng))
+    res = Horn(Horn.Params(max_correspondence_distance=None, tau=0.0, max_iterations=40)).run(
+        Cloud(apply_T(T, a)), Cloud(b), np.eye(4), c)
+    h = np.array(res.rms_history)
+    assert (np.diff(h) <= 1e-12).all() and h[-1] < h[0] / 3
+    assert transform_errors(res.T_target_source, T)[0] < 1.0
