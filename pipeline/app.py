@@ -75,8 +75,16 @@ def run_job(cfg: DictConfig) -> dict | None:
             else:
                 reason += " (run with verbose=true for the traceback)"
         if run:
+            run.log_metrics(getattr(e, "metrics", {}) or {})
             run.log_artifacts([run_dir / "config.yaml"])
             run.end("FAILED", reason)
+        if getattr(e, "metrics", None):
+            from pipeline.runner import repair_table
+
+            for prefix, role in (("repair_", "source"), ("target_repair_", "target")):
+                lines = repair_table(e.metrics, prefix, role)
+                if lines:
+                    print("\n".join(lines[1:]))
         _err(reason)
         if multirun:
             return None

@@ -2,7 +2,12 @@
 
 
 class ScanregError(Exception):
-    """Base of all expected failures; the message is shown to the user as one line."""
+    """Base of all expected failures; the message is shown to the user as one line. ``metrics`` measured
+    before the failure (e.g. a repair audit) are still logged with the failed run."""
+
+    def __init__(self, message: str, metrics: dict | None = None):
+        super().__init__(message)
+        self.metrics = metrics or {}
 
 
 class ConfigError(ScanregError):

@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from scipy.spatial import cKDTree
 
 from pipeline.config import Context
-from pipeline.errors import ConfigError, InputError
+from pipeline.errors import InputError, ScanregError
 from pipeline.geometry import Cloud, Mesh, bbox_diagonal, transform_geometry
 from pipeline.io import write_ply, write_transform
 from pipeline.metrics import EvalParams, alignment_metrics, estimate_spacing, gt_metrics
@@ -90,28 +90,31 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
     geoms = {"source": inputs.source, "target": inputs.target}
     with timer("repair"):
         if cfg.repair.name != "none":
-            from stages.repair import mesh_stats
+            from stages.repair import repair_with_audit
 
             for role, g in geoms.items():
                 if isinstance(g, Mesh):
-                    prefix = "repair_" if role == "source" else "target_repair_"
-                    before = mesh_stats(g)
-                    geoms[role] = st["repair"].run(g, ctx)
-                    after = mesh_stats(geoms[role])
-                    m.update({f"{prefix}before_{k}": v for k, v in before.items()})
-                    m.update({f"{prefix}after_{k}": v for k, v in after.items()})
+                    try:
+                        geoms[role], rm = repair_with_audit(st["repair"], g, ctx, "repair_" if role == "source"
+                                                            else "target_repair_")
+                    except ScanregError as e:
+                        e.metrics = {**m, **e.metrics}
+                        raise
+                    m.update(rm)
 
     clouds: dict[str, Cloud] = {}
     with timer("sample"):
         for role, g in geoms.items():
-            clouds[role] = st["sampler"].run(g, ctx) if isinstance(g, Mesh) else g
+            clouds[role] = st["sampler"].run(g, ctx) if isinstance(g, Mesh) else st["sampler"].run_cloud(g, ctx)
             if clouds[role].n_points < MIN_POINTS:
                 raise InputError(
                     f"{g.source}: {clouds[role].n_points} point(s) after sampling; at least {MIN_POINTS} are needed"
                 )
     src, tgt = clouds["source"], clouds["target"]
     m["n_source_points"], m["n_target_points"] = src.n_points, tgt.n_points
-    spacing = max(estimate_spacing(tgt.points, ctx.rng(1)), estimate_spacing(src.points, ctx.rng(2)))
+    m["target_spacing"] = estimate_spacing(tgt.points, ctx.rng(1))
+    m["source_spacing"] = estimate_spacing(src.points, ctx.rng(2))
+    spacing = max(m["target_spacing"], m["source_spacing"])
     if not spacing > 0:
         raise InputError(f"{src.source} / {tgt.source}: all points coincide; cannot estimate a sampling spacing")
     ctx.spacing, ctx.diagonal = spacing, bbox_diagonal(tgt.points)
@@ -160,12 +163,24 @@ def summary_lines(res: Result) -> list[str]:
     rows = [(s, f"{m[f'time_{s}_s']:.3f}") for s in ("load", "repair", "sample", "coarse", "icp", "evaluate", "total")
             if f"time_{s}_s" in m]
     lines = ["stage     time [s]"] + [f"{s:<9} {t:>8}" for s, t in rows]
-    keys = ["n_source_points", "n_target_points", "spacing", "icp_iterations", "rms", "fitness",
+    keys = ["n_source_points", "n_target_points", "source_spacing", "target_spacing", "spacing", "icp_iterations", "rms", "fitness",
             "coarse_rotation_error_deg", "rotation_error_deg", "translation_error", "translation_error_rel", "success"]
     lines.append("")
     lines += [f"{k:<26} {m[k]:.6g}" for k in keys if k in m]
-    rep = [k[len("repair_before_"):] for k in m if k.startswith("repair_before_")]
-    if rep:
-        lines += ["", f"{'repair (source)':<24} {'before':>12} {'after':>12}"]
-        lines += [f"{k:<24} {m['repair_before_' + k]:>12.6g} {m['repair_after_' + k]:>12.6g}" for k in rep]
+    for prefix, role in (("repair_", "source"), ("target_repair_", "target")):
+        lines += repair_table(m, prefix, role)
+    return lines
+
+
+def repair_table(m: dict, prefix: str = "repair_", role: str = "source") -> list[str]:
+    """The before/after table of a repair audit (empty when there was none)."""
+    rep = [k[len(prefix + "before_"):] for k in m if k.startswith(prefix + "before_")]
+    if not rep:
+        return []
+    lines = ["", f"{'repair (' + role + ')':<32} {'before':>12} {'after':>12}"]
+    lines += [f"{k:<32} {m[prefix + 'before_' + k]:>12.6g} {m.get(prefix + 'after_' + k, float('nan')):>12.6g}"
+              for k in rep]
+    extra = ["hausdorff_max", "hausdorff_max_rel", "hausdorff_mean_rel", "hausdorff_added_max_rel",
+             "removed_area_share", "guard_ok"]
+    lines += [f"{k:<32} {m[prefix + k]:>25.6g}" for k in extra if prefix + k in m]
     return lines

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 from typing import Optional
 
 import numpy as np
 
-from pipeline.config import Context
+from pipeline.config import Context, Distances, to_abs
 from pipeline.errors import ConfigError, InputError
 from pipeline.geometry import Cloud, Mesh
 from pipeline.registry import SAMPLER
@@ -17,7 +18,7 @@ def triangle_areas_normals(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     """Per-face areas and unit normals (counter-clockwise winding = outward); degenerate faces get area 0."""
     v, f = mesh.vertices, mesh.faces
     cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    norm = np.linalg.norm(cross, axis=1)
+    norm = np.sqrt(np.einsum("ij,ij->i", cross, cross))
     normals = np.divide(cross, norm[:, None], out=np.zeros_like(cross), where=norm[:, None] > 0)
     return 0.5 * norm, normals
 
@@ -27,34 +28,82 @@ def barycentric_sample(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Area-weighted random points on a mesh: ``(points, normals, face index)``.
 
-    A triangle is drawn with probability proportional to its area (triangles with area <= ``min_area`` never);
-    on it, ``u, v ~ U(0, 1)``, reflected to ``1 - u, 1 - v`` when ``u + v > 1``, and the point is
-    ``a + u (b - a) + v (c - a)``. The normal is the triangle's.
+    Each point falls on a triangle with probability proportional to its area (triangles with area <=
+    ``min_area`` never): the per-triangle counts are drawn at once from the multinomial distribution, which is
+    the same law as ``n_points`` independent area-weighted draws. On its triangle a point is
+    ``a + u (b - a) + v (c - a)`` with ``u, v ~ U(0, 1)``, reflected to ``1 - u, 1 - v`` when ``u + v > 1``. The
+    normal is the triangle's. Points come grouped by triangle (in face order).
     """
-    areas, normals = triangle_areas_normals(mesh)
-    w = np.where(areas > min_area, areas, 0.0)
-    total = w.sum()
+    v, f = mesh.vertices, mesh.faces
+    a = v[f[:, 0]]
+    e1 = v[f[:, 1]] - a
+    e2 = v[f[:, 2]] - a
+    cross = np.cross(e1, e2)
+    norm = np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    w = np.where(0.5 * norm > min_area, norm, 0.0)
+    total = math.fsum(w)
     if not total > 0:
         raise InputError(f"{mesh.source or 'mesh'}: no triangle has an area above {min_area:g}: nothing to sample")
-    cdf = np.cumsum(w)
-    cdf /= cdf[-1]
-    face = np.searchsorted(cdf, rng.random(n_points), side="right")
-    face = np.minimum(face, len(cdf) - 1)
+    counts = rng.multinomial(n_points, w / total)
+    face = np.repeat(np.arange(len(f)), counts)
     uv = rng.random((n_points, 2))
-    flip = uv.sum(axis=1) > 1.0
+    flip = uv[:, 0] + uv[:, 1] > 1.0
     uv[flip] = 1.0 - uv[flip]
-    tri = mesh.faces[face]
-    a = mesh.vertices[tri[:, 0]]
-    pts = a + uv[:, :1] * (mesh.vertices[tri[:, 1]] - a) + uv[:, 1:] * (mesh.vertices[tri[:, 2]] - a)
+    pts = a[face]
+    pts += uv[:, :1] * e1[face]
+    pts += uv[:, 1:] * e2[face]
+    normals = cross / np.where(norm > 0, norm, 1.0)[:, None]
     return pts, normals[face], face
 
 
+@dataclass
+class CloudParams:
+    cloud_voxel: Optional[float] = None
+    """Voxel downsampling of point-cloud inputs (which otherwise pass through unchanged): voxel size in
+    multiples of the cloud's own spacing (median nearest-neighbour distance) or in input units, see
+    ``cloud_distances``; null: no downsampling."""
+    cloud_distances: Distances = Distances.spacing
+    """Unit of ``cloud_voxel``: ``spacing`` (the cloud's own) or ``absolute`` (input units)."""
+
+
+class SamplerBase:
+    """Shared by all samplers: point-cloud inputs pass through, optionally voxel-downsampled."""
+
+    p: CloudParams
+
+    def __init__(self, params):
+        self.p = params
+
+    def run_cloud(self, cloud: Cloud, ctx: Context) -> Cloud:
+        if self.p.cloud_voxel is None:
+            return cloud
+        from pipeline.metrics import estimate_spacing
+        from stages.salience import voxel_representatives
+
+        own = estimate_spacing(cloud.points, ctx.rng(3))
+        voxel = to_abs(self.p.cloud_voxel, self.p.cloud_distances, own)
+        if not voxel > 0:
+            raise ConfigError(f"sampler={self.name}: cloud_voxel must be > 0, got {self.p.cloud_voxel}")
+        idx = voxel_representatives(cloud.points, voxel)
+        normals = None if cloud.normals is None else cloud.normals[idx]
+        return Cloud(cloud.points[idx], normals, cloud.source, {"voxel": voxel})
+
+
+def _o3d_mesh(mesh: Mesh):
+    import open3d as o3d
+
+    om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                   o3d.utility.Vector3iVector(mesh.faces.astype(np.int32)))
+    om.compute_triangle_normals()
+    return om
+
+
 @SAMPLER.register("barycentric")
-class Barycentric:
+class Barycentric(SamplerBase):
     """Area-weighted random barycentric sampling (the paper's method), vectorised with NumPy."""
 
     @dataclass
-    class Params:
+    class Params(CloudParams):
         n_points: Optional[int] = 20000
         """Number of points to draw; leave null to use ``density`` instead."""
         density: Optional[float] = None
@@ -68,27 +117,106 @@ class Barycentric:
         """Random seed; the same seed gives the same points bit for bit."""
 
         def check(self):
-            if (self.n_points is None) == (self.density is None):
-                raise ValueError("give exactly one of n_points and density (set the other to null)")
-            if self.n_points is not None and self.n_points < 1:
-                raise ValueError(f"n_points must be >= 1, got {self.n_points}")
-            if self.density is not None and not self.density > 0:
-                raise ValueError(f"density must be > 0, got {self.density}")
+            _check_count(self)
             if self.min_area_quantile and not 0 <= self.min_triangle_area < 1:
                 raise ValueError("min_triangle_area must be in [0, 1) when min_area_quantile is true")
-
-    def __init__(self, params: Params):
-        self.p = params
 
     def run(self, mesh: Mesh, ctx: Context) -> Cloud:
         areas, _ = triangle_areas_normals(mesh)
         min_area = self.p.min_triangle_area
         if self.p.min_area_quantile:
             min_area = float(np.quantile(areas, min_area))
-        n = self.p.n_points
-        if n is None:
-            n = int(round(self.p.density * float(areas[areas > min_area].sum())))
-            if n < 1:
-                raise ConfigError(f"sampler=barycentric: density {self.p.density:g} gives no point on this mesh")
+        n = _count(self.p, float(areas[areas > min_area].sum()), self.name)
         pts, normals, face = barycentric_sample(mesh, n, np.random.default_rng(self.p.seed), min_area)
         return Cloud(pts, normals, mesh.source, {"face": face, "skipped_faces": int((areas <= min_area).sum())})
+
+
+def _check_count(p) -> None:
+    if (p.n_points is None) == (p.density is None):
+        raise ValueError("give exactly one of n_points and density (set the other to null)")
+    if p.n_points is not None and p.n_points < 1:
+        raise ValueError(f"n_points must be >= 1, got {p.n_points}")
+    if p.density is not None and not p.density > 0:
+        raise ValueError(f"density must be > 0, got {p.density}")
+
+
+def _count(p, area: float, name: str) -> int:
+    if p.n_points is not None:
+        return p.n_points
+    n = int(round(p.density * area))
+    if n < 1:
+        raise ConfigError(f"sampler={name}: density {p.density:g} gives no point on this mesh (area {area:g})")
+    return n
+
+
+@SAMPLER.register("open3d_uniform")
+class Open3dUniform(SamplerBase):
+    """Open3D's ``sample_points_uniformly`` (area-weighted random points), for comparison."""
+
+    @dataclass
+    class Params(CloudParams):
+        n_points: Optional[int] = 20000
+        """Number of points to draw; leave null to use ``density`` instead."""
+        density: Optional[float] = None
+        """Points per unit area (input units squared); used when ``n_points`` is null."""
+        seed: int = 0
+        """Seed of Open3D's random generator."""
+
+        def check(self):
+            _check_count(self)
+
+    def run(self, mesh: Mesh, ctx: Context) -> Cloud:
+        import open3d as o3d
+
+        o3d.utility.random.seed(self.p.seed)
+        om = _o3d_mesh(mesh)
+        pc = om.sample_points_uniformly(_count(self.p, om.get_surface_area(), self.name), use_triangle_normal=True)
+        return Cloud(np.asarray(pc.points).copy(), np.asarray(pc.normals).copy(), mesh.source)
+
+
+@SAMPLER.register("poisson_disk")
+class PoissonDisk(SamplerBase):
+    """Open3D's Poisson-disk sampling (Yuksel 2015 sample elimination): evenly spaced points."""
+
+    @dataclass
+    class Params(CloudParams):
+        n_points: Optional[int] = 20000
+        """Number of points to keep; leave null to use ``density`` instead."""
+        density: Optional[float] = None
+        """Points per unit area (input units squared); used when ``n_points`` is null."""
+        init_factor: int = 5
+        """Candidates drawn uniformly before elimination, as a multiple of the points kept."""
+        seed: int = 0
+        """Seed of Open3D's random generator."""
+
+        def check(self):
+            _check_count(self)
+            if self.init_factor < 1:
+                raise ValueError(f"init_factor must be >= 1, got {self.init_factor}")
+
+    def run(self, mesh: Mesh, ctx: Context) -> Cloud:
+        import open3d as o3d
+
+        o3d.utility.random.seed(self.p.seed)
+        om = _o3d_mesh(mesh)
+        pc = om.sample_points_poisson_disk(_count(self.p, om.get_surface_area(), self.name),
+                                           init_factor=self.p.init_factor, use_triangle_normal=True)
+        return Cloud(np.asarray(pc.points).copy(), np.asarray(pc.normals).copy(), mesh.source)
+
+
+@SAMPLER.register("vertices")
+class Vertices(SamplerBase):
+    """The mesh's own vertices, with area-weighted vertex normals (unreferenced vertices dropped)."""
+
+    @dataclass
+    class Params(CloudParams):
+        pass
+
+    def run(self, mesh: Mesh, ctx: Context) -> Cloud:
+        areas, fn = triangle_areas_normals(mesh)
+        vn = np.zeros_like(mesh.vertices)
+        for k in range(3):
+            np.add.at(vn, mesh.faces[:, k], fn * areas[:, None])
+        used = np.unique(mesh.faces)
+        norm = np.linalg.norm(vn[used], axis=1, keepdims=True)
+        return Cloud(mesh.vertices[used], vn[used] / np.where(norm > 0, norm, 1.0), mesh.source)

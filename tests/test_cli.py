@@ -200,3 +200,23 @@ def test_readme_starts_with_the_two_commands():
     lines = [ln.strip() for ln in (ROOT / "README.md").read_text().splitlines()]
     code = [ln for ln in lines if ln.startswith("./run ")]
     assert code[:2] == ["./run demo", "./run test"]
+
+
+@pytest.mark.slow
+def test_repair_guard_fails_the_run_with_its_audit(tmp_path, mlflow_uri):
+    mesh = shared("meshlab_defects/many_small_holes.ply")
+    r = run_cli([f"data.source={mesh}", f"data.target={mesh}", "repair=meshfix", "tracking.experiment=guard",
+                 f"hydra.run.dir={tmp_path / 'g'}"], tmp_path, mlflow_uri)
+    assert r.returncode == 1
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("error: repair=meshfix:") and "of the surface" in last and "max_hole_edges" in last
+    assert "removed_area_share" in r.stdout  # the before/after table is still shown
+    row = runs(mlflow_uri, "guard").iloc[0]
+    assert row["status"] == "FAILED" and row["metrics.repair_guard_ok"] == 0
+    assert row["metrics.repair_before_boundary_loops"] == 32
+    # the same with the border kept open registers the scan to itself
+    r = run_cli([f"data.source={mesh}", f"data.target={mesh}", "repair=meshfix", "repair.max_hole_edges=100",
+                 "repair.max_hausdorff=0.05", "tracking=none", f"hydra.run.dir={tmp_path / 'ok'}"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    res = json.loads((tmp_path / "ok" / "result.json").read_text())
+    assert res["repair_after_boundary_loops"] == 1 and res["repair_after_self_intersecting_faces"] == 0

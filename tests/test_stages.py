@@ -224,3 +224,51 @@ def test_horn_rms_never_increases_without_distance_limit():
     h = np.array(res.rms_history)
     assert (np.diff(h) <= 1e-12).all() and h[-1] < h[0] / 3
     assert transform_errors(res.T_target_source, T)[0] < 1.0
+
+
+# ---------------------------------------------------------------------------------------------- other samplers
+
+
+@pytest.mark.parametrize("name", ["open3d_uniform", "poisson_disk", "vertices", "barycentric"])
+def test_every_sampler_puts_points_on_the_surface(name):
+    import open3d as o3d
+
+    from pipeline.registry import SAMPLER, make_params
+
+    m = read_mesh("pkg:pymeshlab/tests/sample_meshes/bone.ply")
+    cls = SAMPLER.get(name)
+    kw = {} if name == "vertices" else {"n_points": 3000, "seed": 1}
+    s = cls(make_params(cls.Params, kw, name))
+    c = s.run(m, ctx())
+    c2 = s.run(m, ctx())
+    assert np.array_equal(c.points, c2.points), "same seed, same points"
+    assert c.n_points == (len(np.unique(m.faces)) if name == "vertices" else 3000)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)), o3d.core.Tensor(m.faces.astype(np.uint32)))
+    d = scene.compute_distance(o3d.core.Tensor(c.points.astype(np.float32))).numpy()
+    assert d.max() < 1e-4 * np.linalg.norm(np.ptp(m.vertices, axis=0))
+    assert np.allclose(np.linalg.norm(c.normals, axis=1), 1.0, atol=1e-6)
+
+
+def test_poisson_disk_is_more_even_than_random():
+    from stages.sampler import PoissonDisk
+
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    pd = PoissonDisk(PoissonDisk.Params(n_points=5000)).run(m, ctx())
+    rnd, _, _ = barycentric_sample(m, 5000, np.random.default_rng(0))
+    from scipy.spatial import cKDTree
+
+    nn = lambda p: cKDTree(p).query(p, k=2)[0][:, 1]  # noqa: E731
+    assert np.std(nn(pd.points)) / np.mean(nn(pd.points)) < 0.6 * np.std(nn(rnd)) / np.mean(nn(rnd))
+
+
+def test_cloud_inputs_pass_through_or_are_voxel_downsampled():
+    from stages.sampler import Barycentric
+
+    pts = np.random.default_rng(0).uniform(0, 10, size=(20000, 3))
+    c = Cloud(pts)
+    assert Barycentric(Barycentric.Params()).run_cloud(c, ctx()) is c
+    d = Barycentric(Barycentric.Params(cloud_voxel=1.0, cloud_distances=Distances.absolute)).run_cloud(c, ctx())
+    assert d.n_points == 1000 and d.extra["voxel"] == 1.0
+    s = Barycentric(Barycentric.Params(cloud_voxel=3.0)).run_cloud(c, ctx())
+    assert 0 < s.n_points < 20000
