@@ -310,7 +310,8 @@ class MeshLab:
         """Close only holes with at most this many boundary edges (0: every hole; see meshfix's note on an
         open scan's outer border)."""
         refine_holes: bool = True
-        """Refine the patches that close holes to the surrounding edge length."""
+        """Refine the patches that close holes to the surrounding edge length. Better patches, fewer rounds,
+        but MeshLab's refinement costs about 9 s per pass on a 100k-face mesh (false: 0.1 s)."""
         max_rounds: int = 6
         """Most rounds of intersection removal and hole closing."""
 
@@ -321,6 +322,8 @@ class MeshLab:
         import pymeshlab
 
         p = self.p
+        if ms.current_mesh().face_number() == 0:
+            return
         if p.remove_null_faces:
             ms.meshing_remove_null_faces()
         ms.meshing_remove_unreferenced_vertices()
@@ -335,6 +338,8 @@ class MeshLab:
     def _close(self, ms, prevent: bool) -> None:
         import pymeshlab
 
+        if ms.current_mesh().face_number() == 0:
+            return
         try:
             ms.meshing_close_holes(maxholesize=self.p.max_hole_edges or 10**9, selfintersection=prevent,
                                    refinehole=self.p.refine_holes)
@@ -356,6 +361,8 @@ class MeshLab:
         if p.orient:
             ms.meshing_re_orient_faces_coherently()
         for _ in range(p.max_rounds):
+            if ms.current_mesh().face_number() == 0:
+                break
             if p.remove_self_intersections:
                 ms.compute_selection_by_self_intersections_per_face()
                 if ms.current_mesh().selected_face_number():
@@ -368,11 +375,11 @@ class MeshLab:
                 self._clean_topology(ms)
                 self._close(ms, prevent=False)
                 self._clean_topology(ms)
-            if p.orient:
-                ms.meshing_re_orient_faces_coherently()
             cm = ms.current_mesh()
             if cm.face_number() == 0:
                 break
+            if p.orient:
+                ms.meshing_re_orient_faces_coherently()
             ms.compute_selection_by_self_intersections_per_face()
             intersecting = cm.selected_face_number() if p.remove_self_intersections else 0
             stats = mesh_stats(Mesh(cm.vertex_matrix(), cm.face_matrix()))

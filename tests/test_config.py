@@ -79,7 +79,7 @@ def test_check_hook_runs():
 
 
 def test_precheck_messages():
-    assert check_group_overrides(["repair=foo"]) == "unknown repair 'foo'; valid repair choices: meshfix, none"
+    assert check_group_overrides(["repair=foo"]) == "unknown repair 'foo'; valid repair choices: meshfix, meshlab, none"
     assert check_group_overrides(["-m", "repair=none,meshfix"]) is None
     msg, cfg = precheck(["icp.bogus=1"])
     assert msg.startswith("icp=horn: unknown parameter 'bogus'; valid parameters:")

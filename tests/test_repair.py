@@ -39,8 +39,12 @@ def strip(m, prefix="r_"):
     return {k[len(prefix):]: v for k, v in m.items()}
 
 
-@pytest.mark.parametrize("backend", ["meshfix", "meshlab"])
-@pytest.mark.parametrize("mesh", ["pkg:pymeshfix/examples/StanfordBunny.ply", "meshlab_defects/screwdriver.ply"])
+@pytest.mark.parametrize("backend,mesh", [
+    ("meshfix", "pkg:pymeshfix/examples/StanfordBunny.ply"),
+    pytest.param("meshlab", "pkg:pymeshfix/examples/StanfordBunny.ply", marks=pytest.mark.slow),  # ~40 s
+    ("meshfix", "meshlab_defects/screwdriver.ply"),
+    ("meshlab", "meshlab_defects/screwdriver.ply"),
+])
 def test_closed_models_become_single_watertight_manifolds(backend, mesh):
     m = load(mesh)
     out, metrics = repair_with_audit(stage(backend), m, CTX, "r_")
