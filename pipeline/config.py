@@ -52,6 +52,8 @@ class Context:
     """Sampling spacing of the run in input units (set after sampling)."""
     diagonal: float = float("nan")
     """Bounding-box diagonal of the target in input units."""
+    target_mesh: Any = None
+    """The (repaired) target mesh when the target is a mesh: ICP can pair with its triangles."""
     stages: dict[str, Any] = field(default_factory=dict)
     """Built helper stages a coarse stage may use: ``salience``, ``descriptor``, ``matcher``."""
     step_metrics: dict[str, list[float]] = field(default_factory=dict)

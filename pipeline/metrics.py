@@ -57,3 +57,34 @@ def gt_metrics(T: np.ndarray, T_gt: np.ndarray, diagonal: float, p: EvalParams, 
     if not prefix:
         out["success"] = float(rot < p.success_rotation_deg and trans < p.success_translation * diagonal)
     return out
+
+
+def surface_deviation(target, target_mesh, aligned: np.ndarray, p: EvalParams, spacing: float) -> dict[str, float]:
+    """Point-to-surface distances of the aligned source points to the target, over the inliers (distance
+    within ``inlier_distance``), in input units.
+
+    The surface is the target mesh's triangles (exact closest points) when the target is a mesh, else the
+    target points. Distances are signed (positive outside, along the outward normal) when the target is a
+    mesh, whose orientation the repair made coherent, or a cloud with normals: ``p2s_signed`` is then 1.
+    Reported: ``p2s_mean`` and ``p2s_median`` (signed when available), ``p2s_rms``, ``p2s_p95_abs``,
+    ``p2s_max_abs``.
+    """
+    from stages.icp import ClosestPoints
+
+    q, d, n = ClosestPoints(target, target_mesh)(aligned)
+    signed = n is not None
+    if signed:
+        d = np.where(np.einsum("ij,ij->i", aligned - q, n) < 0, -d, d)
+    a = np.abs(d)
+    inl = a <= to_abs(p.inlier_distance, p.distances, spacing)
+    if not inl.any():
+        return {"p2s_signed": float(signed)}
+    d, a = d[inl], a[inl]
+    return {
+        "p2s_mean": float(d.mean()),
+        "p2s_median": float(np.median(d)),
+        "p2s_rms": float(np.sqrt(np.mean(a ** 2))),
+        "p2s_p95_abs": float(np.quantile(a, 0.95)),
+        "p2s_max_abs": float(a.max()),
+        "p2s_signed": float(signed),
+    }

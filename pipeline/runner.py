@@ -19,9 +19,9 @@ from scipy.spatial import cKDTree
 
 from pipeline.config import Context
 from pipeline.errors import InputError, ScanregError
-from pipeline.geometry import Cloud, Mesh, bbox_diagonal, transform_geometry
+from pipeline.geometry import Cloud, Mesh, apply_T, bbox_diagonal, transform_geometry
 from pipeline.io import write_ply, write_transform
-from pipeline.metrics import EvalParams, alignment_metrics, estimate_spacing, gt_metrics
+from pipeline.metrics import EvalParams, alignment_metrics, estimate_spacing, gt_metrics, surface_deviation
 from pipeline.registry import COARSE, DATA, ICP, REPAIR, SAMPLER, load_all, make_params, REGISTRIES
 
 MIN_POINTS = 10
@@ -111,6 +111,7 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
                     f"{g.source}: {clouds[role].n_points} point(s) after sampling; at least {MIN_POINTS} are needed"
                 )
     src, tgt = clouds["source"], clouds["target"]
+    ctx.target_mesh = geoms["target"] if isinstance(geoms["target"], Mesh) else None
     m["n_source_points"], m["n_target_points"] = src.n_points, tgt.n_points
     m["target_spacing"] = estimate_spacing(tgt.points, ctx.rng(1))
     m["source_spacing"] = estimate_spacing(src.points, ctx.rng(2))
@@ -131,10 +132,12 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
     m["icp_iterations"] = icp.iterations
     m["icp_converged"] = float(icp.converged)
     m["icp_rms"] = icp.rms_history[-1]
+    m.update(icp.metrics or {})
 
     with timer("evaluate"):
         ev: EvalParams = st["evaluate"]
         m.update(alignment_metrics(tgt.points, src.points, T, ev, spacing, cKDTree(tgt.points)))
+        m.update(surface_deviation(tgt, ctx.target_mesh, apply_T(T, src.points), ev, spacing))
         if inputs.T_gt is not None:
             m.update(gt_metrics(T0, inputs.T_gt, ctx.diagonal, ev, prefix="coarse_"))
             m.update(gt_metrics(T, inputs.T_gt, ctx.diagonal, ev))
@@ -163,8 +166,9 @@ def summary_lines(res: Result) -> list[str]:
     rows = [(s, f"{m[f'time_{s}_s']:.3f}") for s in ("load", "repair", "sample", "coarse", "icp", "evaluate", "total")
             if f"time_{s}_s" in m]
     lines = ["stage     time [s]"] + [f"{s:<9} {t:>8}" for s, t in rows]
-    keys = ["n_source_points", "n_target_points", "source_spacing", "target_spacing", "spacing", "icp_iterations", "rms", "fitness",
-            "coarse_rotation_error_deg", "rotation_error_deg", "translation_error", "translation_error_rel", "success"]
+    keys = ["n_source_points", "n_target_points", "source_spacing", "target_spacing", "spacing", "icp_iterations",
+            "icp_rms", "icp_fitness", "icp_inlier_rms", "rms", "fitness", "p2s_mean", "p2s_median", "p2s_rms",
+            "p2s_p95_abs", "p2s_max_abs", "coarse_rotation_error_deg", "rotation_error_deg", "translation_error", "translation_error_rel", "success"]
     lines.append("")
     lines += [f"{k:<26} {m[k]:.6g}" for k in keys if k in m]
     for prefix, role in (("repair_", "source"), ("target_repair_", "target")):

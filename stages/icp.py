@@ -1,16 +1,28 @@
-"""Fine registration (ICP variants)."""
+"""Fine registration (ICP variants).
+
+All variants share one correspondence search (:class:`ClosestPoints`) and one set of pair rejections, and report
+the same numbers, defined once:
+
+- ``rms_history`` (MLflow step metric ``icp_rms_step``): at each iterate, the RMS distance of the pairs used
+  (after rejection and trimming), before the update; the last entry is at the final pose;
+- ``icp_rms``: the last entry of that history;
+- ``icp_fitness``: the share of source points whose closest target point at the final pose lies within
+  ``max_correspondence_distance`` (every point when it is null);
+- ``icp_inlier_rms``: the RMS distance of those points.
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from pipeline.config import Context, Distances, to_abs
-from pipeline.errors import StageError
-from pipeline.geometry import Cloud, apply_T, horn_quaternion
+from pipeline.errors import ConfigError, StageError
+from pipeline.geometry import Cloud, Mesh, apply_T, horn_quaternion, make_T, morton_order
 from pipeline.registry import ICP
 
 
@@ -20,64 +32,325 @@ class IcpResult:
     iterations: int
     """Number of transform updates made."""
     rms_history: list[float]
-    """RMS closest-point distance of the pairs used, before each update and after the last one."""
+    """RMS distance of the pairs used at each iterate, before its update; the last entry at the final pose."""
     converged: bool
+    metrics: dict | None = None
 
 
-@ICP.register("horn")
-class Horn:
-    """Besl-McKay point-to-point ICP: closest target point for every source point, the rigid transform by
-    Horn's quaternion closed form, until the RMS error changes by less than ``tau``."""
+class ClosestPoints:
+    """Closest target points of query points: nearest target *points* (k-d tree, pykdtree), or exact closest
+    points on the target's *triangles* (Open3D raycasting scene; coordinates centred before the float32
+    conversion). Returns ``(closest points, distances, target normals at them or None)``."""
 
-    @dataclass
-    class Params:
-        max_iterations: int = 100
-        """Maximum number of iterations."""
-        tau: float = 1e-4
-        """Stop when the RMS error changes by less than this between iterations (see ``distances``)."""
-        max_correspondence_distance: Optional[float] = None
-        """Pairs farther apart are ignored (see ``distances``); null keeps every pair (pure Besl-McKay, whose
-        RMS never increases)."""
-        distances: Distances = Distances.spacing
-        """Unit of ``tau`` and ``max_correspondence_distance``: multiples of the sampling spacing, or absolute
-        input units."""
+    def __init__(self, target: Cloud, mesh: Mesh | None = None):
+        self.mesh = mesh
+        self.normals = target.normals
+        if mesh is not None:
+            import open3d as o3d
 
-        def check(self):
-            if self.max_iterations < 1:
-                raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
-            if not self.tau >= 0:
-                raise ValueError(f"tau must be >= 0, got {self.tau}")
+            self.centre = mesh.vertices.mean(axis=0)
+            self.scene = o3d.t.geometry.RaycastingScene()
+            self.scene.add_triangles(o3d.core.Tensor((mesh.vertices - self.centre).astype(np.float32)),
+                                     o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+        else:
+            from pykdtree.kdtree import KDTree
 
-    def __init__(self, params: Params):
+            self.points = np.ascontiguousarray(target.points)
+            self.tree = KDTree(self.points, leafsize=16)
+
+    def __call__(self, q: np.ndarray, max_distance: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Closest points; with ``max_distance`` the search is bounded (farther points get distance inf and an
+        arbitrary closest point), which is what makes a k-d tree fast far from the surface."""
+        if self.mesh is not None:
+            import open3d as o3d
+
+            r = self.scene.compute_closest_points(o3d.core.Tensor((q - self.centre).astype(np.float32)))
+            cp = r["points"].numpy().astype(np.float64) + self.centre
+            return cp, np.linalg.norm(q - cp, axis=1), r["primitive_normals"].numpy().astype(np.float64)
+        if max_distance is None:
+            d, j = self.tree.query(np.ascontiguousarray(q), k=1)
+        else:
+            d, j = self.tree.query(np.ascontiguousarray(q), k=1, distance_upper_bound=max_distance)
+            j = np.minimum(j, len(self.points) - 1)
+        j = j.astype(np.int64)
+        return self.points[j], d.astype(np.float64), None if self.normals is None else self.normals[j]
+
+
+@dataclass
+class IcpParams:
+    max_iterations: int = 100
+    """Maximum number of iterations."""
+    tau: float = 1e-4
+    """Stop when the RMS error changes by less than this between iterations (see ``distances``)."""
+    max_correspondence_distance: Optional[float] = 3.0
+    """Pairs farther apart are ignored (see ``distances``); null keeps every pair (pure Besl-McKay, whose RMS
+    never increases)."""
+    trim: float = 1.0
+    """Keep only this share of the pairs, the closest ones, at each iteration (trimmed ICP; 1: keep all).
+    Set it to the expected overlap."""
+    max_normal_angle_deg: Optional[float] = None
+    """Reject pairs whose normals differ by more than this angle (degrees; needs consistently oriented normals
+    on both sides, as sampled from meshes); null: no normal test."""
+    target: str = "auto"
+    """Closest points on the target: ``points`` (nearest target point), ``mesh`` (exact closest point on the
+    target's triangles; the target must be a mesh), ``auto`` (mesh when the target is one)."""
+    distances: Distances = Distances.spacing
+    """Unit of ``tau`` and ``max_correspondence_distance``: multiples of the sampling spacing, or input units."""
+
+    def check(self):
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
+        if not self.tau >= 0:
+            raise ValueError(f"tau must be >= 0, got {self.tau}")
+        if not 0 < self.trim <= 1:
+            raise ValueError(f"trim must be in (0, 1], got {self.trim}")
+        if self.target not in ("auto", "points", "mesh"):
+            raise ValueError(f"target must be auto, points or mesh, got '{self.target}'")
+
+
+class IcpBase:
+    """Shared machinery: correspondence search, pair selection, stopping, final metrics."""
+
+    p: IcpParams
+
+    def __init__(self, params):
         self.p = params
+
+    def closest(self, target: Cloud, ctx: Context) -> ClosestPoints:
+        mesh = getattr(ctx, "target_mesh", None)
+        if self.p.target == "mesh" and mesh is None:
+            raise ConfigError(f"icp={self.name}: icp.target=mesh needs a target mesh, but the target is a point cloud")
+        return ClosestPoints(target, mesh if self.p.target in ("mesh", "auto") and mesh is not None else None)
+
+    def pairs(self, moved: np.ndarray, moved_normals, cp: ClosestPoints, maxd: float | None, it: int):
+        """Closest points of ``moved`` and the mask of pairs kept."""
+        q, d, qn = cp(moved, maxd)
+        self._last_d = d
+        ok = np.ones(len(d), bool) if maxd is None else d <= maxd
+        if self.p.max_normal_angle_deg is not None and moved_normals is not None and qn is not None:
+            ok &= np.einsum("ij,ij->i", moved_normals, qn) >= math.cos(math.radians(self.p.max_normal_angle_deg))
+        if self.p.trim < 1.0 and ok.sum() > 3:
+            keep = max(3, int(math.ceil(self.p.trim * ok.sum())))
+            thr = np.partition(d[ok], keep - 1)[keep - 1]
+            ok &= d <= thr
+        if ok.sum() < 3:
+            raise StageError(
+                f"icp={self.name}: only {int(ok.sum())} source point(s) paired with the target at iteration {it} "
+                f"(max_correspondence_distance {maxd if maxd is not None else 'none'}); the coarse alignment is "
+                "too far off or the distance too small"
+            )
+        return q, d, qn, ok
+
+    def final_metrics(self, target: Cloud, source: Cloud, T: np.ndarray, cp: ClosestPoints, maxd) -> dict:
+        if self._last is not None and np.array_equal(self._last[0], T):
+            d = self._last[1]  # the last iteration already paired the source at the final pose
+        else:
+            _, d, _ = cp(apply_T(T, source.points), maxd)
+        inl = np.ones(len(d), bool) if maxd is None else d <= maxd
+        return {
+            "icp_fitness": float(inl.mean()),
+            "icp_inlier_rms": float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan"),
+        }
 
     def run(self, target: Cloud, source: Cloud, T_init: np.ndarray, ctx: Context) -> IcpResult:
         p = self.p
         tau = to_abs(p.tau, p.distances, ctx.spacing)
         maxd = to_abs(p.max_correspondence_distance, p.distances, ctx.spacing)
-        tree = cKDTree(target.points)
+        cp = self.closest(target, ctx)
+        order = morton_order(source.points)  # cache-coherent queries; the result does not depend on the order
+        source = Cloud(source.points[order], None if source.normals is None else source.normals[order], source.source)
+        self._last = None
+        res = self.iterate(target, source, T_init, cp, tau, maxd, ctx)
+        ctx.step_metrics["icp_rms"] = res.rms_history
+        res.metrics = self.final_metrics(target, source, res.T_target_source, cp, maxd)
+        return res
+
+    def step(self, moved, q, qn, ok) -> np.ndarray:  # pragma: no cover - per variant
+        raise NotImplementedError
+
+    def iterate(self, target, source, T_init, cp, tau, maxd, ctx) -> IcpResult:
+        """Plain fixed-point iteration: pairs at T, an update dT from ``step``, T <- dT T."""
         src = source.points
+        sn = source.normals if self.p.max_normal_angle_deg is not None else None
         T = T_init.copy()
         history: list[float] = []
-        converged = False
-        iterations = 0
-        for it in range(p.max_iterations + 1):
+        converged, iterations = False, 0
+        for it in range(self.p.max_iterations + 1):
             moved = apply_T(T, src)
-            d, j = tree.query(moved, distance_upper_bound=np.inf if maxd is None else maxd, workers=-1)
-            ok = np.isfinite(d)
-            if ok.sum() < 3:
-                raise StageError(
-                    f"icp=horn: only {int(ok.sum())} source point(s) within max_correspondence_distance "
-                    f"{maxd:g} of the target at iteration {it}; the coarse alignment is too far off or the "
-                    "distance too small"
-                )
+            mn = None if sn is None else sn @ T[:3, :3].T
+            q, d, qn, ok = self.pairs(moved, mn, cp, maxd, it)
+            self._last = (T, self._last_d)
             history.append(float(np.sqrt(np.mean(d[ok] ** 2))))
             if it > 0 and abs(history[-2] - history[-1]) < tau:
                 converged = True
                 break
-            if it == p.max_iterations:
+            if it == self.p.max_iterations:
                 break
-            T = horn_quaternion(target.points[j[ok]], moved[ok]) @ T
+            T = self.step(moved, q, qn, ok) @ T
             iterations += 1
-        ctx.step_metrics["icp_rms"] = history
         return IcpResult(T, iterations, history, converged)
+
+
+@ICP.register("horn")
+class Horn(IcpBase):
+    """Besl-McKay point-to-point ICP: closest target point (or closest point on the target's triangles) for
+    every source point, the rigid transform by Horn's quaternion closed form, until the RMS error changes by
+    less than ``tau``."""
+
+    @dataclass
+    class Params(IcpParams):
+        pass
+
+    def step(self, moved, q, qn, ok):
+        return horn_quaternion(q, moved) if ok.all() else horn_quaternion(q[ok], moved[ok])
+
+
+@ICP.register("point_to_plane")
+class PointToPlane(IcpBase):
+    """Point-to-plane ICP (Chen & Medioni 1992): minimises the squared distances of source points to the
+    tangent planes at their closest target points, linearised in the rotation, one 6x6 solve per iteration.
+    Needs target normals: the triangles' (mesh target), the cloud's, or estimated (Open3D, 20 neighbours)."""
+
+    @dataclass
+    class Params(IcpParams):
+        pass
+
+    def run(self, target: Cloud, source: Cloud, T_init: np.ndarray, ctx: Context) -> IcpResult:
+        if target.normals is None and getattr(ctx, "target_mesh", None) is None:
+            target = Cloud(target.points, estimate_normals(target.points), target.source)
+        return super().run(target, source, T_init, ctx)
+
+    def step(self, moved, q, qn, ok):
+        if not ok.all():
+            moved, q, qn = moved[ok], q[ok], qn[ok]
+        A = np.hstack([np.cross(moved, qn), qn])
+        b = -np.einsum("ij,ij->i", moved - q, qn)
+        x = np.linalg.solve(A.T @ A, A.T @ b)  # 6x6 normal equations
+        return make_T(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:])
+
+
+@ICP.register("anderson")
+class Anderson(IcpBase):
+    """Point-to-point ICP accelerated by Anderson mixing (AA-ICP; Pavlov et al. 2018, with the energy safeguard
+    of Zhang et al. 2021). The fixed point is Besl-McKay/Horn's. The transform is a 6-vector (rotation vector,
+    translation); each iterate mixes the last ``memory`` ICP updates. A mixed iterate whose RMS is not below the
+    last accepted one is replaced by the plain ICP step, so the accepted RMS never increases."""
+
+    @dataclass
+    class Params(IcpParams):
+        memory: int = 5
+        """Number of past iterates mixed (Anderson window)."""
+
+        def check(self):
+            super().check()
+            if self.memory < 1:
+                raise ValueError(f"memory must be >= 1, got {self.memory}")
+
+    @staticmethod
+    def _vec(T):
+        return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
+
+    @staticmethod
+    def _mat(x):
+        return make_T(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:])
+
+    def iterate(self, target, source, T_init, cp, tau, maxd, ctx) -> IcpResult:
+        src = source.points
+        sn = source.normals if self.p.max_normal_angle_deg is not None else None
+        x = self._vec(T_init)
+        G_hist: list[np.ndarray] = []
+        F_hist: list[np.ndarray] = []
+        history: list[float] = []
+        accepted_rms, x_acc, g_acc = np.inf, x, None
+        converged, iterations = False, 0
+        for it in range(self.p.max_iterations + 1):
+            T = self._mat(x)
+            moved = apply_T(T, src)
+            mn = None if sn is None else sn @ T[:3, :3].T
+            q, d, qn, ok = self.pairs(moved, mn, cp, maxd, it)
+            rms = float(np.sqrt(np.mean(d[ok] ** 2)))
+            if rms > accepted_rms and g_acc is not None:
+                # the mixed iterate made things worse: take the plain ICP step from the last accepted iterate
+                G_hist, F_hist = [], []
+                x = g_acc
+                T = self._mat(x)
+                moved = apply_T(T, src)
+                mn = None if sn is None else sn @ T[:3, :3].T
+                q, d, qn, ok = self.pairs(moved, mn, cp, maxd, it)
+                rms = float(np.sqrt(np.mean(d[ok] ** 2)))
+            history.append(rms)
+            if it > 0 and abs(history[-2] - history[-1]) < tau:
+                converged = True
+                break
+            if it == self.p.max_iterations:
+                break
+            g = self._vec(horn_quaternion(q[ok], moved[ok]) @ T)  # plain ICP map G(x)
+            accepted_rms, x_acc, g_acc = rms, x, g
+            G_hist.append(g)
+            F_hist.append(g - x)
+            if len(G_hist) > self.p.memory + 1:
+                G_hist.pop(0)
+                F_hist.pop(0)
+            if len(G_hist) > 1:
+                dF = np.diff(np.array(F_hist), axis=0).T
+                dG = np.diff(np.array(G_hist), axis=0).T
+                gamma = np.linalg.lstsq(dF, F_hist[-1], rcond=None)[0]
+                x = g - dG @ gamma
+            else:
+                x = g
+            iterations += 1
+        return IcpResult(self._mat(x), iterations, history, converged)
+
+
+@ICP.register("gicp")
+class GeneralizedICP(IcpBase):
+    """Generalised ICP (Segal et al. 2009, plane-to-plane) by small_gicp: local covariances from
+    ``num_neighbors`` neighbours on both clouds, Gauss-Newton on the Mahalanobis distances. Target points only
+    (no mesh). One small_gicp iteration per step, so that the RMS of each iterate can be recorded."""
+
+    @dataclass
+    class Params(IcpParams):
+        num_neighbors: int = 20
+        """Neighbours for the local covariances."""
+        num_threads: int = 2
+        """Threads small_gicp uses."""
+
+    def iterate(self, target, source, T_init, cp, tau, maxd, ctx) -> IcpResult:
+        import small_gicp
+
+        if self.p.target == "mesh":
+            raise ConfigError("icp=gicp: works on points only; set icp.target=points or auto")
+        if self.p.trim < 1.0 or self.p.max_normal_angle_deg is not None:
+            raise ConfigError("icp=gicp: trim and max_normal_angle_deg are not supported; leave them at 1 and null")
+        cp = ClosestPoints(target)  # RMS is measured against points, like GICP's own matching
+        tgt = small_gicp.PointCloud(np.ascontiguousarray(target.points))
+        small_gicp.estimate_covariances(tgt, num_neighbors=self.p.num_neighbors, num_threads=self.p.num_threads)
+        tree = small_gicp.KdTree(tgt, num_threads=self.p.num_threads)
+        src = small_gicp.PointCloud(np.ascontiguousarray(source.points))
+        small_gicp.estimate_covariances(src, num_neighbors=self.p.num_neighbors, num_threads=self.p.num_threads)
+        dist = maxd if maxd is not None else float(np.linalg.norm(np.ptp(target.points, axis=0)))
+        T = T_init.copy()
+        history: list[float] = []
+        converged, iterations = False, 0
+        for it in range(self.p.max_iterations + 1):
+            _, d, _, ok = self.pairs(apply_T(T, source.points), None, cp, maxd, it)
+            history.append(float(np.sqrt(np.mean(d[ok] ** 2))))
+            if it > 0 and abs(history[-2] - history[-1]) < tau:
+                converged = True
+                break
+            if it == self.p.max_iterations:
+                break
+            r = small_gicp.align(tgt, src, tree, T, registration_type="GICP", max_correspondence_distance=dist,
+                                 num_threads=self.p.num_threads, max_iterations=1)
+            T = np.asarray(r.T_target_source).copy()
+            iterations += 1
+        return IcpResult(T, iterations, history, converged)
+
+
+def estimate_normals(points: np.ndarray, k: int = 20) -> np.ndarray:
+    """Unit normals from the ``k`` nearest neighbours (Open3D), unoriented."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
+    return np.asarray(pc.normals).copy()

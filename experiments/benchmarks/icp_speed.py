@@ -1,0 +1,141 @@
+"""Benchmark: ICP variants against Open3D, side by side, measured in one run.
+
+    ./run python experiments/benchmarks/icp_speed.py [--sizes 10000,100000,1000000]
+
+Case: pymeshfix's bunny sampled twice independently (N points each, normals from the triangles); the source
+moved by 10 degrees about a random axis through its centre plus 2 % of the diagonal. Every measurement runs in a
+fresh subprocess: per-iteration time is (time of 30 iterations - time of 1) / 29 with the same pair limit, both
+on all cores (Open3D's OpenMP, pykdtree's OpenMP); "to convergence" runs each method with its own stopping rule.
+Peak memory is the subprocess's maximum resident set size minus that of a process that only loaded the data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+MAXD = 10.0  # pair limit in sampling spacings (10 degrees moves the far side by ~10 spacings at 100k points)
+
+
+def make_case(n: int):
+    from pipeline.geometry import Cloud, apply_T, make_T, transform_errors  # noqa: F401
+    from pipeline.io import read_mesh
+    from pipeline.metrics import estimate_spacing
+    from scipy.spatial.transform import Rotation
+    from stages.sampler import barycentric_sample
+
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    a, an, _ = barycentric_sample(m, n, np.random.default_rng(1))
+    b, bn, _ = barycentric_sample(m, n, np.random.default_rng(2))
+    rng = np.random.default_rng(3)
+    axis = rng.normal(size=3)
+    R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(10)).as_matrix()
+    c = b.mean(0)
+    diag = np.linalg.norm(np.ptp(m.vertices, axis=0))
+    d = rng.normal(size=3)
+    P = make_T(R, c - R @ c + 0.02 * diag * d / np.linalg.norm(d))  # source moved by P; truth is inv(P)
+    src = Cloud(apply_T(P, b), bn @ R.T)
+    tgt = Cloud(a, an)
+    T_gt = np.linalg.inv(P)
+    spacing = estimate_spacing(a, np.random.default_rng(0))
+    return tgt, src, T_gt, spacing
+
+
+def run_case(method: str, n: int, iters: int | None) -> dict:
+    """One measurement in this process. iters=None: to convergence."""
+    from pipeline.config import Context
+    from pipeline.geometry import transform_errors
+
+    import open3d  # noqa: F401  (imports and registries outside the measured region, for every method)
+
+    from pipeline.registry import load_all
+
+    load_all()
+    tgt, src, T_gt, spacing = make_case(n)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.perf_counter_ns()
+    if method.startswith("open3d"):
+        import open3d as o3d
+
+        reg = o3d.pipelines.registration
+        ps = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src.points))
+        pt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt.points))
+        pt.normals = o3d.utility.Vector3dVector(tgt.normals)
+        est = reg.TransformationEstimationPointToPlane() if method == "open3d_point_to_plane" \
+            else reg.TransformationEstimationPointToPoint()
+        crit = reg.ICPConvergenceCriteria(relative_fitness=0.0, relative_rmse=0.0, max_iteration=iters) if iters \
+            else reg.ICPConvergenceCriteria(max_iteration=100)
+        r = reg.registration_icp(ps, pt, MAXD * spacing, np.eye(4), est, crit)
+        T, its = np.asarray(r.transformation), None
+    else:
+        from pipeline.registry import ICP, make_params
+
+        cls = ICP.get(method)
+        kw = {"max_correspondence_distance": MAXD}
+        if iters:
+            kw.update(tau=0.0, max_iterations=iters)
+        ctx = Context(seed=0, run_dir=None)
+        ctx.spacing = spacing
+        res = cls(make_params(cls.Params, kw, method)).run(tgt, src, np.eye(4), ctx)
+        T, its = res.T_target_source, res.iterations
+    secs = (time.perf_counter_ns() - t0) / 1e9
+    rot, trans = transform_errors(T, T_gt)
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {"time_s": secs, "rotation_error_deg": rot, "translation_error": trans, "iterations": its,
+            "peak_extra_mb": max(rss - rss0, 0) / 1024}
+
+
+def measure(method: str, n: int, iters: int | None) -> dict:
+    out = subprocess.run([sys.executable, __file__, "--child", method, str(n), str(iters or 0)],
+                         capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
+    if out.returncode:
+        raise SystemExit(out.stderr)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", default="10000,100000,1000000")
+    ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--out", default=str(Path(__file__).with_suffix(".md")))
+    a = ap.parse_args()
+    if a.child:
+        method, n, iters = a.child
+        print(json.dumps(run_case(method, int(n), int(iters) or None)))
+        return
+    lines = [f"Threads: {os.cpu_count()} cores, Open3D OpenMP and pykdtree OpenMP on all of them. Pair limit "
+             f"{MAXD:g} spacings for every method.", ""]
+    lines += ["Per iteration (fixed 30 iterations vs 1)", "",
+              "| points | method | per iteration [ms] | ratio to Open3D point-to-point |", "|---|---|---|---|"]
+    conv = ["", "To convergence (each method's own stopping rule)", "",
+            "| points | method | total [s] | iterations | rotation error [deg] | translation error | peak extra memory [MB] |",
+            "|---|---|---|---|---|---|---|"]
+    for n in [int(x) for x in a.sizes.split(",")]:
+        per = {}
+        for m in ("open3d_point_to_point", "horn"):
+            one, thirty = measure(m, n, 1), measure(m, n, 30)
+            per[m] = (thirty["time_s"] - one["time_s"]) / 29
+        for m in ("open3d_point_to_point", "horn"):
+            lines.append(f"| {n:,} | {m} | {per[m] * 1e3:.2f} | {per[m] / per['open3d_point_to_point']:.2f} |")
+        for m in ("open3d_point_to_plane", "open3d_point_to_point", "horn", "anderson", "point_to_plane", "gicp"):
+            r = measure(m, n, None)
+            its = "-" if r["iterations"] is None else r["iterations"]
+            conv.append(f"| {n:,} | {m} | {r['time_s']:.3f} | {its} | {r['rotation_error_deg']:.4f} | "
+                        f"{r['translation_error']:.4f} | {r['peak_extra_mb']:.0f} |")
+        print("\n".join(lines + conv), flush=True)
+    text = "\n".join(lines + conv)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    Path(a.out).write_text(f"# ICP benchmark\n\nProduced by `python experiments/benchmarks/icp_speed.py` at commit "
+                           f"{commit or '?'} on a 2-core machine.\n\n{text}\n")
+
+
+if __name__ == "__main__":
+    main()
