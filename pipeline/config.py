@@ -52,6 +52,8 @@ class Context:
     """Sampling spacing of the run in input units (set after sampling)."""
     diagonal: float = float("nan")
     """Bounding-box diagonal of the target in input units."""
+    landmarks: Any = None
+    """Picked landmark pairs ``(target (K, 3), source (K, 3))`` when the data gives them."""
     target_mesh: Any = None
     """The (repaired) target mesh when the target is a mesh: ICP can pair with its triangles."""
     stages: dict[str, Any] = field(default_factory=dict)

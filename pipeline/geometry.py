@@ -153,11 +153,21 @@ def horn_quaternion(target: np.ndarray, source: np.ndarray, weights: np.ndarray 
     """
     if len(target) != len(source) or len(source) < 3:
         raise ValueError("horn_quaternion needs at least 3 paired points")
-    w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
-    wsum = w.sum()
-    mu_s = (w @ source) / wsum
-    mu_t = (w @ target) / wsum
-    S = ((source - mu_s) * w[:, None]).T @ (target - mu_t)
+    if weights is None:
+        mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+        S = (source - mu_s).T @ (target - mu_t)
+    else:
+        w = np.asarray(weights, dtype=np.float64)
+        wsum = w.sum()
+        mu_s = (w @ source) / wsum
+        mu_t = (w @ target) / wsum
+        S = ((source - mu_s) * w[:, None]).T @ (target - mu_t)
+    R = rotation_from_cross_covariance(S)
+    return make_T(R, mu_t - R @ mu_s)
+
+
+def rotation_from_cross_covariance(S: np.ndarray) -> np.ndarray:
+    """Horn's quaternion solution: the rotation R maximising trace(R S) for S = sum (s_i)(t_i)^T."""
     (Sxx, Sxy, Sxz), (Syx, Syy, Syz), (Szx, Szy, Szz) = S
     Q = np.array(
         [
@@ -169,14 +179,41 @@ def horn_quaternion(target: np.ndarray, source: np.ndarray, weights: np.ndarray 
     )
     evals, evecs = np.linalg.eigh(Q)
     q0, qx, qy, qz = evecs[:, np.argmax(evals)]
-    R = np.array(
+    return np.array(
         [
             [q0 * q0 + qx * qx - qy * qy - qz * qz, 2 * (qx * qy - q0 * qz), 2 * (qx * qz + q0 * qy)],
             [2 * (qy * qx + q0 * qz), q0 * q0 - qx * qx + qy * qy - qz * qz, 2 * (qy * qz - q0 * qx)],
             [2 * (qz * qx - q0 * qy), 2 * (qz * qy + q0 * qx), q0 * q0 - qx * qx - qy * qy + qz * qz],
         ]
     )
+
+
+def rigid_points_normals(target, source, target_normals=None, source_normals=None, normal_weight: float = 1.0):
+    """``T_target_source`` minimising sum |R s + t - t_i|^2 + w |R n_s - n_t|^2 (closed form: the normals
+    only add ``w sum n_s n_t^T`` to the cross-covariance; t from the centroids)."""
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    S = (source - mu_s).T @ (target - mu_t)
+    if target_normals is not None and source_normals is not None and normal_weight > 0:
+        S = S + normal_weight * source_normals.T @ target_normals
+    R = rotation_from_cross_covariance(S)
     return make_T(R, mu_t - R @ mu_s)
+
+
+def kabsch_batch(target: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """Batched least-squares rigid transforms: ``target, source`` (B, k, 3) -> ``T_target_source`` (B, 4, 4)."""
+    mu_s, mu_t = source.mean(axis=1, keepdims=True), target.mean(axis=1, keepdims=True)
+    H = np.einsum("bki,bkj->bij", source - mu_s, target - mu_t)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("bji,bkj->bik", Vt, U)))
+    D = np.zeros_like(H)
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = np.where(d == 0, 1.0, d)
+    R = np.einsum("bji,bjk,blk->bil", Vt, D, U)
+    T = np.zeros((len(R), 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = mu_t[:, 0] - np.einsum("bij,bj->bi", R, mu_s[:, 0])
+    T[:, 3, 3] = 1.0
+    return T
 
 
 def kabsch_svd(target: np.ndarray, source: np.ndarray) -> np.ndarray:

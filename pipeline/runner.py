@@ -123,6 +123,7 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
         raise InputError(f"{tgt.source}: degenerate geometry (zero extent)")
     m["spacing"], m["diagonal"] = spacing, ctx.diagonal
 
+    ctx.landmarks = inputs.landmarks
     with timer("coarse"):
         T0, cm = st["coarse"].run(tgt, src, ctx)
     m.update(cm)

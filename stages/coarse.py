@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
 from pipeline.config import Context, Distances, to_abs
-from pipeline.errors import StageError
+from pipeline.errors import ConfigError, StageError
 from pipeline.geometry import Cloud
 from pipeline.registry import COARSE
 from stages.descriptor import to_o3d
@@ -102,3 +103,237 @@ class Open3dFpfhRansac:
             "coarse_inliers": len(res.correspondence_set),
         }
         return np.asarray(res.transformation).copy(), metrics
+
+
+@COARSE.register("lo_ransac")
+class LoRansac:
+    """The paper's feature pipeline: keypoints (``salience``), descriptors (``descriptor``), correspondences
+    (``matcher``), then locally optimised RANSAC (Chum et al. 2003). It draws minimal samples of 3
+    correspondences (in seeded, vectorised batches), counts inliers within ``distance_threshold``, and adapts
+    the number of iterations so that the chance of missing the best model is at most ``miss_probability``. Each
+    new best model is locally optimised: iterative least squares on its inliers. A final fit over the inliers
+    minimises sum |R p1 + t - p0|^2 + w |R n1 - n0|^2 (points and normals)."""
+
+    uses: tuple[str, ...] = ("salience", "descriptor", "matcher")
+
+    @dataclass
+    class Params:
+        distance_threshold: float = 3.0
+        """Largest distance of an inlier correspondence after the transform (see ``distances``)."""
+        miss_probability: float = 0.01
+        """Stop when the chance of not having drawn an all-inlier sample is below this (mu)."""
+        max_iterations: int = 100000
+        """Most hypotheses drawn."""
+        min_iterations: int = 200
+        """Fewest hypotheses drawn."""
+        batch: int = 256
+        """Hypotheses evaluated together (vectorised)."""
+        lo_iterations: int = 10
+        """Rounds of least-squares re-estimation on the inliers of each new best model."""
+        normal_weight: float = 1.0
+        """Weight w of the normal term of the final fit (0: points only)."""
+        min_inliers: int = 6
+        """Fewer inliers than this is reported as a failure."""
+        seed: int = 0
+        """Seed of the sampling; the same seed gives the same transform."""
+        distances: Distances = Distances.spacing
+        """Unit of ``distance_threshold``: multiples of the sampling spacing, or input units."""
+
+        def check(self):
+            if not 0 < self.miss_probability < 1:
+                raise ValueError(f"miss_probability must be in (0, 1), got {self.miss_probability}")
+            if self.batch < 1 or self.max_iterations < 1:
+                raise ValueError("batch and max_iterations must be >= 1")
+
+    def __init__(self, params: Params):
+        self.p = params
+
+    def run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
+        st = ctx.stages
+        kt, ks = st["salience"].keypoints(target, ctx), st["salience"].keypoints(source, ctx)
+        if len(kt) < 3 or len(ks) < 3:
+            raise StageError(f"coarse=lo_ransac: too few keypoints (target {len(kt)}, source {len(ks)}); "
+                             "lower the salience radii or use more points")
+        dt, ds = st["descriptor"].compute(target, kt, ctx), st["descriptor"].compute(source, ks, ctx)
+        pairs = st["matcher"].match(dt, ds, ctx)
+        metrics = {"coarse_keypoints_target": len(kt), "coarse_keypoints_source": len(ks),
+                   "coarse_correspondences": len(pairs)}
+        if len(pairs) < 3:
+            raise StageError(f"coarse=lo_ransac: only {len(pairs)} descriptor matches; need at least 3")
+        P0, P1 = target.points[kt[pairs[:, 0]]], source.points[ks[pairs[:, 1]]]
+        N0 = None if target.normals is None else target.normals[kt[pairs[:, 0]]]
+        N1 = None if source.normals is None else source.normals[ks[pairs[:, 1]]]
+        T, inl, iters = self.estimate(P0, P1, N0, N1, to_abs(self.p.distance_threshold, self.p.distances, ctx.spacing))
+        metrics.update({"coarse_ransac_iterations": iters, "coarse_inliers": int(inl.sum()),
+                        "coarse_inlier_ratio": float(inl.mean())})
+        if inl.sum() < self.p.min_inliers:
+            raise StageError(f"coarse=lo_ransac: best model has {int(inl.sum())} inliers of {len(pairs)} matches "
+                             f"(min_inliers {self.p.min_inliers}); the scans may not overlap or the descriptors not match")
+        return T, metrics
+
+    def estimate(self, P0, P1, N0, N1, thr):
+        """RANSAC over correspondences P1 -> P0: ``(T_target_source, inlier mask, hypotheses drawn)``."""
+        from pipeline.geometry import apply_T, horn_quaternion, kabsch_batch, rigid_points_normals
+
+        p = self.p
+        rng = np.random.default_rng([p.seed, 404])
+        M = len(P0)
+        best_T, best_inl, best_n = np.eye(4), np.zeros(M, bool), -1
+        needed, drawn = p.max_iterations, 0
+
+        def inliers(T):
+            return np.linalg.norm(apply_T(T, P1) - P0, axis=1) < thr
+
+        def local_opt(inl):
+            T = np.eye(4)
+            for _ in range(p.lo_iterations):
+                if inl.sum() < 3:
+                    break
+                T = horn_quaternion(P0[inl], P1[inl])
+                new = inliers(T)
+                if np.array_equal(new, inl):
+                    break
+                inl = new
+            return T, inl
+
+        while drawn < max(needed, p.min_iterations) and drawn < p.max_iterations:
+            B = min(p.batch, p.max_iterations - drawn)
+            idx = np.stack([rng.choice(M, 3, replace=False) for _ in range(B)]) if M < 8 else \
+                rng.integers(0, M, size=(B, 3))
+            drawn += B
+            ok = (idx[:, 0] != idx[:, 1]) & (idx[:, 1] != idx[:, 2]) & (idx[:, 0] != idx[:, 2])
+            idx = idx[ok]
+            if not len(idx):
+                continue
+            a, b = P1[idx], P0[idx]
+            # reject degenerate (near-collinear) samples and samples whose side lengths disagree (rigidity)
+            e1, e0 = np.linalg.norm(a - np.roll(a, 1, axis=1), axis=2), np.linalg.norm(b - np.roll(b, 1, axis=1), axis=2)
+            area = np.linalg.norm(np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]), axis=1)
+            good = (np.abs(e1 - e0) < thr).all(axis=1) & (area > thr * thr * 0.5)
+            if not good.any():
+                continue
+            Ts = kabsch_batch(b[good], a[good])
+            moved = np.einsum("bij,mj->bmi", Ts[:, :3, :3], P1) + Ts[:, None, :3, 3]
+            counts = (np.linalg.norm(moved - P0[None], axis=2) < thr).sum(axis=1)
+            k = int(np.argmax(counts))
+            if counts[k] > best_n:
+                T_lo, inl_lo = local_opt(inliers(Ts[k]))
+                if inl_lo.sum() < counts[k]:
+                    T_lo, inl_lo = Ts[k], inliers(Ts[k])
+                best_T, best_inl, best_n = T_lo, inl_lo, int(inl_lo.sum())
+                w = best_n / M
+                needed = p.max_iterations if w <= 0 else int(np.ceil(np.log(p.miss_probability) /
+                                                                      np.log(max(1e-12, 1 - w ** 3))))
+        if best_inl.sum() >= 3:
+            T = best_T
+            for _ in range(3):  # final fit with points and normals (normals sign-aligned to the current fit)
+                inl = inliers(T)
+                if inl.sum() < 3:
+                    break
+                n0 = n1 = None
+                if N0 is not None and N1 is not None and p.normal_weight > 0:
+                    n0, n1 = N0[inl], N1[inl]
+                    flip = np.einsum("ij,ij->i", n1 @ T[:3, :3].T, n0) < 0
+                    n1 = np.where(flip[:, None], -n1, n1)
+                T = rigid_points_normals(P0[inl], P1[inl], n0, n1, p.normal_weight)
+            best_T, best_inl = T, inliers(T)
+        return best_T, best_inl, drawn
+
+
+@COARSE.register("landmarks")
+class Landmarks:
+    """User-picked landmark pairs (``data.landmarks``, at least 3) solved in closed form (Horn). It reports each
+    landmark's residual and its leave-one-out error (the residual when the transform is fitted without it), so
+    that a bad pick stands out: the paper's rough registration."""
+
+    uses: tuple[str, ...] = ()
+
+    @dataclass
+    class Params:
+        max_residual: Optional[float] = None
+        """Fail when a landmark's leave-one-out error exceeds this (see ``distances``); null: only report."""
+        distances: Distances = Distances.absolute
+        """Unit of ``max_residual``: input units (default) or multiples of the sampling spacing."""
+
+    def __init__(self, params: Params):
+        self.p = params
+
+    def run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
+        lm = getattr(ctx, "landmarks", None)
+        if lm is None:
+            raise ConfigError("coarse=landmarks: no landmark pairs; give data.landmarks=FILE.csv "
+                              "(rows: target x,y,z, source x,y,z)")
+        T, metrics, loo = landmark_fit(lm[0], lm[1])
+        ctx.step_metrics["landmark_residual"] = metrics.pop("_residuals")
+        ctx.step_metrics["landmark_loo_error"] = loo.tolist()
+        lim = to_abs(self.p.max_residual, self.p.distances, ctx.spacing)
+        if lim is not None and loo.max() > lim:
+            i = int(np.argmax(loo))
+            raise StageError(f"coarse=landmarks: landmark {i + 1} has a leave-one-out error of {loo[i]:.4g} "
+                             f"(limit {lim:.4g}): probably picked wrongly", metrics=metrics)
+        return T, metrics
+
+
+def landmark_fit(target_pts: np.ndarray, source_pts: np.ndarray) -> tuple[np.ndarray, dict, np.ndarray]:
+    """Horn's fit of landmark pairs with per-landmark residuals and leave-one-out errors."""
+    from pipeline.geometry import apply_T, horn_quaternion
+
+    k = len(target_pts)
+    centred = source_pts - source_pts.mean(axis=0)
+    if k < 3 or np.linalg.matrix_rank(centred, tol=1e-9 * max(1.0, np.abs(centred).max())) < 2:
+        raise StageError(f"coarse=landmarks: {k} landmark pair(s) that are collinear or coincide; need at "
+                         "least 3 non-collinear pairs")
+    T = horn_quaternion(target_pts, source_pts)
+    res = np.linalg.norm(apply_T(T, source_pts) - target_pts, axis=1)
+    loo = np.full(k, np.nan)
+    if k >= 4:
+        for i in range(k):
+            keep = np.arange(k) != i
+            Ti = horn_quaternion(target_pts[keep], source_pts[keep])
+            loo[i] = np.linalg.norm(apply_T(Ti, source_pts[i:i + 1]) - target_pts[i:i + 1])
+    metrics = {"landmark_count": k, "landmark_rms": float(np.sqrt(np.mean(res ** 2))),
+               "landmark_residual_max": float(res.max()), "_residuals": res.tolist()}
+    if k >= 4:
+        metrics["landmark_loo_max"] = float(np.nanmax(loo))
+    return T, metrics, np.nan_to_num(loo, nan=0.0)
+
+
+@COARSE.register("open3d_fgr")
+class Open3dFGR(Open3dFpfhRansac):
+    """Open3D's Fast Global Registration (Zhou et al. 2016) on FPFH features of voxel-downsampled clouds, the
+    second comparator."""
+
+    @dataclass
+    class Params:
+        voxel: float = 3.0
+        """Voxel size of the downsampled clouds (see ``distances``)."""
+        normal_radius: float = 6.0
+        """Normal estimation radius (see ``distances``)."""
+        feature_radius: float = 15.0
+        """FPFH radius (see ``distances``)."""
+        feature_max_nn: int = 100
+        """At most this many neighbours per FPFH histogram."""
+        distance_threshold: float = 1.5
+        """FGR's maximum correspondence distance (see ``distances``); Open3D's recipe uses 0.5 voxels."""
+        iterations: int = 64
+        """FGR iterations."""
+        seed: int = 0
+        """Seed of Open3D's random generator (FGR's tuple test samples)."""
+        distances: Distances = Distances.spacing
+        """Unit of the distances above: multiples of the sampling spacing, or absolute input units."""
+
+    def run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
+        import open3d as o3d
+
+        reg = o3d.pipelines.registration
+        p = self.p
+        o3d.utility.random.seed(p.seed)
+        tgt, ft = self._prepare(target, ctx)
+        src, fs = self._prepare(source, ctx)
+        opt = reg.FastGlobalRegistrationOption(
+            maximum_correspondence_distance=to_abs(p.distance_threshold, p.distances, ctx.spacing),
+            iteration_number=p.iterations)
+        res = reg.registration_fgr_based_on_feature_matching(src, tgt, fs, ft, opt)
+        return np.asarray(res.transformation).copy(), {
+            "coarse_keypoints_target": len(tgt.points), "coarse_keypoints_source": len(src.points),
+            "coarse_fitness": float(res.fitness), "coarse_inlier_rmse": float(res.inlier_rmse)}

@@ -33,15 +33,32 @@ class MutualKNN:
     def match(self, desc_target: np.ndarray, desc_source: np.ndarray, ctx: Context) -> np.ndarray:
         """(M, 2) int array of (target index, source index), sorted."""
         k_t = min(self.p.k, len(desc_target))
-        _, nn_t = cKDTree(desc_target).query(desc_source, k=k_t)
-        nn_t = nn_t.reshape(len(desc_source), -1)
+        nn_t = knn(desc_target, desc_source, k_t)
         pairs_st = np.stack([nn_t.ravel(), np.repeat(np.arange(len(desc_source)), k_t)], axis=1)
         if self.p.mutual:
             k_s = min(self.p.k, len(desc_source))
-            _, nn_s = cKDTree(desc_source).query(desc_target, k=k_s)
-            nn_s = nn_s.reshape(len(desc_target), -1)
+            nn_s = knn(desc_source, desc_target, k_s)
             pairs_ts = np.stack([np.repeat(np.arange(len(desc_target)), k_s), nn_s.ravel()], axis=1)
             n = max(len(desc_source), 1)
             codes = np.intersect1d(pairs_st[:, 0] * n + pairs_st[:, 1], pairs_ts[:, 0] * n + pairs_ts[:, 1])
             return np.stack([codes // n, codes % n], axis=1)
         return np.unique(pairs_st, axis=0)
+
+
+def knn(data: np.ndarray, queries: np.ndarray, k: int, chunk: int = 2048) -> np.ndarray:
+    """Indices (Q, k) of the k nearest rows of ``data`` for every query row, nearest first. A k-d tree in low
+    dimensions; in high dimensions (descriptors), exact brute force by chunked matrix products, which is far
+    faster there. Ties are broken by the lower index."""
+    if data.shape[1] <= 8:
+        _, j = cKDTree(data).query(queries, k=k)
+        return j.reshape(len(queries), -1)
+    dn = np.einsum("ij,ij->i", data, data)
+    out = np.empty((len(queries), k), dtype=np.int64)
+    for s in range(0, len(queries), chunk):
+        q = queries[s:s + chunk]
+        d2 = np.einsum("ij,ij->i", q, q)[:, None] + dn[None, :] - 2.0 * (q @ data.T)
+        part = np.argpartition(d2, k - 1, axis=1)[:, :k] if k < len(data) else np.tile(np.arange(len(data)), (len(q), 1))
+        pd = np.take_along_axis(d2, part, axis=1)
+        order = np.lexsort((part, pd), axis=1)
+        out[s:s + chunk] = np.take_along_axis(part, order, axis=1)
+    return out

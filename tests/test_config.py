@@ -54,7 +54,7 @@ def test_every_registered_stage_has_a_yaml_and_docs(family):
 
 
 def test_unknown_name_lists_valid_ones():
-    with pytest.raises(ConfigError, match=r"unknown icp 'nope'; valid icp names: horn"):
+    with pytest.raises(ConfigError, match=r"unknown icp 'nope'; valid icp names: anderson, gicp, horn, point_to_plane"):
         REGISTRIES["icp"].build({"name": "nope"})
 
 

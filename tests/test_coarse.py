@@ -1,0 +1,168 @@
+"""Feature-based coarse registration: salience measures, keypoints, frames, descriptors, LO-RANSAC, landmarks."""
+
+import numpy as np
+import pytest
+
+from conftest import shared
+from pipeline.config import Context, Distances
+from pipeline.errors import StageError
+from pipeline.geometry import Cloud, apply_T, random_pose, transform_errors
+from pipeline.io import read_mesh
+from pipeline.metrics import estimate_spacing
+from pipeline.registry import COARSE, DESCRIPTOR, SALIENCE, load_all, make_params
+from stages.salience import MATRICES, MEASURES
+from stages.sampler import barycentric_sample
+
+load_all()
+
+
+def ctx(spacing=1.0, seed=0):
+    c = Context(seed=seed, run_dir=None)
+    c.spacing = spacing
+    return c
+
+
+def build(reg, name, **kw):
+    cls = reg.get(name)
+    return cls(make_params(cls.Params, kw, name))
+
+
+@pytest.fixture(scope="module")
+def bunny():
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    p, n, _ = barycentric_sample(m, 8000, np.random.default_rng(0))
+    return Cloud(p, n), estimate_spacing(p, np.random.default_rng(0))
+
+
+def direct(points, normals, i, radius, gaussian):
+    """Eigenvalues of C_p and C_n at point i, computed the plain way."""
+    d = np.linalg.norm(points - points[i], axis=1)
+    nb = d <= radius
+    w = np.exp(-d[nb] ** 2 / (2 * (radius / 2) ** 2)) if gaussian else np.ones(nb.sum())
+    P, N = points[nb], normals[nb]
+    mu = (w @ P) / w.sum()
+    Cp = ((P - mu) * w[:, None]).T @ (P - mu) / w.sum()
+    Cn = (N * w[:, None]).T @ N / w.sum()
+    return np.linalg.eigvalsh(Cp), np.linalg.eigvalsh(Cn), nb.sum()
+
+
+@pytest.mark.parametrize("matrix", list(MATRICES))
+@pytest.mark.parametrize("measure", list(MEASURES))
+@pytest.mark.parametrize("weights", ["uniform", "gaussian"])
+def test_salience_matches_a_direct_eigenvalue_computation(bunny, matrix, measure, weights):
+    cloud, sp = bunny
+    st = build(SALIENCE, f"{matrix}_{measure}", radius=4.0, weights=weights, max_neighbors=512)
+    h = st.values(cloud, ctx(sp))
+    for i in np.random.default_rng(1).choice(len(cloud.points), 25, replace=False):
+        lp, ln, cnt = direct(cloud.points, cloud.normals, i, 4.0 * sp, weights == "gaussian")
+        lam = lp if matrix == "cp" else ln
+        l1, l2, l3 = np.maximum(lam, 0)
+        want = {"min_ratio": min(l1 / l2, l2 / l3), "l1": l1, "l2": l2, "l3": l3, "l1_l2": l1 / l2,
+                "l2_l3": l2 / l3}[measure]
+        if cnt < 10:
+            assert h[i] == -np.inf
+        else:
+            assert h[i] == pytest.approx(want, rel=1e-6, abs=1e-12 * max(1.0, l3))
+
+
+def test_isolated_points_are_never_keypoints_and_nms_holds(bunny):
+    cloud, sp = bunny
+    far = cloud.points.max(0) + 100 * sp
+    pts = np.vstack([cloud.points, far + np.arange(5)[:, None] * sp * 0.1])  # a tight cluster of 5 points
+    nrm = np.vstack([cloud.normals, np.tile([0, 0, 1.0], (5, 1))])
+    st = build(SALIENCE, "cp_l1", radius=4.0, nms_radius=4.0)
+    c = Cloud(pts, nrm)
+    h = st.values(c, ctx(sp))
+    assert (h[-5:] == -np.inf).all()
+    kp = st.keypoints(c, ctx(sp))
+    assert not (kp >= len(cloud.points)).any() and len(kp) > 10
+    for i in kp[:50]:
+        nb = np.linalg.norm(pts - pts[i], axis=1) <= 4.0 * sp
+        assert h[i] >= h[nb].max()
+    top = build(SALIENCE, "cp_l1", radius=4.0, nms_radius=4.0, top_k=7).keypoints(c, ctx(sp))
+    assert len(top) == 7 and set(top) <= set(kp)
+
+
+@pytest.mark.parametrize("name", ["histogram3p", "fpfh"])
+def test_descriptor_invariant_to_rotation(bunny, name):
+    cloud, sp = bunny
+    kp = build(SALIENCE, "cp_min_ratio").keypoints(cloud, ctx(sp))
+    T = random_pose(np.random.default_rng(2), 180, 50)
+    moved = Cloud(apply_T(T, cloud.points), cloud.normals @ T[:3, :3].T)
+    kw = {"support_voxel": 0.0, "radius": 8.0} if name == "fpfh" else {}
+    st = build(DESCRIPTOR, name, **kw)
+    d0, d1 = st.compute(cloud, kp, ctx(sp)), st.compute(moved, kp, ctx(sp))
+    assert d0.shape == (len(kp), 216 if name == "histogram3p" else 33)
+    rel = np.linalg.norm(d0 - d1, axis=1) / np.linalg.norm(d0, axis=1)
+    assert np.median(rel) < 1e-6 and np.quantile(rel, 0.95) < 1e-3
+
+
+def test_local_frames_repeat_across_scans(bunny):
+    from stages.descriptor import local_frames
+
+    cloud, sp = bunny
+    kp = np.arange(0, len(cloud.points), 97)
+    T = random_pose(np.random.default_rng(3), 180, 10)
+    F0 = local_frames(cloud.points, cloud.normals, kp, 10 * sp)
+    F1 = local_frames(apply_T(T, cloud.points), cloud.normals @ T[:3, :3].T, kp, 10 * sp)
+    assert np.allclose(np.einsum("nij,kj->nik", F0, T[:3, :3]), F1, atol=1e-6)
+    assert np.allclose(np.einsum("nij,nkj->nik", F0, F0), np.eye(3), atol=1e-9)
+    assert np.allclose(np.linalg.det(F0), 1.0)
+
+
+def test_lo_ransac_recovers_a_pose_from_matches_with_70_percent_outliers():
+    rng = np.random.default_rng(0)
+    P1 = rng.uniform(0, 10, size=(300, 3))
+    T = random_pose(rng, 180, 20)
+    P0 = apply_T(T, P1) + rng.normal(scale=0.01, size=P1.shape)
+    out = rng.choice(300, 210, replace=False)
+    P0[out] = rng.uniform(-20, 20, size=(210, 3))
+    st = build(COARSE, "lo_ransac", distance_threshold=0.05, distances=Distances.absolute, seed=3)
+    T_est, inl, drawn = st.estimate(P0, P1, None, None, 0.05)
+    rot, trans = transform_errors(T_est, T)
+    assert rot < 0.05 and trans < 0.02 and 85 <= inl.sum() <= 95
+    assert drawn < 5000  # adaptive stopping: w = 0.3 needs ~170 samples for mu = 0.01
+    T2, _, _ = st.estimate(P0, P1, None, None, 0.05)
+    assert np.array_equal(T_est, T2)  # seeded: bit for bit
+
+
+def test_lo_ransac_end_to_end_on_stanford_scans():
+    folder = shared("stanford_bunny")
+    from pipeline.io import read_stanford_conf
+    from pipeline.geometry import invert_T
+
+    poses = read_stanford_conf(folder / "bun.conf")
+    t, s = read_mesh(folder / "bun000.ply"), read_mesh(folder / "bun045.ply")
+    P = random_pose(np.random.default_rng(7), 180, 0.1)
+    T_gt = invert_T(poses["bun000.ply"]) @ poses["bun045.ply"] @ invert_T(P)
+    tp, tn, _ = barycentric_sample(t, 20000, np.random.default_rng(0))
+    sp_, sn, _ = barycentric_sample(s, 20000, np.random.default_rng(1))
+    tgt, src = Cloud(tp, tn), Cloud(apply_T(P, sp_), sn @ P[:3, :3].T)
+    c = ctx(max(estimate_spacing(tp, np.random.default_rng(0)), estimate_spacing(sp_, np.random.default_rng(0))))
+    c.stages = {"salience": build(SALIENCE, "uniform"), "descriptor": build(DESCRIPTOR, "fpfh"),
+                "matcher": build(__import__("pipeline.registry").registry.MATCHER, "mutual_knn")}
+    T, m = build(COARSE, "lo_ransac").run(tgt, src, c)
+    rot, trans = transform_errors(T, T_gt)
+    assert rot < 5 and m["coarse_inliers"] >= 6, (rot, m)
+
+
+def test_landmarks_known_transform_and_a_bad_pick():
+    from stages.coarse import landmark_fit
+
+    rng = np.random.default_rng(0)
+    src = rng.uniform(0, 50, size=(6, 3))
+    T = random_pose(rng, 180, 30)
+    tgt = apply_T(T, src) + rng.normal(scale=0.05, size=src.shape)
+    T_est, m, loo = landmark_fit(tgt, src)
+    assert transform_errors(T_est, T)[0] < 0.2 and m["landmark_rms"] < 0.1
+    bad = tgt.copy()
+    bad[2] += [3.0, 0, 0]  # one landmark clicked 3 mm off
+    _, mb, loo_b = landmark_fit(bad, src)
+    assert int(np.argmax(loo_b)) == 2 and loo_b[2] > 2.0 and loo_b[2] > 1.5 * np.delete(loo_b, 2).max()
+    st = build(COARSE, "landmarks", max_residual=1.0)
+    c = ctx()
+    c.landmarks = (bad, src)
+    with pytest.raises(StageError, match="landmark 3 has a leave-one-out error"):
+        st.run(Cloud(tgt), Cloud(src), c)
+    with pytest.raises(StageError, match="collinear"):
+        landmark_fit(tgt[:3], np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2.0]]))
