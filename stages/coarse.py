@@ -31,6 +31,22 @@ class NoCoarse:
         return np.eye(4), {}
 
 
+@dataclass
+class Open3dFeatureParams:
+    voxel: float = 3.0
+    """Voxel size of the downsampled clouds (see ``distances``)."""
+    normal_radius: float = 6.0
+    """Normal estimation radius (see ``distances``); Open3D's recipe uses 2 voxels."""
+    feature_radius: float = 15.0
+    """FPFH radius (see ``distances``); Open3D's recipe uses 5 voxels."""
+    feature_max_nn: int = 100
+    """At most this many neighbours per FPFH histogram."""
+    seed: int = 0
+    """Seed of Open3D's random generator."""
+    distances: Distances = Distances.spacing
+    """Unit of the distances: multiples of the sampling spacing, or absolute input units."""
+
+
 @COARSE.register("open3d_fpfh_ransac")
 class Open3dFpfhRansac:
     """Open3D's global registration recipe, the comparator: voxel downsampling, normals, FPFH features, and
@@ -39,15 +55,7 @@ class Open3dFpfhRansac:
     uses: tuple[str, ...] = ()
 
     @dataclass
-    class Params:
-        voxel: float = 3.0
-        """Voxel size of the downsampled clouds (see ``distances``)."""
-        normal_radius: float = 6.0
-        """Normal estimation radius (see ``distances``); Open3D's recipe uses 2 voxels."""
-        feature_radius: float = 15.0
-        """FPFH radius (see ``distances``); Open3D's recipe uses 5 voxels."""
-        feature_max_nn: int = 100
-        """At most this many neighbours per FPFH histogram."""
+    class Params(Open3dFeatureParams):
         distance_threshold: float = 4.5
         """Largest distance of an inlier pair (see ``distances``); Open3D's recipe uses 1.5 voxels."""
         edge_length_ratio: float = 0.9
@@ -58,10 +66,6 @@ class Open3dFpfhRansac:
         """Maximum RANSAC iterations."""
         confidence: float = 0.999
         """RANSAC stops early when the best model holds with this probability."""
-        seed: int = 0
-        """Seed of Open3D's random generator."""
-        distances: Distances = Distances.spacing
-        """Unit of the distances above: multiples of the sampling spacing, or absolute input units."""
 
     def __init__(self, params: Params):
         self.p = params
@@ -304,23 +308,11 @@ class Open3dFGR(Open3dFpfhRansac):
     second comparator."""
 
     @dataclass
-    class Params:
-        voxel: float = 3.0
-        """Voxel size of the downsampled clouds (see ``distances``)."""
-        normal_radius: float = 6.0
-        """Normal estimation radius (see ``distances``)."""
-        feature_radius: float = 15.0
-        """FPFH radius (see ``distances``)."""
-        feature_max_nn: int = 100
-        """At most this many neighbours per FPFH histogram."""
+    class Params(Open3dFeatureParams):
         distance_threshold: float = 1.5
         """FGR's maximum correspondence distance (see ``distances``); Open3D's recipe uses 0.5 voxels."""
         iterations: int = 64
         """FGR iterations."""
-        seed: int = 0
-        """Seed of Open3D's random generator (FGR's tuple test samples)."""
-        distances: Distances = Distances.spacing
-        """Unit of the distances above: multiples of the sampling spacing, or absolute input units."""
 
     def run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
         import open3d as o3d

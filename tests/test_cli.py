@@ -116,7 +116,7 @@ BAD_CASES = {
     "too_few_points": (["data.source=two.npy"], "source two.npy: 2 point(s) after sampling; at least 10"),
     "degenerate": (["data.source=flat.ply", "repair=none"], "no triangle has an area above 0"),
     "unknown_group_choice": (["icp=bogus"], "unknown icp 'bogus'; valid icp choices: anderson, gicp, horn, point_to_plane"),
-    "unknown_stage_name": (["coarse.name=bogus"], "unknown coarse 'bogus'; valid coarse names: none, open3d_fpfh_ransac"),
+    "unknown_stage_name": (["coarse.name=bogus"], "unknown coarse 'bogus'; valid coarse names: landmarks, lo_ransac, none, open3d_fgr, open3d_fpfh_ransac"),
     "wrong_type": (["icp.max_iterations=many"], "icp=horn: parameter 'max_iterations' expects int, got 'many'"),
     "unknown_param": (["sampler.n_pionts=5"], "sampler=barycentric: unknown parameter 'n_pionts'"),
     "no_source": (["data.source=null"], "data=files: data.source is not set"),
@@ -220,3 +220,24 @@ def test_repair_guard_fails_the_run_with_its_audit(tmp_path, mlflow_uri):
     assert r.returncode == 0, r.stderr
     res = json.loads((tmp_path / "ok" / "result.json").read_text())
     assert res["repair_after_boundary_loops"] == 1 and res["repair_after_self_intersecting_faces"] == 0
+
+
+@pytest.mark.slow
+def test_landmark_alignment_then_icp(tmp_path):
+    """The paper's route: rough alignment from picked landmark pairs, refined by ICP."""
+    m, cloud, T = make_case(tmp_path, seed=3)
+    np.save(tmp_path / "target.npy", apply_T(T, cloud.points))
+    write_transform(tmp_path / "gt.txt", T)
+    rng = np.random.default_rng(0)
+    picks = m.vertices[rng.choice(len(m.vertices), 5, replace=False)]
+    rows = np.hstack([apply_T(T, picks) + rng.normal(scale=0.3, size=picks.shape), picks])
+    np.savetxt(tmp_path / "lm.csv", rows, delimiter=",", header="target_x,target_y,target_z,source_x,source_y,source_z",
+               comments="")
+    out = tmp_path / "run"
+    r = run_cli(["data.source=pkg:pymeshfix/examples/StanfordBunny.ply", "data.target=target.npy", "data.gt=gt.txt",
+                 "data.landmarks=lm.csv", "coarse=landmarks", "tracking=none", f"hydra.run.dir={out}"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    res = json.loads((out / "result.json").read_text())
+    assert res["landmark_count"] == 5 and res["landmark_rms"] < 1.0 and "landmark_loo_max" in res
+    assert res["coarse_rotation_error_deg"] > res["rotation_error_deg"]  # ICP improves on the landmarks
+    assert res["rotation_error_deg"] < 0.5
