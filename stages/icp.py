@@ -186,9 +186,13 @@ class IcpBase:
                 break
             if it == self.p.max_iterations:
                 break
-            T = self.step(moved, q, qn, ok) @ T
+            T = self.update(T, moved, q, qn, ok)
             iterations += 1
         return IcpResult(T, iterations, history, converged)
+
+    def update(self, T, moved, q, qn, ok) -> np.ndarray:
+        """The next iterate from the current one and its pairs."""
+        return self.step(moved, q, qn, ok) @ T
 
 
 @ICP.register("horn")
@@ -322,29 +326,23 @@ class GeneralizedICP(IcpBase):
             raise ConfigError("icp=gicp: works on points only; set icp.target=points or auto")
         if self.p.trim < 1.0 or self.p.max_normal_angle_deg is not None:
             raise ConfigError("icp=gicp: trim and max_normal_angle_deg are not supported; leave them at 1 and null")
-        cp = ClosestPoints(target)  # RMS is measured against points, like GICP's own matching
-        tgt = small_gicp.PointCloud(np.ascontiguousarray(target.points))
-        small_gicp.estimate_covariances(tgt, num_neighbors=self.p.num_neighbors, num_threads=self.p.num_threads)
-        tree = small_gicp.KdTree(tgt, num_threads=self.p.num_threads)
-        src = small_gicp.PointCloud(np.ascontiguousarray(source.points))
-        small_gicp.estimate_covariances(src, num_neighbors=self.p.num_neighbors, num_threads=self.p.num_threads)
-        dist = maxd if maxd is not None else float(np.linalg.norm(np.ptp(target.points, axis=0)))
-        T = T_init.copy()
-        history: list[float] = []
-        converged, iterations = False, 0
-        for it in range(self.p.max_iterations + 1):
-            _, d, _, ok = self.pairs(apply_T(T, source.points), None, cp, maxd, it)
-            history.append(float(np.sqrt(np.mean(d[ok] ** 2))))
-            if it > 0 and abs(history[-2] - history[-1]) < tau:
-                converged = True
-                break
-            if it == self.p.max_iterations:
-                break
-            r = small_gicp.align(tgt, src, tree, T, registration_type="GICP", max_correspondence_distance=dist,
-                                 num_threads=self.p.num_threads, max_iterations=1)
-            T = np.asarray(r.T_target_source).copy()
-            iterations += 1
-        return IcpResult(T, iterations, history, converged)
+        n, th = self.p.num_neighbors, self.p.num_threads
+        self._tgt = small_gicp.PointCloud(np.ascontiguousarray(target.points))
+        small_gicp.estimate_covariances(self._tgt, num_neighbors=n, num_threads=th)
+        self._tree = small_gicp.KdTree(self._tgt, num_threads=th)
+        self._src = small_gicp.PointCloud(np.ascontiguousarray(source.points))
+        small_gicp.estimate_covariances(self._src, num_neighbors=n, num_threads=th)
+        self._dist = maxd if maxd is not None else float(np.linalg.norm(np.ptp(target.points, axis=0)))
+        # the RMS of each iterate is measured against the target points, like GICP's own matching
+        return super().iterate(target, source, T_init, ClosestPoints(target), tau, maxd, ctx)
+
+    def update(self, T, moved, q, qn, ok) -> np.ndarray:
+        import small_gicp
+
+        r = small_gicp.align(self._tgt, self._src, self._tree, T, registration_type="GICP",
+                             max_correspondence_distance=self._dist, num_threads=self.p.num_threads,
+                             max_iterations=1)
+        return np.asarray(r.T_target_source).copy()
 
 
 def estimate_normals(points: np.ndarray, k: int = 20) -> np.ndarray:
