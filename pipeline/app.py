@@ -200,14 +200,12 @@ def precheck(argv: list[str]) -> tuple[str, DictConfig | None] | None:
             from pipeline.errors import ConfigError
             from pipeline.registry import REGISTRIES, load_all
 
-            load_all()
-            try:
-                cls = REGISTRIES[group].get(good[group].name)
-                import dataclasses
+            from pipeline.registry import make_params
 
-                fields = [f.name for f in dataclasses.fields(cls.Params)]
-                return (f"{group}={good[group].name}: unknown parameter '{param.split('.')[0]}'; "
-                        f"valid parameters: {', '.join(fields) or '(none)'}"), good
+            load_all()
+            try:  # the registry's own message for an unknown parameter
+                cls = REGISTRIES[group].get(good[group].name)
+                make_params(cls.Params, {param.split(".")[0]: None}, f"{group}={good[group].name}")
             except ConfigError as e:
                 return str(e), good
         return f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)", good

@@ -8,7 +8,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.config import Distances, to_abs
-from pipeline.geometry import apply_T, transform_errors
+from pipeline.geometry import transform_errors
 
 
 @dataclass
@@ -33,17 +33,14 @@ def estimate_spacing(points: np.ndarray, rng: np.random.Generator, n: int = 5000
     return float(np.median(d)) if len(d) else 0.0
 
 
-def alignment_metrics(
-    target: np.ndarray, source: np.ndarray, T: np.ndarray, p: EvalParams, spacing: float, tree: cKDTree | None = None
-) -> dict[str, float]:
-    """``rms`` and ``fitness`` (see :class:`EvalParams`) plus the mean closest-point distance of all points."""
-    tree = tree or cKDTree(target)
-    d, _ = tree.query(apply_T(T, source), workers=-1)
-    inl = d <= to_abs(p.inlier_distance, p.distances, spacing)
+def alignment_metrics(distances: np.ndarray, p: EvalParams, spacing: float) -> dict[str, float]:
+    """``rms`` and ``fitness`` (see :class:`EvalParams`) plus the mean distance over all points, from the
+    distances of the aligned source points to their closest target points."""
+    inl = distances <= to_abs(p.inlier_distance, p.distances, spacing)
     return {
-        "rms": float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan"),
+        "rms": float(np.sqrt(np.mean(distances[inl] ** 2))) if inl.any() else float("nan"),
         "fitness": float(inl.mean()),
-        "mean_distance": float(d.mean()),
+        "mean_distance": float(distances.mean()),
     }
 
 
@@ -59,19 +56,18 @@ def gt_metrics(T: np.ndarray, T_gt: np.ndarray, diagonal: float, p: EvalParams, 
     return out
 
 
-def surface_deviation(target, target_mesh, aligned: np.ndarray, p: EvalParams, spacing: float) -> dict[str, float]:
+def surface_deviation(aligned: np.ndarray, closest: tuple, p: EvalParams, spacing: float) -> dict[str, float]:
     """Point-to-surface distances of the aligned source points to the target, over the inliers (distance
     within ``inlier_distance``), in input units.
 
-    The surface is the target mesh's triangles (exact closest points) when the target is a mesh, else the
-    target points. Distances are signed (positive outside, along the outward normal) when the target is a
-    mesh, whose orientation the repair made coherent, or a cloud with normals: ``p2s_signed`` is then 1.
-    Reported: ``p2s_mean`` and ``p2s_median`` (signed when available), ``p2s_rms``, ``p2s_p95_abs``,
+    ``closest`` is what :class:`stages.icp.ClosestPoints` returns for ``aligned``: closest points on the target
+    mesh's triangles when the target is a mesh, else the nearest target points, their distances, and the
+    target normals there. Distances are signed (positive outside, along the outward normal) when normals are
+    known: a mesh, whose orientation the repair made coherent, or a cloud with normals; ``p2s_signed`` is then
+    1. Reported: ``p2s_mean`` and ``p2s_median`` (signed when available), ``p2s_rms``, ``p2s_p95_abs``,
     ``p2s_max_abs``.
     """
-    from stages.icp import ClosestPoints
-
-    q, d, n = ClosestPoints(target, target_mesh)(aligned)
+    q, d, n = closest
     signed = n is not None
     if signed:
         d = np.where(np.einsum("ij,ij->i", aligned - q, n) < 0, -d, d)

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
-from scipy.spatial import cKDTree
 
 from pipeline.config import Context
 from pipeline.errors import InputError, ScanregError
@@ -23,6 +22,7 @@ from pipeline.geometry import Cloud, Mesh, apply_T, bbox_diagonal, transform_geo
 from pipeline.io import write_ply, write_transform
 from pipeline.metrics import EvalParams, alignment_metrics, estimate_spacing, gt_metrics, surface_deviation
 from pipeline.registry import COARSE, DATA, ICP, REPAIR, SAMPLER, load_all, make_params, REGISTRIES
+from stages.icp import ClosestPoints
 
 MIN_POINTS = 10
 """Fewest points a cloud may have after sampling (the coarse and fine stages need neighbourhoods)."""
@@ -137,8 +137,11 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
 
     with timer("evaluate"):
         ev: EvalParams = st["evaluate"]
-        m.update(alignment_metrics(tgt.points, src.points, T, ev, spacing, cKDTree(tgt.points)))
-        m.update(surface_deviation(tgt, ctx.target_mesh, apply_T(T, src.points), ev, spacing))
+        aligned = apply_T(T, src.points)
+        on_points = ClosestPoints(tgt)(aligned)
+        m.update(alignment_metrics(on_points[1], ev, spacing))
+        on_surface = on_points if ctx.target_mesh is None else ClosestPoints(tgt, ctx.target_mesh)(aligned)
+        m.update(surface_deviation(aligned, on_surface, ev, spacing))
         if inputs.T_gt is not None:
             m.update(gt_metrics(T0, inputs.T_gt, ctx.diagonal, ev, prefix="coarse_"))
             m.update(gt_metrics(T, inputs.T_gt, ctx.diagonal, ev))

@@ -34,6 +34,9 @@ class IcpResult:
     rms_history: list[float]
     """RMS distance of the pairs used at each iterate, before its update; the last entry at the final pose."""
     converged: bool
+    final_distances: np.ndarray | None = None
+    """Closest-point distances of the source at the final pose (every variant's loop ends right after pairing
+    there), bounded by ``max_correspondence_distance`` (inf beyond)."""
     metrics: dict | None = None
 
 
@@ -125,7 +128,6 @@ class IcpBase:
     def pairs(self, moved: np.ndarray, moved_normals, cp: ClosestPoints, maxd: float | None, it: int):
         """Closest points of ``moved`` and the mask of pairs kept."""
         q, d, qn = cp(moved, maxd)
-        self._last_d = d
         ok = np.ones(len(d), bool) if maxd is None else d <= maxd
         if self.p.max_normal_angle_deg is not None and moved_normals is not None and qn is not None:
             ok &= np.einsum("ij,ij->i", moved_normals, qn) >= math.cos(math.radians(self.p.max_normal_angle_deg))
@@ -141,11 +143,7 @@ class IcpBase:
             )
         return q, d, qn, ok
 
-    def final_metrics(self, target: Cloud, source: Cloud, T: np.ndarray, cp: ClosestPoints, maxd) -> dict:
-        if self._last is not None and np.array_equal(self._last[0], T):
-            d = self._last[1]  # the last iteration already paired the source at the final pose
-        else:
-            _, d, _ = cp(apply_T(T, source.points), maxd)
+    def final_metrics(self, d: np.ndarray, maxd) -> dict:
         inl = np.ones(len(d), bool) if maxd is None else d <= maxd
         return {
             "icp_fitness": float(inl.mean()),
@@ -159,10 +157,9 @@ class IcpBase:
         cp = self.closest(target, ctx)
         order = morton_order(source.points)  # cache-coherent queries; the result does not depend on the order
         source = Cloud(source.points[order], None if source.normals is None else source.normals[order], source.source)
-        self._last = None
         res = self.iterate(target, source, T_init, cp, tau, maxd, ctx)
         ctx.step_metrics["icp_rms"] = res.rms_history
-        res.metrics = self.final_metrics(target, source, res.T_target_source, cp, maxd)
+        res.metrics = self.final_metrics(res.final_distances, maxd)
         return res
 
     def step(self, moved, q, qn, ok) -> np.ndarray:  # pragma: no cover - per variant
@@ -179,7 +176,6 @@ class IcpBase:
             moved = apply_T(T, src)
             mn = None if sn is None else sn @ T[:3, :3].T
             q, d, qn, ok = self.pairs(moved, mn, cp, maxd, it)
-            self._last = (T, self._last_d)
             history.append(float(np.sqrt(np.mean(d[ok] ** 2))))
             if it > 0 and abs(history[-2] - history[-1]) < tau:
                 converged = True
@@ -188,7 +184,7 @@ class IcpBase:
                 break
             T = self.update(T, moved, q, qn, ok)
             iterations += 1
-        return IcpResult(T, iterations, history, converged)
+        return IcpResult(T, iterations, history, converged, final_distances=d)
 
     def update(self, T, moved, q, qn, ok) -> np.ndarray:
         """The next iterate from the current one and its pairs."""
@@ -303,7 +299,7 @@ class Anderson(IcpBase):
             else:
                 x = g
             iterations += 1
-        return IcpResult(self._mat(x), iterations, history, converged)
+        return IcpResult(self._mat(x), iterations, history, converged, final_distances=d)
 
 
 @ICP.register("gicp")

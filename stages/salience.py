@@ -71,9 +71,7 @@ def eigen_features(points, normals, radius, max_neighbors, gaussian, queries=Non
     ln = None if normals is None else np.empty((n, 3))
     counts = np.empty(n, np.int64)
     for s in range(0, n, batch):
-        qs = None if queries is None else queries[s:s + batch]
-        if queries is None:
-            qs = points[s:s + batch]
+        qs = (points if queries is None else queries)[s:s + batch]
         j, d, valid = neighbourhoods(points, radius, max_neighbors, qs)
         w = valid.astype(np.float64)
         if gaussian:

@@ -299,7 +299,9 @@ def test_signed_point_to_surface_distances():
     rng = np.random.default_rng(0)
     pts = np.c_[rng.uniform(-4, 4, size=(1000, 2)), np.full(1000, 0.1)]
     pts[:500, 2] = -0.2
-    m = surface_deviation(Cloud(plane.vertices), plane, pts, EvalParams(inlier_distance=1.0,
+    from stages.icp import ClosestPoints
+
+    m = surface_deviation(pts, ClosestPoints(Cloud(plane.vertices), plane)(pts), EvalParams(inlier_distance=1.0,
                           distances=Distances.absolute), 1.0)
     assert m["p2s_signed"] == 1 and m["p2s_mean"] == pytest.approx(-0.05, abs=1e-6)
     assert m["p2s_max_abs"] == pytest.approx(0.2, abs=1e-6) and m["p2s_median"] == pytest.approx(-0.05, abs=0.16)
