@@ -16,6 +16,8 @@ from pipeline.errors import ScanregError
 
 CONF_DIR = PROJECT_ROOT / "conf"
 STAGE_GROUPS = ("data", "repair", "sampler", "salience", "descriptor", "matcher", "coarse", "icp", "tracking")
+PRESET_GROUPS = ("method", "experiment")
+"""Groups of ``# @package _global_`` files that set several stage groups at once."""
 
 
 def _err(msg: str) -> None:
@@ -25,7 +27,8 @@ def _err(msg: str) -> None:
 def run_job(cfg: DictConfig) -> dict | None:
     from pipeline.registry import TRACKING, load_all
     from pipeline.runner import run_pipeline, summary_lines
-    from pipeline.tracking import flatten
+    from pipeline.config import git_revision
+    from pipeline.tracking import flatten, report_progress
 
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
@@ -41,16 +44,19 @@ def run_job(cfg: DictConfig) -> dict | None:
             resolve_error = f"config: {e}".splitlines()[0]
         else:
             resolve_error = None
-        choices = {f"group.{g}": str(hc.runtime.choices.get(g)) for g in STAGE_GROUPS if g in hc.runtime.choices}
+        choices = {f"group.{g}": str(hc.runtime.choices.get(g)) for g in STAGE_GROUPS + PRESET_GROUPS
+                   if g in hc.runtime.choices}
         overrides = " ".join(hc.overrides.task)
         run = tracker.start_run(
             run_name=(overrides or "defaults")[:250],
             params=flatten(resolved),
-            tags={**choices, "scanreg.run_dir": str(run_dir), "scanreg.overrides": overrides},
+            tags={**choices, "scanreg.run_dir": str(run_dir), "scanreg.overrides": overrides,
+                  "scanreg.git_commit": git_revision()},
         )
     except Exception as e:  # noqa: BLE001: a bad tracking setup is reported like any other error
         _err(str(e) if isinstance(e, ScanregError) else f"tracking: {type(e).__name__}: {e}".splitlines()[0])
         if multirun:
+            report_progress("FAILED")
             return None
         raise SystemExit(1)
 
@@ -87,6 +93,7 @@ def run_job(cfg: DictConfig) -> dict | None:
                     print("\n".join(lines[1:]))
         _err(reason)
         if multirun:
+            report_progress("FAILED")
             return None
         raise SystemExit(1)
 
@@ -96,6 +103,8 @@ def run_job(cfg: DictConfig) -> dict | None:
         run.end("FINISHED")
     print("\n".join(summary_lines(res)))
     print(f"results: {run_dir}" + (f"  (MLflow run {run.run_id})" if run else ""))
+    if multirun:
+        report_progress("FINISHED")
     return res.to_json()
 
 
@@ -111,7 +120,7 @@ def check_group_overrides(argv: list[str]) -> str | None:
             continue
         key, _, value = arg.partition("=")
         key = key.lstrip("+")
-        if key not in STAGE_GROUPS and key != "experiment":
+        if key not in STAGE_GROUPS + PRESET_GROUPS:
             continue
         valid = sorted(p.stem for p in (CONF_DIR / key).glob("*.yaml"))
         for v in value.split(","):
@@ -182,7 +191,7 @@ def precheck(argv: list[str]) -> tuple[str, DictConfig | None] | None:
                 return None, e
 
         if msg:
-            bad = [o for o in overrides if o.lstrip("+").split("=")[0] not in STAGE_GROUPS + ("experiment",)]
+            bad = [o for o in overrides if o.lstrip("+").split("=")[0] not in STAGE_GROUPS + PRESET_GROUPS]
             return msg, try_compose(bad)[0]
         cfg, err = try_compose(overrides)
         if err is None:

@@ -237,3 +237,19 @@ def morton_order(points: np.ndarray, bits: int = 10) -> np.ndarray:
         for k in range(3):
             code |= ((q[:, k] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + k)
     return np.argsort(code, kind="stable")
+
+
+def face_normals(mesh: Mesh, unit: bool = True) -> np.ndarray:
+    """Face normals (M, 3) by the right-hand rule (counter-clockwise = outward); area-weighted unless ``unit``."""
+    v, f = mesh.vertices, mesh.faces
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300) if unit else n
+
+
+def vertex_normals(mesh: Mesh) -> np.ndarray:
+    """Unit vertex normals: the area-weighted mean of the normals of the faces around each vertex."""
+    fn = face_normals(mesh, unit=False)
+    n = np.zeros_like(mesh.vertices)
+    for k in range(3):
+        np.add.at(n, mesh.faces[:, k], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)

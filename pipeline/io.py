@@ -448,8 +448,10 @@ def _read_pcd(p: Path, label: str) -> Cloud:
 # ------------------------------------------------------------------------------------------------ writing
 
 
-def write_ply(path: str | os.PathLike, g: Geometry, colors: np.ndarray | None = None) -> None:
-    """Write a mesh or cloud as binary little-endian PLY (float64 coordinates; normals and uchar RGB if given)."""
+def write_ply(path: str | os.PathLike, g: Geometry, colors: np.ndarray | None = None,
+              scalars: dict[str, np.ndarray] | None = None) -> None:
+    """Write a mesh or cloud as binary little-endian PLY (float64 coordinates; normals, uchar RGB and float
+    per-vertex scalars if given: MeshLab shows ``quality`` and CloudCompare every scalar as a scalar field)."""
     pts = g.vertices if isinstance(g, Mesh) else g.points
     normals = None if isinstance(g, Mesh) else g.normals
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
@@ -457,7 +459,11 @@ def write_ply(path: str | os.PathLike, g: Geometry, colors: np.ndarray | None = 
         fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
     if colors is not None:
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    for name in scalars or {}:
+        fields.append((name, "<f4"))
     rec = np.empty(len(pts), dtype=fields)
+    for name, val in (scalars or {}).items():
+        rec[name] = val
     rec["x"], rec["y"], rec["z"] = pts.T
     if normals is not None:
         rec["nx"], rec["ny"], rec["nz"] = normals.T

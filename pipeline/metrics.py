@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -22,6 +23,23 @@ class EvalParams:
     """A run with ground truth succeeds when its rotation error is below this (degrees) ..."""
     success_translation: float = 0.01
     """... and its translation error below this share of the target's bounding-box diagonal."""
+    deviation_map: bool = False
+    """Also write the deviation map of the aligned source (coloured PLY, histogram, picture) and log its
+    statistics ``dev_*`` overall and per part of the target (see pipeline/deviation.py)."""
+    deviation_range: float = 0.1
+    """Colour-map range: deviations beyond ± this saturate (input units: 0.1 = 100 µm for mm data)."""
+    deviation_max_distance: Optional[float] = 0.5
+    """Source points farther than this from the target are not compared (input units; e.g. the gum of a cast
+    that the CT lacks); null: every point."""
+    deviation_max_angle_deg: Optional[float] = 60.0
+    """Source points whose normal differs from the target's by more than this are not compared (degrees);
+    null: no normal test."""
+    deviation_bands: list[float] = field(default_factory=lambda: [0.05, 0.1])
+    """Report the share of compared points within ± each of these (input units)."""
+    deviation_scale: float = 1000.0
+    """Display unit per input unit (1000: mm -> µm)."""
+    deviation_unit: str = "um"
+    """Name of the display unit, used in metric names (``dev_rms_um``) and legends."""
 
 
 def estimate_spacing(points: np.ndarray, rng: np.random.Generator, n: int = 5000) -> float:

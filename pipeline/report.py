@@ -1,30 +1,70 @@
-"""``scanreg-report``: MLflow runs -> a comparison table (pandas).
+"""``scanreg-report``: MLflow runs -> comparison tables (Markdown, CSV) and plots (PNG).
 
     scanreg-report                                   # latest sweep of experiment 'scanreg', grouped by what varies
-    scanreg-report --experiment scanreg --parent latest --group-by sampler.n_points --out reports/density
+    scanreg-report --experiment bunny_benchmark --group-by group.coarse --per data.pair
+    scanreg-report --experiment sampling_density --group-by sampler.density --x sampler.density
+    scanreg-report --experiment icp_comparison --compare-to icp_comparison_old
 
-Runs are loaded with ``mlflow.search_runs``; ``--group-by`` takes config keys (``icp.tau``, ``group.coarse`` for
-a group's choice). Per group: runs, failed runs, success rate (rotation error < 2 deg and translation error < 1 %
-of the diagonal, as configured in ``evaluate``), median and 90th-percentile errors, median stage times.
+Runs are loaded with ``mlflow.search_runs``; ``--group-by`` takes config keys (``icp.tau``; ``group.coarse`` is
+the chosen implementation of a stage group). Per group: runs, failed runs, success rate (rotation error < 2°
+and translation error < 1 % of the diagonal, as configured in ``evaluate``; a failed run counts as a failure),
+median and 90th-percentile errors, median time per stage. Plots: success rate per group, error and time against
+``--x``, success per ``--per`` value (e.g. per scan pair). An experiment file turns the report on with
+``report.enabled=true`` so that ``scanreg experiment=NAME`` writes it when its sweep ends.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
+import re
 import sys
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any, Optional
 
+import numpy as np
 import pandas as pd
 
+STAGES = ("load", "repair", "sample", "coarse", "icp", "evaluate", "total")
 AGG_METRICS = [
     ("rotation_error_deg", "median"), ("rotation_error_deg", "p90"),
     ("translation_error", "median"), ("translation_error", "p90"),
+    ("translation_error_rel", "median"),
+    ("coarse_rotation_error_deg", "median"),
     ("rms", "median"), ("fitness", "median"), ("icp_iterations", "median"),
-    ("time_repair_s", "median"), ("time_sample_s", "median"), ("time_coarse_s", "median"),
-    ("time_icp_s", "median"), ("time_total_s", "median"),
+    *[(f"time_{s}_s", "median") for s in STAGES[1:]],
 ]
 IGNORED_VARYING = {"seed"}
+COMPARE_COLUMNS = ["runs", "success_rate", "rotation_error_deg_median", "translation_error_median",
+                   "time_coarse_s_median", "time_total_s_median"]
+
+
+@dataclass
+class ReportParams:
+    """What the report of an experiment's sweep shows (the ``report`` block of the config)."""
+
+    enabled: bool = False
+    """Write the report when a ``-m`` sweep (or an experiment run as one) ends."""
+    out: Optional[str] = None
+    """Folder for report.md, report.csv and the PNG plots; null: outputs/reports/<experiment>. Relative paths
+    are taken from the current directory."""
+    group_by: list[str] = field(default_factory=list)
+    """Config keys whose values are the compared methods (e.g. ``[group.salience]``); empty: the parameters
+    that vary between the runs."""
+    x: Optional[str] = None
+    """A numeric swept key to plot errors and times against (e.g. ``sampler.density``); null: no such plot."""
+    per: Optional[str] = None
+    """A key to show success per value of (e.g. ``data.pair``): a table and a heat map; null: none."""
+    title: Optional[str] = None
+    """Heading of the report; null: the experiment name."""
+    notes: Optional[str] = None
+    """A paragraph put under the heading (what the experiment asks, how to read it)."""
+    metrics: list[str] = field(default_factory=list)
+    """Further metrics whose median per group the table shows (e.g. ``dev_rms_um``, ``landmark_coarse_rms``)."""
+    showcase: Optional[dict[str, Any]] = None
+    """Config values selecting one run to show in detail (e.g. ``{data.noise: 0.02, data.pick_error: 0.3}``):
+    its key metrics, its per-part table and its PNG pictures are copied into the report; null: none."""
 
 
 def load_runs(experiment: str, uri: str | None = None, parent: str | None = None) -> pd.DataFrame:
@@ -39,21 +79,28 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
     exp = mlflow.get_experiment_by_name(experiment)
     if exp is None:
         raise SystemExit(f"error: no experiment '{experiment}' in {tr.uri}")
-    if parent == "latest":
-        parents = mlflow.search_runs([exp.experiment_id], filter_string="tags.`scanreg.sweep` = 'parent'",
-                                     order_by=["start_time DESC"], max_results=1)
+    parent_row = None
+    if parent:
+        flt = "tags.`scanreg.sweep` = 'parent'" + ("" if parent == "latest" else f" and attributes.run_id = '{parent}'")
+        parents = mlflow.search_runs([exp.experiment_id], filter_string=flt, order_by=["start_time DESC"],
+                                     max_results=1)
         if parents.empty:
-            raise SystemExit(f"error: experiment '{experiment}' has no sweep (run 'scanreg -m ...' first)")
-        parent = parents.iloc[0]["run_id"]
+            raise SystemExit(f"error: experiment '{experiment}' has no sweep"
+                             + ("" if parent == "latest" else f" with parent run {parent}")
+                             + " (run 'scanreg -m ...' first, or pass --parent all)")
+        parent_row = parents.iloc[0]
+        parent = parent_row["run_id"]
     flt = f"tags.mlflow.parentRunId = '{parent}'" if parent else ""
     df = mlflow.search_runs([exp.experiment_id], filter_string=flt, max_results=100000)
     if "tags.scanreg.sweep" in df:
         df = df[df["tags.scanreg.sweep"] != "parent"]
     if df.empty:
         raise SystemExit(f"error: no runs found in experiment '{experiment}'" + (f" under parent {parent}" if parent else ""))
-    df.attrs["parent"] = parent
-    df.attrs["uri"] = tr.uri
-    return df.reset_index(drop=True)
+    df = df.sort_values("start_time").reset_index(drop=True)
+    df.attrs.update(parent=parent, uri=tr.uri, experiment=experiment,
+                    parent_tags={k[5:]: v for k, v in parent_row.items() if k.startswith("tags.")}
+                    if parent_row is not None else {})
+    return df
 
 
 def column_for(key: str, df: pd.DataFrame) -> str:
@@ -64,21 +111,33 @@ def column_for(key: str, df: pd.DataFrame) -> str:
 
 
 def varying_keys(df: pd.DataFrame) -> list[str]:
-    keys = []
+    """Config keys whose values differ between runs; a stage group whose implementation varies is shown by its
+    choice (``group.X``) instead of every parameter of it."""
+    switched = {c[len("tags.group."):] for c in df.columns
+                if c.startswith("tags.group.") and df[c].nunique(dropna=False) > 1}
+    keys = [f"group.{g}" for g in sorted(switched)]
     for c in df.columns:
         if c.startswith("params.") and df[c].nunique(dropna=False) > 1:
             k = c[len("params."):]
+            if k.split(".")[0] in switched:
+                continue
             if k.split(".")[-1] not in IGNORED_VARYING and not k.endswith(("_seed", ".seed")):
                 keys.append(k)
     return keys
 
 
-def summarize(df: pd.DataFrame, group_by: list[str]) -> pd.DataFrame:
+def _typed(s: pd.Series) -> pd.Series:
+    num = pd.to_numeric(s, errors="coerce")
+    return num if num.notna().all() else s.astype(str)
+
+
+def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = ()) -> pd.DataFrame:
+    """One row per group: runs, failed, success rate, error quantiles, median stage times (and the median of
+    each ``extra`` metric)."""
     cols = [column_for(k, df) for k in group_by]
     work = df.copy()
     for c in cols:
-        num = pd.to_numeric(work[c], errors="coerce")
-        work[c] = num if num.notna().all() else work[c].astype(str)
+        work[c] = _typed(work[c])
     rows = []
     groups = work.groupby(cols, dropna=False, sort=True) if cols else [((), work)]
     for key, g in groups:
@@ -89,7 +148,7 @@ def summarize(df: pd.DataFrame, group_by: list[str]) -> pd.DataFrame:
         row["failed"] = int((g["status"] != "FINISHED").sum())
         if "metrics.success" in g and ok["metrics.success"].notna().any():
             row["success_rate"] = float(ok["metrics.success"].fillna(0).sum() / len(g))
-        for m, how in AGG_METRICS:
+        for m, how in [*AGG_METRICS, *[(e, "median") for e in extra]]:
             c = f"metrics.{m}"
             if c in ok and ok[c].notna().any():
                 s = ok[c].dropna()
@@ -98,16 +157,265 @@ def summarize(df: pd.DataFrame, group_by: list[str]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def to_markdown(df: pd.DataFrame) -> str:
-    def fmt(v):
-        if isinstance(v, float):
-            return f"{v:.4g}"
-        return str(v)
+def per_table(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame:
+    """Success rate for each value of ``per`` (rows) and each group (columns)."""
+    work = df.copy()
+    work["_per"] = _typed(work[column_for(per, df)])
+    work["_grp"] = _labels(work, group_by)
+    work["_ok"] = (work["status"] == "FINISHED") & (work.get("metrics.success", 0).fillna(0) > 0.5)
+    t = work.pivot_table(index="_per", columns="_grp", values="_ok", aggfunc="mean")
+    t.index.name, t.columns.name = per, None
+    return t
 
-    head = "| " + " | ".join(df.columns) + " |"
+
+def _labels(df: pd.DataFrame, group_by: list[str]) -> pd.Series:
+    if not group_by:
+        return pd.Series(["all"] * len(df), index=df.index)
+    cols = [column_for(k, df) for k in group_by]
+    return df[cols].astype(str).agg(" / ".join, axis=1)
+
+
+def fmt_value(v) -> str:
+    if isinstance(v, (float, np.floating)):
+        if np.isnan(v):
+            return "–"
+        return f"{v:.4g}"
+    return str(v)
+
+
+def to_markdown(df: pd.DataFrame, index: bool = False) -> str:
+    if index:
+        df = df.reset_index()
+    head = "| " + " | ".join(str(c) for c in df.columns) + " |"
     sep = "|" + "|".join("---" for _ in df.columns) + "|"
-    body = ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    body = ["| " + " | ".join(fmt_value(v) for v in row) + " |" for row in df.itertuples(index=False)]
     return "\n".join([head, sep, *body])
+
+
+def compare(a: pd.DataFrame, b: pd.DataFrame, group_by: list[str], name_a: str, name_b: str) -> pd.DataFrame:
+    """Two summaries side by side on the group keys (outer join), the main columns of each."""
+    cols = [c for c in COMPARE_COLUMNS if c in a.columns or c in b.columns]
+    pick = lambda s, n: s[[*group_by, *[c for c in cols if c in s.columns]]].rename(
+        columns={c: f"{c} [{n}]" for c in cols})
+    if group_by:
+        for s in (a, b):
+            for k in group_by:
+                s[k] = s[k].astype(str)
+        return pick(a, name_a).merge(pick(b, name_b), on=group_by, how="outer")
+    return pd.concat([pick(a, name_a), pick(b, name_b)], axis=1)
+
+
+# ---------------------------------------------------------------------------------------------------- plots
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _slug(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", s)
+
+
+def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: Path, x: str | None,
+               per_t: pd.DataFrame | None) -> list[Path]:
+    plt = _plt()
+    paths: list[Path] = []
+    labels = [" / ".join(fmt_value(r[k]) for k in group_by) or "all" for _, r in table.iterrows()]
+    ok = df[df["status"] == "FINISHED"].copy()
+
+    if "success_rate" in table:  # success per method
+        fig, ax = plt.subplots(figsize=(max(4.0, 0.6 * len(table) + 2), 3.2))
+        ax.bar(range(len(table)), table["success_rate"].fillna(0) * 100, color="tab:blue")
+        ax.set_xticks(range(len(table)), labels, rotation=45 if len(table) > 4 else 0, ha="right" if len(table) > 4 else "center")
+        ax.set_ylabel("success [%]")
+        ax.set_ylim(0, 100)
+        ax.set_title("success rate (rotation and translation error within the thresholds)", fontsize=9)
+        fig.tight_layout()
+        paths.append(out / "success.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+
+    if x and "metrics.rotation_error_deg" in ok:
+        xc = column_for(x, ok)
+        ok["_x"] = pd.to_numeric(ok[xc], errors="coerce")
+        ok["_g"] = _labels(ok, [k for k in group_by if k != x])
+        if ok["_x"].notna().any():
+            fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+            for g, d in ok.groupby("_g"):
+                s = d.groupby("_x")
+                med = s["metrics.rotation_error_deg"].median()
+                p90 = s["metrics.rotation_error_deg"].quantile(0.9)
+                line = axes[0].plot(med.index, med.values, "o-", label=f"{g} median")[0]
+                axes[0].plot(p90.index, p90.values, "--", color=line.get_color(), label=f"{g} p90")
+                if "metrics.time_total_s" in d:
+                    t = s["metrics.time_total_s"].median()
+                    axes[1].plot(t.index, t.values, "o-", color=line.get_color(), label=f"{g} total")
+                    if "metrics.time_coarse_s" in d:
+                        tc = s["metrics.time_coarse_s"].median()
+                        axes[1].plot(tc.index, tc.values, ":", color=line.get_color(), label=f"{g} coarse")
+            axes[0].set_yscale("log")
+            axes[0].set_xlabel(x)
+            axes[0].set_ylabel("rotation error [deg]")
+            axes[1].set_xlabel(x)
+            axes[1].set_ylabel("median time [s]")
+            for ax in axes:
+                if (ok["_x"] > 0).all() and ok["_x"].max() / ok["_x"].min() >= 10:
+                    ax.set_xscale("log")
+                ax.legend(fontsize=7)
+            fig.tight_layout()
+            paths.append(out / f"error_time_vs_{_slug(x)}.png")
+            fig.savefig(paths[-1], dpi=110)
+            plt.close(fig)
+    elif "metrics.rotation_error_deg" in ok and len(ok):  # error distribution and stage times per method
+        ok["_g"] = _labels(ok, group_by)
+        names = [n for n in dict.fromkeys(labels) if n in set(ok["_g"])]
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+        data = [ok.loc[ok["_g"] == n, "metrics.rotation_error_deg"].clip(lower=1e-3).values for n in names]
+        axes[0].boxplot(data)
+        axes[0].set_xticks(range(1, len(names) + 1), names, rotation=45 if len(names) > 4 else 0,
+                           ha="right" if len(names) > 4 else "center", fontsize=7)
+        axes[0].set_yscale("log")
+        axes[0].set_ylabel("rotation error [deg]")
+        bottom = np.zeros(len(names))
+        for s in STAGES[1:-1]:
+            c = f"metrics.time_{s}_s"
+            if c not in ok:
+                continue
+            v = np.array([ok.loc[ok["_g"] == n, c].median() for n in names])
+            v = np.nan_to_num(v)
+            axes[1].bar(range(len(names)), v, bottom=bottom, label=s)
+            bottom += v
+        axes[1].set_xticks(range(len(names)), names, rotation=45 if len(names) > 4 else 0,
+                           ha="right" if len(names) > 4 else "center", fontsize=7)
+        axes[1].set_ylabel("median time per stage [s]")
+        axes[1].legend(fontsize=7)
+        fig.tight_layout()
+        paths.append(out / "errors_times.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+
+    if per_t is not None and not per_t.empty:
+        fig, ax = plt.subplots(figsize=(max(4.0, 0.9 * per_t.shape[1] + 3), max(3.0, 0.22 * len(per_t) + 1.2)))
+        im = ax.imshow(per_t.values * 100, aspect="auto", cmap="RdYlGn", vmin=0, vmax=100)
+        ax.set_yticks(range(len(per_t)), [str(i) for i in per_t.index], fontsize=7)
+        ax.set_xticks(range(per_t.shape[1]), list(per_t.columns), rotation=45 if per_t.shape[1] > 3 else 0,
+                      ha="right" if per_t.shape[1] > 3 else "center", fontsize=7)
+        ax.set_ylabel(per_t.index.name)
+        fig.colorbar(im, ax=ax, label="success [%]")
+        fig.tight_layout()
+        paths.append(out / f"success_per_{_slug(per_t.index.name)}.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+    return paths
+
+
+# --------------------------------------------------------------------------------------------------- report
+def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.DataFrame | None = None,
+                 plots: bool = True) -> dict:
+    """Write report.md, report.csv (and per.csv, compare.csv) and PNG plots into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    group_by = list(p.group_by) or varying_keys(df)
+    table = summarize(df, group_by, list(p.metrics))
+    table.to_csv(out / "report.csv", index=False)
+    per_t = per_table(df, group_by, p.per) if p.per else None
+    if per_t is not None:
+        per_t.to_csv(out / "per.csv")
+    figs = make_plots(df, table, group_by, out, p.x, per_t) if plots else []
+
+    exp = df.attrs.get("experiment", "?")
+    ptags = df.attrs.get("parent_tags", {})
+    commits = sorted(set(df.get("tags.scanreg.git_commit", pd.Series(dtype=str)).dropna()))
+    command = ptags.get("scanreg.command") or (f"scanreg -m {ptags['scanreg.overrides']}" if "scanreg.overrides" in ptags else None)
+    when = pd.to_datetime(df["start_time"]).min()
+    n_fail = int((df["status"] != "FINISHED").sum())
+    lines = [f"# {p.title or 'Experiment ' + exp}", ""]
+    if p.notes:
+        lines += [" ".join(p.notes.split()), ""]
+    lines += [
+        "## How this was produced", "",
+        f"- command: `{command}`" if command else f"- runs of MLflow experiment `{exp}`",
+        f"- commit: {', '.join(commits) or 'unknown'}",
+        f"- runs: {len(df)} ({n_fail} failed), started {when:%Y-%m-%d %H:%M} UTC"
+        + (f", sweep parent run `{df.attrs['parent']}`" if df.attrs.get("parent") else ""),
+        f"- tracking store: `{df.attrs.get('uri')}` (experiment `{exp}`)",
+        f"- report: `scanreg-report --experiment {exp}" + (f" --group-by {','.join(group_by)}" if group_by else "")
+        + (f" --x {p.x}" if p.x else "") + (f" --per {p.per}" if p.per else "") + "`, "
+        + f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
+        "",
+        "Success: rotation error < `evaluate.success_rotation_deg` (2°) and translation error < "
+        "`evaluate.success_translation` (1 %) of the target's bounding-box diagonal; a failed run counts as a "
+        "failure. Errors are against the ground truth, in degrees and input units; times are medians in seconds.",
+        "",
+        f"## Results by {', '.join(group_by) or 'run'}", "", to_markdown(table), "",
+    ]
+    if per_t is not None:
+        lines += [f"## Success per {p.per}", "", to_markdown((per_t * 100).round(0), index=True), ""]
+    if compare_to is not None:
+        other = summarize(compare_to, [k for k in group_by if _has_key(compare_to, k)])
+        cmp = compare(table.copy(), other, [k for k in group_by if _has_key(compare_to, k)], exp,
+                      compare_to.attrs.get("experiment", "other"))
+        cmp.to_csv(out / "compare.csv", index=False)
+        lines += [f"## Compared with experiment `{compare_to.attrs.get('experiment')}`", "", to_markdown(cmp), ""]
+    if p.showcase:
+        lines += showcase_section(df, dict(p.showcase), out)
+    if figs:
+        lines += ["## Plots", ""] + [f"![{f.stem}]({f.name})" for f in figs] + [""]
+    if n_fail:
+        reasons = df.loc[df["status"] != "FINISHED", "tags.error"] if "tags.error" in df else pd.Series(dtype=str)
+        lines += ["## Failed runs", ""] + [f"- {r}" for r in reasons.fillna("(no reason recorded)").value_counts().index] + [""]
+    (out / "report.md").write_text("\n".join(lines))
+    return {"table": table, "per": per_t, "paths": [out / "report.md", out / "report.csv", *figs]}
+
+
+def showcase_section(df: pd.DataFrame, sel: dict, out: Path) -> list[str]:
+    """One run in detail: the first finished run matching ``sel``, its metrics, part table and pictures."""
+    import shutil
+
+    ok = df["status"] == "FINISHED"
+    for k, v in sel.items():
+        col = column_for(k, df)
+        ok &= df[col].astype(str) == str(v)
+    if not ok.any():
+        return ["## Showcase run", "", f"No finished run matches {sel}.", ""]
+    row = df[ok].iloc[0]
+    run_dir = Path(str(row.get("tags.scanreg.run_dir", "")))
+    title = ", ".join(f"{k}={v}" for k, v in sel.items())
+    lines = [f"## Showcase run: {title}", "", f"MLflow run `{row['run_id']}`, run directory `{run_dir}`.", ""]
+    metrics = {c[len("metrics."):]: row[c] for c in df.columns if c.startswith("metrics.") and pd.notna(row[c])
+               and not re.search(r"_\d+$", c)}
+    keys = [k for k in ("coarse_rotation_error_deg", "rotation_error_deg", "coarse_translation_error",
+                        "translation_error", "landmark_coarse_rms", "landmark_final_rms") if k in metrics]
+    keys += [k for k in metrics if k.startswith("dev_")]
+    if keys:
+        lines += ["| metric | value |", "|---|---|"] + [f"| {k} | {fmt_value(float(metrics[k]))} |" for k in keys] + [""]
+    for csv in sorted(run_dir.glob("deviation_*s.csv")) if run_dir.is_dir() else []:
+        part = pd.read_csv(csv)
+        lines += [f"### Per {csv.stem[len('deviation_'):-1]}", "", to_markdown(part), ""]
+        shutil.copy(csv, out / f"showcase_{csv.name}")
+    for png in sorted(run_dir.glob("*.png")) if run_dir.is_dir() else []:
+        shutil.copy(png, out / f"showcase_{png.name}")
+        lines += [f"![{png.stem}](showcase_{png.name})", ""]
+    return lines
+
+
+def _has_key(df: pd.DataFrame, key: str) -> bool:
+    return any(c in df.columns for c in (f"params.{key}", f"tags.{key}", f"metrics.{key}"))
+
+
+def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None:
+    """Called when an experiment's sweep ends (``report.enabled``): write its report."""
+    from omegaconf import OmegaConf
+
+    from pipeline.registry import make_params
+
+    p = make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
+    out = Path(p.out or Path("outputs") / "reports" / experiment)
+    df = load_runs(experiment, uri, parent_run_id)
+    res = write_report(df, p, out)
+    print(f"report: {res['paths'][0]}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -117,23 +425,28 @@ def main(argv: list[str] | None = None) -> int:
                     help="parent run id of a sweep; 'latest' (default): the newest sweep; 'all': every run")
     ap.add_argument("--group-by", default=None,
                     help="comma-separated config keys (default: the parameters that vary between the runs)")
+    ap.add_argument("--x", default=None, help="numeric key to plot errors and times against")
+    ap.add_argument("--per", default=None, help="key to show success per value of (e.g. data.pair)")
+    ap.add_argument("--compare-to", default=None, metavar="EXPERIMENT",
+                    help="another experiment (its latest sweep) to put side by side")
+    ap.add_argument("--metrics", default=None, help="comma-separated further metrics to show the median of")
+    ap.add_argument("--title", default=None, help="heading of report.md")
+    ap.add_argument("--no-plots", action="store_true", help="tables only")
     ap.add_argument("--uri", default=None, help="tracking URI (default: $MLFLOW_TRACKING_URI or outputs/mlflow.db)")
-    ap.add_argument("--out", default=None, help="folder for report.md and report.csv (default: outputs/reports/<experiment>)")
+    ap.add_argument("--out", default=None, help="folder for the report (default: outputs/reports/<experiment>)")
     a = ap.parse_args(argv)
     df = load_runs(a.experiment, a.uri, None if a.parent == "all" else a.parent)
-    group_by = [k.strip() for k in a.group_by.split(",") if k.strip()] if a.group_by else varying_keys(df)
-    table = summarize(df, group_by)
+    other = load_runs(a.compare_to, a.uri, "latest" if a.parent != "all" else None) if a.compare_to else None
+    group_by = [k.strip() for k in a.group_by.split(",") if k.strip()] if a.group_by else []
+    extra = [k.strip() for k in a.metrics.split(",") if k.strip()] if a.metrics else []
+    p = ReportParams(enabled=True, out=a.out, group_by=group_by, x=a.x, per=a.per, title=a.title, metrics=extra)
     out = Path(a.out or Path("outputs") / "reports" / a.experiment)
-    out.mkdir(parents=True, exist_ok=True)
-    table.to_csv(out / "report.csv", index=False)
-    title = f"# scanreg report: experiment '{a.experiment}'"
-    src = f"{len(df)} run(s)" + (f" of sweep {df.attrs['parent']}" if df.attrs.get("parent") else "") + \
-        f", store {df.attrs['uri']}; grouped by {', '.join(group_by) or '(nothing)'}"
-    (out / "report.md").write_text(f"{title}\n\n{src}\n\n{to_markdown(table)}\n")
+    res = write_report(df, p, out, other, plots=not a.no_plots)
     with pd.option_context("display.width", 200, "display.max_columns", 50):
-        print(src)
-        print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
-    print(f"written: {out / 'report.md'}, {out / 'report.csv'}")
+        print(f"{len(df)} run(s) of experiment '{a.experiment}'"
+              + (f", sweep {df.attrs['parent']}" if df.attrs.get("parent") else ""))
+        print(res["table"].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    print("written: " + ", ".join(str(x) for x in res["paths"]))
     return 0
 
 

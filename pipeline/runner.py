@@ -71,6 +71,10 @@ def build_stages(cfg: DictConfig) -> dict:
         if fam in getattr(stages["coarse"], "uses", ()):
             stages[fam] = inst
     stages["evaluate"] = make_params(EvalParams, OmegaConf.to_container(cfg.evaluate, resolve=True), "evaluate")
+    if cfg.get("report") is not None:  # validated here so that a bad key fails before the sweep's work
+        from pipeline.report import ReportParams
+
+        make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
     return stages
 
 
@@ -86,14 +90,16 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
 
     with timer("load"):
         inputs = st["data"].load(ctx)
+    m.update({k: float(v) for k, v in (inputs.info or {}).items() if isinstance(v, (int, float))})
 
     geoms = {"source": inputs.source, "target": inputs.target}
     with timer("repair"):
         if cfg.repair.name != "none":
             from stages.repair import repair_with_audit
 
+            apply_to = getattr(st["repair"].p, "apply_to", "both")
             for role, g in geoms.items():
-                if isinstance(g, Mesh):
+                if isinstance(g, Mesh) and apply_to in (role, "both"):
                     try:
                         geoms[role], rm = repair_with_audit(st["repair"], g, ctx, "repair_" if role == "source"
                                                             else "target_repair_")
@@ -111,6 +117,7 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
                     f"{g.source}: {clouds[role].n_points} point(s) after sampling; at least {MIN_POINTS} are needed"
                 )
     src, tgt = clouds["source"], clouds["target"]
+    target_labels_valid = inputs.target_labels is not None and geoms["target"] is inputs.target
     ctx.target_mesh = geoms["target"] if isinstance(geoms["target"], Mesh) else None
     m["n_source_points"], m["n_target_points"] = src.n_points, tgt.n_points
     m["target_spacing"] = estimate_spacing(tgt.points, ctx.rng(1))
@@ -145,11 +152,24 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
         if inputs.T_gt is not None:
             m.update(gt_metrics(T0, inputs.T_gt, ctx.diagonal, ev, prefix="coarse_"))
             m.update(gt_metrics(T, inputs.T_gt, ctx.diagonal, ev))
+        if inputs.landmarks is not None:  # how well the picks agree before and after the fine stage
+            lt, ls = inputs.landmarks
+            for name, TT in (("coarse", T0), ("final", T)):
+                r = np.linalg.norm(apply_T(TT, ls) - lt, axis=1)
+                m[f"landmark_{name}_rms"] = float(np.sqrt(np.mean(r ** 2)))
+            ctx.step_metrics["landmark_final_residual"] = np.linalg.norm(apply_T(T, ls) - lt, axis=1).tolist()
+        if ev.deviation_map:
+            from pipeline.deviation import evaluate_deviation
+
+            labels = inputs.target_labels if target_labels_valid else None
+            dm, dev_paths = evaluate_deviation(run_dir, transform_geometry(T, src), transform_geometry(T, geoms["source"]),
+                                               tgt, ctx.target_mesh, labels, ev, inputs.label_name)
+            m.update(dm)
     m["time_total_s"] = (time.perf_counter_ns() - t_start) / 1e9
 
     res.T_target_source = T
     res.step_metrics = dict(ctx.step_metrics)
-    res.artifacts = write_outputs(run_dir, res, transform_geometry(T, src), tgt if inputs.T_gt is not None and
+    res.artifacts = (dev_paths if ev.deviation_map else []) + write_outputs(run_dir, res, transform_geometry(T, src), tgt if inputs.T_gt is not None and
                                   cfg.data.name != "files" else None)
     return res
 

@@ -181,15 +181,25 @@ class SweepCallback(Callback):
             return  # reported by each job
         if cls is not MlflowTracking:
             return
+        import sys
+
+        from pipeline.config import git_revision
+
         tr = MlflowTracking(params)
         client, eid = tr.prepare()
         sweep_dir = str(config.hydra.sweep.dir)
         overrides = " ".join(config.hydra.overrides.task)
+        command = " ".join(["scanreg", *sys.argv[1:]]) if Path(sys.argv[0]).name == "scanreg" else \
+            f"scanreg -m {overrides}"
         parent = client.create_run(eid, run_name=f"sweep: {overrides}"[:250],
                                    tags={"scanreg.sweep_dir": sweep_dir, "scanreg.overrides": overrides,
-                                         "scanreg.sweep": "parent"})
+                                         "scanreg.sweep": "parent", "scanreg.command": command,
+                                         "scanreg.git_commit": git_revision()})
+        Path(sweep_dir).mkdir(parents=True, exist_ok=True)
         os.environ[SWEEP_ENV] = json.dumps({"uri": tr.uri, "experiment": params.experiment,
-                                            "experiment_id": eid, "parent_run_id": parent.info.run_id})
+                                            "experiment_id": eid, "parent_run_id": parent.info.run_id,
+                                            "total": sweep_size(config), "start": time.time(),
+                                            "progress": str(Path(sweep_dir) / ".progress")})
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         info = json.loads(os.environ.pop(SWEEP_ENV, "null") or "null")
@@ -207,3 +217,61 @@ class SweepCallback(Callback):
         _sweep_outcome.update(failed=failed, total=len(children))
         print(f"sweep: {len(children)} run(s), {failed} failed; parent run {info['parent_run_id']} in experiment "
               f"'{info['experiment']}' at {info['uri']}")
+        if config.get("report") is not None and config.report.get("enabled"):
+            from pipeline.report import report_for_sweep
+
+            try:
+                report_for_sweep(config, info["parent_run_id"], info["uri"], info["experiment"])
+            except Exception as e:  # noqa: BLE001: the runs are safe; say why the report is missing
+                msg = str(e) if isinstance(e, (ConfigError, SystemExit)) else f"{type(e).__name__}: {e}"
+                print(f"error: report not written: {msg}".splitlines()[0])
+                _sweep_outcome["failed"] = _sweep_outcome.get("failed", 0) or 1
+
+
+def sweep_size(config: DictConfig) -> int | None:
+    """Number of jobs of a basic-sweeper sweep (command-line sweeps and ``hydra.sweeper.params``), else None."""
+    try:
+        if "BasicSweeper" not in str(config.hydra.sweeper.get("_target_", "")):
+            return None
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+
+        lines = [f"{k}={v}" for k, v in (config.hydra.sweeper.get("params") or {}).items()]
+        lines += list(config.hydra.overrides.task)
+        sizes: dict[str, int] = {}
+        for o in OverridesParser.create().parse_overrides(lines):
+            sizes[o.get_key_element()] = len(list(o.sweep_string_iterator())) if o.is_sweep_override() else 1
+        n = 1
+        for v in sizes.values():
+            n *= v
+        return n
+    except Exception:  # noqa: BLE001: progress is a nicety
+        return None
+
+
+def report_progress(status: str) -> None:
+    """After a sweep job: append to the sweep's progress file and print a bar with the estimated time left."""
+    info = json.loads(os.environ.get(SWEEP_ENV, "null") or "null")
+    if not info or not info.get("progress"):
+        return
+    try:
+        with open(info["progress"], "a") as f:
+            f.write(status + "\n")
+        done_lines = Path(info["progress"]).read_text().split()
+    except OSError:
+        return
+    done, failed = len(done_lines), sum(s != "FINISHED" for s in done_lines)
+    elapsed = time.time() - info["start"]
+    total = info.get("total")
+    if total:
+        width = 30
+        fill = int(round(width * min(done, total) / total))
+        left = elapsed / done * max(total - done, 0)
+        print(f"sweep [{'#' * fill}{'.' * (width - fill)}] {done}/{total} jobs, {failed} failed, "
+              f"{_hms(elapsed)} elapsed, ~{_hms(left)} left", flush=True)
+    else:
+        print(f"sweep: {done} jobs done, {failed} failed, {_hms(elapsed)} elapsed", flush=True)
+
+
+def _hms(sec: float) -> str:
+    sec = int(round(sec))
+    return f"{sec // 3600}:{sec // 60 % 60:02d}:{sec % 60:02d}"

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from pipeline.config import Context, expand_path
 from pipeline.errors import ConfigError, InputError
@@ -29,6 +30,11 @@ class Inputs:
     landmarks: Optional[tuple[np.ndarray, np.ndarray]] = None
     """Picked pairs ``(target points (K, 3), source points (K, 3))``."""
     info: dict | None = None
+    """Numbers about the case, logged as metrics (e.g. ``gt_overlap``)."""
+    target_labels: Optional[np.ndarray] = None
+    """A part number per face of a target mesh (e.g. tooth numbers), for per-part deviation statistics."""
+    label_name: str = "part"
+    """What a part is called in metric names (``tooth``)."""
 
 
 @DATA.register("files")
@@ -130,7 +136,7 @@ class Synthetic:
         diag = bbox_diagonal(mesh.vertices)
         T = random_pose(np.random.default_rng([p.pose_seed, 202]), p.max_angle_deg, p.max_translation * diag)
         target = transform_geometry(T, Cloud(pts, normals, f"synthetic scan of {p.mesh}"))
-        return Inputs(mesh, target, T, None, {"target_spacing": spacing})
+        return Inputs(mesh, target, T, None, {"synthetic_spacing": spacing})
 
 
 @DATA.register("stanford")
@@ -148,6 +154,13 @@ class Stanford:
         """Scan to move (file name in the folder)."""
         target: str = "bun000.ply"
         """Fixed scan (file name in the folder)."""
+        pair: Optional[str] = None
+        """``TARGET:SOURCE`` scan names without extension (e.g. ``bun000:bun045``); when set it replaces
+        ``target`` and ``source``, so that pairs can be swept: ``data.pair=bun000:bun045,top2:bun180``."""
+        overlap_distance: float = 3.0
+        """Distance under which a source point counts as overlapping the target for the logged ``gt_overlap``
+        (share of source points near the target at the true pose), in multiples of the target's median
+        nearest-neighbour spacing."""
 
     def __init__(self, params: Params):
         self.p = params
@@ -159,14 +172,29 @@ class Stanford:
                 f"data.folder {self.p.folder}: no such folder ({folder}); the Stanford scans live in ../shared/data"
             )
         poses = read_stanford_conf(folder / self.p.conf)
-        for scan in (self.p.source, self.p.target):
+        target, source = self.p.target, self.p.source
+        if self.p.pair:
+            names = self.p.pair.split(":")
+            if len(names) != 2 or not all(names):
+                raise ConfigError(f"data.pair '{self.p.pair}': expected TARGET:SOURCE, e.g. bun000:bun045")
+            stems = {Path(k).stem: k for k in poses}
+            for n in names:
+                if n not in stems and n not in poses:
+                    raise ConfigError(f"data=stanford: scan '{n}' is not in {self.p.conf}; known: "
+                                      f"{', '.join(stems)}")
+            target, source = (stems.get(n, n) for n in names)
+        for scan in (source, target):
             if scan not in poses:
                 raise ConfigError(f"data=stanford: scan '{scan}' is not in {self.p.conf}; known: {', '.join(poses)}")
-        src = read_geometry(folder / self.p.source, "source")
-        tgt = read_geometry(folder / self.p.target, "target")
-        T_t_s = invert_T(poses[self.p.target]) @ poses[self.p.source]
-        diag = bbox_diagonal(points_of(tgt))
+        src = read_geometry(folder / source, "source")
+        tgt = read_geometry(folder / target, "target")
+        T_t_s = invert_T(poses[target]) @ poses[source]
+        tgt_pts = points_of(tgt)
+        tree = cKDTree(tgt_pts)
+        spacing = float(np.median(tree.query(tgt_pts[:: max(1, len(tgt_pts) // 5000)], k=2)[0][:, 1]))
+        overlap = float(np.mean(tree.query(apply_T(T_t_s, points_of(src)))[0] <= self.p.overlap_distance * spacing))
+        diag = bbox_diagonal(tgt_pts)
         P = random_pose(np.random.default_rng([self.p.pose_seed, 303]), self.p.max_angle_deg,
                         self.p.max_translation * diag)
         src = transform_geometry(P, src)
-        return Inputs(src, tgt, T_t_s @ invert_T(P), None, {"pair": f"{self.p.target}<-{self.p.source}"})
+        return Inputs(src, tgt, T_t_s @ invert_T(P), None, {"gt_overlap": overlap})

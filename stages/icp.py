@@ -45,6 +45,9 @@ class ClosestPoints:
     points on the target's *triangles* (Open3D raycasting scene; coordinates centred before the float32
     conversion). Returns ``(closest points, distances, target normals at them or None)``."""
 
+    last_primitive_ids: np.ndarray | None = None
+    """Mesh targets: the face of each closest point of the last query."""
+
     def __init__(self, target: Cloud, mesh: Mesh | None = None):
         self.mesh = mesh
         self.normals = target.normals
@@ -69,6 +72,7 @@ class ClosestPoints:
 
             r = self.scene.compute_closest_points(o3d.core.Tensor((q - self.centre).astype(np.float32)))
             cp = r["points"].numpy().astype(np.float64) + self.centre
+            self.last_primitive_ids = r["primitive_ids"].numpy().astype(np.int64)
             return cp, np.linalg.norm(q - cp, axis=1), r["primitive_normals"].numpy().astype(np.float64)
         if max_distance is None:
             d, j = self.tree.query(np.ascontiguousarray(q), k=1)
@@ -339,6 +343,68 @@ class GeneralizedICP(IcpBase):
                              max_correspondence_distance=self._dist, num_threads=self.p.num_threads,
                              max_iterations=1)
         return np.asarray(r.T_target_source).copy()
+
+
+@ICP.register("open3d")
+class Open3dIcp(IcpBase):
+    """Open3D's ``registration_icp`` as a comparator (point-to-point or point-to-plane on the target points).
+    Run one Open3D iteration per call so that the RMS of every iterate is recorded and the stopping rule is the
+    same as the other variants' (RMS change < ``tau``); trimming and normal rejection are not available."""
+
+    @dataclass
+    class Params(IcpParams):
+        estimation: str = "point_to_point"
+        """Open3D's transformation estimation: ``point_to_point`` or ``point_to_plane`` (target normals from the
+        sampled mesh, else estimated from ``normal_neighbors`` neighbours)."""
+        normal_neighbors: int = 20
+        """Neighbours for target normals when the target has none."""
+
+        def check(self):
+            super().check()
+            if self.estimation not in ("point_to_point", "point_to_plane"):
+                raise ValueError(f"estimation must be point_to_point or point_to_plane, got '{self.estimation}'")
+
+    def run(self, target: Cloud, source: Cloud, T_init: np.ndarray, ctx: Context) -> IcpResult:
+        import open3d as o3d
+
+        p = self.p
+        if p.target == "mesh" or p.trim < 1.0 or p.max_normal_angle_deg is not None:
+            raise ConfigError("icp=open3d: points only, without trim or normal rejection; leave icp.target=auto, "
+                              "trim=1 and max_normal_angle_deg=null")
+        reg = o3d.pipelines.registration
+        tau = to_abs(p.tau, p.distances, ctx.spacing)
+        maxd = to_abs(p.max_correspondence_distance, p.distances, ctx.spacing)
+        maxd_o3d = maxd if maxd is not None else float(np.linalg.norm(np.ptp(target.points, axis=0)))
+        tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target.points))
+        if p.estimation == "point_to_plane":
+            nrm = target.normals if target.normals is not None else estimate_normals(target.points,
+                                                                                     p.normal_neighbors)
+            tgt.normals = o3d.utility.Vector3dVector(nrm)
+            est = reg.TransformationEstimationPointToPlane()
+        else:
+            est = reg.TransformationEstimationPointToPoint()
+        src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source.points))
+        T = T_init.copy()
+        ev = reg.evaluate_registration(src, tgt, maxd_o3d, T)
+        history = [float(ev.inlier_rmse)]
+        crit = reg.ICPConvergenceCriteria(relative_fitness=0.0, relative_rmse=0.0, max_iteration=1)
+        converged, iterations = False, 0
+        for _ in range(p.max_iterations):
+            r = reg.registration_icp(src, tgt, maxd_o3d, T, est, crit)
+            T = np.asarray(r.transformation).copy()
+            iterations += 1
+            history.append(float(r.inlier_rmse))
+            if abs(history[-2] - history[-1]) < tau:
+                converged = True
+                break
+        if not history[-1] > 0 and len(np.asarray(r.correspondence_set) if iterations else []) == 0:
+            raise StageError(f"icp=open3d: no source point within {maxd_o3d:.4g} of the target; the coarse "
+                             "alignment is too far off or max_correspondence_distance too small")
+        ctx.step_metrics["icp_rms"] = history
+        d = ClosestPoints(target)(apply_T(T, source.points), maxd)[1]
+        res = IcpResult(T, iterations, history, converged, final_distances=d)
+        res.metrics = self.final_metrics(d, maxd)
+        return res
 
 
 def estimate_normals(points: np.ndarray, k: int = 20) -> np.ndarray:

@@ -111,6 +111,9 @@ def surface_distances(a: Mesh, b: Mesh, n: int, seed: int) -> np.ndarray:
 
 @dataclass
 class GuardParams:
+    apply_to: str = "both"
+    """Which input meshes are repaired: ``source``, ``target`` or ``both`` (a CT surface made of separate
+    teeth must not lose all but its largest component, so the dental case repairs the source only)."""
     check_only: bool = False
     """Audit what the repair would do (the before/after table and the guard) but go on with the unrepaired
     mesh; a guard violation is then reported, not fatal."""
@@ -125,6 +128,10 @@ class GuardParams:
     diagonal from the repaired surface."""
     audit_samples: int = 20000
     """Points sampled on each surface to measure the Hausdorff distances and the removed share."""
+
+    def check(self):
+        if self.apply_to not in ("source", "target", "both"):
+            raise ValueError(f"apply_to must be source, target or both, got '{self.apply_to}'")
 
 
 def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mesh, dict[str, float]]:

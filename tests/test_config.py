@@ -54,7 +54,7 @@ def test_every_registered_stage_has_a_yaml_and_docs(family):
 
 
 def test_unknown_name_lists_valid_ones():
-    with pytest.raises(ConfigError, match=r"unknown icp 'nope'; valid icp names: anderson, gicp, horn, point_to_plane"):
+    with pytest.raises(ConfigError, match=r"unknown icp 'nope'; valid icp names: anderson, gicp, horn, open3d, point_to_plane"):
         REGISTRIES["icp"].build({"name": "nope"})
 
 
@@ -82,8 +82,8 @@ def test_precheck_messages():
     assert check_group_overrides(["repair=foo"]) == "unknown repair 'foo'; valid repair choices: meshfix, meshlab, none"
     assert check_group_overrides(["-m", "repair=none,meshfix"]) is None
     msg, cfg = precheck(["icp.bogus=1"])
-    assert msg.startswith("icp=horn: unknown parameter 'bogus'; valid parameters:")
-    assert cfg is not None and cfg.icp.name == "horn"
+    assert msg.startswith("icp=point_to_plane: unknown parameter 'bogus'; valid parameters:")
+    assert cfg is not None and cfg.icp.name == "point_to_plane"
     assert precheck(["icp.tau=0.5", "-m", "sampler.n_points=100,200"]) is None
     msg, _ = precheck(["nosuchkey=3"])
     assert "nosuchkey" in msg
