@@ -134,6 +134,12 @@ class LoRansac:
         """Hypotheses evaluated together (vectorised)."""
         lo_iterations: int = 10
         """Rounds of least-squares re-estimation on the inliers of each new best model."""
+        sampling: str = "guided"
+        """How minimal samples are drawn: ``uniform`` (3 correspondences at random, plain RANSAC) or ``guided``
+        (the first at random, the second among those rigidly compatible with it, the third among those
+        compatible with both: the distance between their source points equals that between their target
+        points to within ``distance_threshold``). Guided samples are all-inlier far more often when inliers
+        are rare; the adaptive stopping rule uses the measured probability of an all-inlier guided sample."""
         normal_weight: float = 1.0
         """Weight w of the normal term of the final fit (0: points only)."""
         min_inliers: int = 6
@@ -148,6 +154,8 @@ class LoRansac:
                 raise ValueError(f"miss_probability must be in (0, 1), got {self.miss_probability}")
             if self.batch < 1 or self.max_iterations < 1:
                 raise ValueError("batch and max_iterations must be >= 1")
+            if self.sampling not in ("guided", "uniform"):
+                raise ValueError(f"sampling must be guided or uniform, got '{self.sampling}'")
 
     def __init__(self, params: Params):
         self.p = params
@@ -200,34 +208,96 @@ class LoRansac:
                 inl = new
             return T, inl
 
-        while drawn < max(needed, p.min_iterations) and drawn < p.max_iterations:
-            B = min(p.batch, p.max_iterations - drawn)
-            idx = np.stack([rng.choice(M, 3, replace=False) for _ in range(B)]) if M < 8 else \
-                rng.integers(0, M, size=(B, 3))
-            drawn += B
-            ok = (idx[:, 0] != idx[:, 1]) & (idx[:, 1] != idx[:, 2]) & (idx[:, 0] != idx[:, 2])
-            idx = idx[ok]
-            if not len(idx):
-                continue
-            a, b = P1[idx], P0[idx]
-            # reject degenerate (near-collinear) samples and samples whose side lengths disagree (rigidity)
-            e1, e0 = np.linalg.norm(a - np.roll(a, 1, axis=1), axis=2), np.linalg.norm(b - np.roll(b, 1, axis=1), axis=2)
+        def accept(T_cand, count):
+            """Local optimisation of a candidate that beats the best; returns the updated iteration target."""
+            nonlocal best_T, best_inl, best_n
+            T_lo, inl_lo = local_opt(inliers(T_cand))
+            if inl_lo.sum() < count:
+                T_lo, inl_lo = T_cand, inliers(T_cand)
+            best_T, best_inl, best_n = T_lo, inl_lo, int(inl_lo.sum())
+
+        def needed_for(q):
+            return p.max_iterations if q <= 0 else int(np.ceil(np.log(p.miss_probability) / np.log(max(1e-12, 1 - q))))
+
+        def valid(a, b):
+            """Samples (B, 3, 3) whose side lengths agree (rigidity) and that are not near-collinear."""
+            e1 = np.linalg.norm(a - np.roll(a, 1, axis=1), axis=2)
+            e0 = np.linalg.norm(b - np.roll(b, 1, axis=1), axis=2)
             area = np.linalg.norm(np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]), axis=1)
-            good = (np.abs(e1 - e0) < thr).all(axis=1) & (area > thr * thr * 0.5)
-            if not good.any():
-                continue
-            Ts = kabsch_batch(b[good], a[good])
-            moved = np.einsum("bij,mj->bmi", Ts[:, :3, :3], P1) + Ts[:, None, :3, 3]
-            counts = (np.linalg.norm(moved - P0[None], axis=2) < thr).sum(axis=1)
-            k = int(np.argmax(counts))
-            if counts[k] > best_n:
-                T_lo, inl_lo = local_opt(inliers(Ts[k]))
-                if inl_lo.sum() < counts[k]:
-                    T_lo, inl_lo = Ts[k], inliers(Ts[k])
-                best_T, best_inl, best_n = T_lo, inl_lo, int(inl_lo.sum())
-                w = best_n / M
-                needed = p.max_iterations if w <= 0 else int(np.ceil(np.log(p.miss_probability) /
-                                                                      np.log(max(1e-12, 1 - w ** 3))))
+            return (np.abs(e1 - e0) < thr).all(axis=1) & (area > thr * thr * 0.5)
+
+        if p.sampling == "guided":
+            # Each seed correspondence i defines the set C_i of correspondences rigidly compatible with it
+            # (|d1(i, c) - d0(i, c)| < 2 thr: every inlier of a model that has i as an inlier is in it).
+            # T samples (i, j, k) are drawn with j, k in C_i and compatible with each other, and each
+            # hypothesis is scored on C_i only (its inliers are there). A seed yields an all-inlier sample
+            # with probability q = w (1 - (1 - r^2)^T), w the inlier share, r the inlier share of C_i.
+            per_seed, S = 8, 64
+            D1 = lambda a, b: np.linalg.norm(P1[a][:, None, :] - P1[b][None, :, :], axis=2)
+            D0 = lambda a, b: np.linalg.norm(P0[a][:, None, :] - P0[b][None, :, :], axis=2)
+            r_est = 0.0
+            while drawn < max(needed, p.min_iterations) and drawn < p.max_iterations:
+                seeds = rng.integers(0, M, size=S)
+                C = np.abs(D1(seeds, np.arange(M)) - D0(seeds, np.arange(M))) < 2 * thr
+                for s_i, i in enumerate(seeds):
+                    if drawn >= p.max_iterations:
+                        break
+                    cand = np.flatnonzero(C[s_i])
+                    cand = cand[cand != i]
+                    drawn += per_seed
+                    if len(cand) < 2:
+                        continue
+                    # j, k among candidates whose distance to i agrees within thr; k compatible with j
+                    close = cand[np.abs(D1([i], cand)[0] - D0([i], cand)[0]) < thr]
+                    if len(close) < 2:
+                        continue
+                    js = close[rng.integers(0, len(close), size=per_seed)]
+                    Cj = np.abs(D1(js, close) - D0(js, close)) < thr
+                    r = np.where(Cj & (close[None, :] != js[:, None]), rng.random(Cj.shape), -1.0)
+                    kk = np.argmax(r, axis=1)
+                    ok = r[np.arange(per_seed), kk] >= 0
+                    if not ok.any():
+                        continue
+                    idx = np.stack([np.full(ok.sum(), i), js[ok], close[kk[ok]]], axis=1)
+                    a, b = P1[idx], P0[idx]
+                    good = valid(a, b)
+                    if not good.any():
+                        continue
+                    Ts = kabsch_batch(b[good], a[good])
+                    pool = np.append(cand, i)
+                    moved = np.einsum("bij,mj->bmi", Ts[:, :3, :3], P1[pool]) + Ts[:, None, :3, 3]
+                    counts = (np.linalg.norm(moved - P0[pool][None], axis=2) < thr).sum(axis=1)
+                    k = int(np.argmax(counts))
+                    if counts[k] > best_n:
+                        accept(Ts[k], counts[k])
+                        I = np.flatnonzero(best_inl)
+                        if len(I) >= 3:  # r: inlier share of the compatible sets of the best model's inliers
+                            sub = I[rng.permutation(len(I))[:32]]
+                            Cs = np.abs(D1(sub, np.arange(M)) - D0(sub, np.arange(M))) < 2 * thr
+                            r_est = float((Cs[:, I].sum(axis=1) / np.maximum(Cs.sum(axis=1), 1)).mean())
+                        q = best_n / M * (1 - (1 - r_est ** 2) ** per_seed)
+                        needed = needed_for(q) * per_seed
+        else:
+            while drawn < max(needed, p.min_iterations) and drawn < p.max_iterations:
+                B = min(p.batch, p.max_iterations - drawn)
+                idx = np.stack([rng.choice(M, 3, replace=False) for _ in range(B)]) if M < 8 else \
+                    rng.integers(0, M, size=(B, 3))
+                drawn += B
+                ok = (idx[:, 0] != idx[:, 1]) & (idx[:, 1] != idx[:, 2]) & (idx[:, 0] != idx[:, 2])
+                idx = idx[ok]
+                if not len(idx):
+                    continue
+                a, b = P1[idx], P0[idx]
+                good = valid(a, b)
+                if not good.any():
+                    continue
+                Ts = kabsch_batch(b[good], a[good])
+                moved = np.einsum("bij,mj->bmi", Ts[:, :3, :3], P1) + Ts[:, None, :3, 3]
+                counts = (np.linalg.norm(moved - P0[None], axis=2) < thr).sum(axis=1)
+                k = int(np.argmax(counts))
+                if counts[k] > best_n:
+                    accept(Ts[k], counts[k])
+                    needed = needed_for((best_n / M) ** 3)
         if best_inl.sum() >= 3:
             T = best_T
             for _ in range(3):  # final fit with points and normals (normals sign-aligned to the current fit)

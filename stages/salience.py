@@ -177,7 +177,7 @@ class Uniform:
 
     @dataclass
     class Params:
-        voxel: float = 3.0
+        voxel: float = 5.0
         """Voxel edge length (see ``distances``)."""
         distances: Distances = Distances.spacing
         """Unit of ``voxel``: multiples of the sampling spacing, or absolute input units."""
