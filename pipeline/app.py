@@ -240,6 +240,10 @@ def record_failed_run(cfg: DictConfig | None, reason: str, argv: list[str]) -> N
         pass
 
 
+def verbose_requested(argv: list[str]) -> bool:
+    return any(a.replace(" ", "") in ("verbose=true", "verbose=True") for a in argv)
+
+
 def main() -> None:
     argv = sys.argv[1:]
     if not any(a in ("-h", "--help", "--hydra-help", "-c", "--cfg", "--info", "-i") for a in argv):
@@ -249,9 +253,33 @@ def main() -> None:
             record_failed_run(cfg, msg, argv)
             _err(msg)
             raise SystemExit(2)
-    from pipeline.tracking import _sweep_outcome
+    import signal
 
-    _hydra_main()
+    from pipeline.tracking import _sweep_outcome, end_interrupted_sweep
+
+    def _terminate(signum, frame):  # SIGTERM (a scheduler's preemption, kill) ends runs like Ctrl-C does
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _terminate)
+    try:
+        _hydra_main()
+    except KeyboardInterrupt:
+        try:
+            n = end_interrupted_sweep()
+        except Exception:  # noqa: BLE001: the message below is what matters
+            n = 0
+        _err("interrupted" + (f"; {n} unfinished MLflow run(s) of the sweep marked KILLED" if n else ""))
+        raise SystemExit(130)
+    except Exception as e:  # noqa: BLE001: e.g. a launcher that cannot start; no run is left RUNNING
+        reason = f"sweep failed: {type(e).__name__}: {e}".splitlines()[0]
+        try:
+            end_interrupted_sweep(reason, status="FAILED")
+        except Exception:  # noqa: BLE001
+            pass
+        if verbose_requested(sys.argv[1:]):
+            traceback.print_exc()
+        _err(reason + " (verbose=true for the traceback)")
+        raise SystemExit(1)
     if _sweep_outcome.get("failed"):
         raise SystemExit(1)
 

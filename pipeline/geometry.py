@@ -128,15 +128,16 @@ def transform_errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]
     return rotation_angle_deg(dR), float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]))
 
 
-def random_pose(rng: np.random.Generator, max_angle_deg: float, max_translation: float) -> np.ndarray:
+def random_pose(rng: np.random.Generator, max_angle_deg: float, max_translation: float,
+                min_angle_deg: float = 0.0) -> np.ndarray:
     """A random rigid transform: rotation about a uniformly random axis by an angle uniform in
-    [0, max_angle_deg] (``max_angle_deg >= 180``: a rotation uniform over SO(3)), translation a uniformly random
-    direction times a length uniform in [0, max_translation]."""
+    [min_angle_deg, max_angle_deg] (``max_angle_deg >= 180``: a rotation uniform over SO(3)), translation a
+    uniformly random direction times a length uniform in [0, max_translation]."""
     if max_angle_deg >= 180.0:
         R = Rotation.from_quat(_unit(rng.normal(size=4))).as_matrix()
     else:
         axis = _unit(rng.normal(size=3))
-        R = Rotation.from_rotvec(axis * np.radians(rng.uniform(0.0, max_angle_deg))).as_matrix()
+        R = Rotation.from_rotvec(axis * np.radians(rng.uniform(min_angle_deg, max_angle_deg))).as_matrix()
     t = _unit(rng.normal(size=3)) * rng.uniform(0.0, max_translation)
     return make_T(R, t)
 

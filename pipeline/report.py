@@ -36,6 +36,10 @@ AGG_METRICS = [
     *[(f"time_{s}_s", "median") for s in STAGES[1:]],
 ]
 IGNORED_VARYING = {"seed"}
+MD_COLUMNS = ["runs", "failed", "success_rate", "rotation_error_deg_median", "rotation_error_deg_p90",
+              "translation_error_median", "translation_error_p90", "coarse_rotation_error_deg_median",
+              "time_coarse_s_median", "time_icp_s_median", "time_total_s_median"]
+"""Columns of the Markdown table (report.csv has them all)."""
 COMPARE_COLUMNS = ["runs", "success_rate", "rotation_error_deg_median", "translation_error_median",
                    "time_coarse_s_median", "time_total_s_median"]
 
@@ -349,7 +353,10 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         "`evaluate.success_translation` (1 %) of the target's bounding-box diagonal; a failed run counts as a "
         "failure. Errors are against the ground truth, in degrees and input units; times are medians in seconds.",
         "",
-        f"## Results by {', '.join(group_by) or 'run'}", "", to_markdown(table), "",
+        f"## Results by {', '.join(group_by) or 'run'}", "",
+        "Medians unless marked p90; every column (more errors, fitness, each stage's time) is in report.csv.", "",
+        to_markdown(table[[c for c in [*group_by, *MD_COLUMNS, *[f"{m}_median" for m in p.metrics]]
+                           if c in table.columns]]), "",
     ]
     if per_t is not None:
         lines += [f"## Success per {p.per}", "", to_markdown((per_t * 100).round(0), index=True), ""]
@@ -432,15 +439,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--metrics", default=None, help="comma-separated further metrics to show the median of")
     ap.add_argument("--title", default=None, help="heading of report.md")
     ap.add_argument("--no-plots", action="store_true", help="tables only")
+    ap.add_argument("--config", default=None, metavar="EXPERIMENT",
+                    help="take the experiment name and the report settings (group-by, x, per, metrics, showcase, "
+                         "title, notes, out) from conf/experiment/EXPERIMENT.yaml; other options override them")
     ap.add_argument("--uri", default=None, help="tracking URI (default: $MLFLOW_TRACKING_URI or outputs/mlflow.db)")
     ap.add_argument("--out", default=None, help="folder for the report (default: outputs/reports/<experiment>)")
     a = ap.parse_args(argv)
+    base = ReportParams(enabled=True)
+    if a.config:
+        from hydra import compose, initialize_config_dir
+        from omegaconf import OmegaConf
+
+        from pipeline.app import CONF_DIR
+        from pipeline.registry import make_params
+
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose("config", overrides=[f"experiment={a.config}"])
+        base = make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
+        if a.experiment == ap.get_default("experiment"):
+            a.experiment = cfg.tracking.experiment
     df = load_runs(a.experiment, a.uri, None if a.parent == "all" else a.parent)
     other = load_runs(a.compare_to, a.uri, "latest" if a.parent != "all" else None) if a.compare_to else None
-    group_by = [k.strip() for k in a.group_by.split(",") if k.strip()] if a.group_by else []
-    extra = [k.strip() for k in a.metrics.split(",") if k.strip()] if a.metrics else []
-    p = ReportParams(enabled=True, out=a.out, group_by=group_by, x=a.x, per=a.per, title=a.title, metrics=extra)
-    out = Path(a.out or Path("outputs") / "reports" / a.experiment)
+    from dataclasses import replace
+
+    split = lambda v: [k.strip() for k in v.split(",") if k.strip()]
+    p = replace(base, **{k: v for k, v in dict(
+        out=a.out, group_by=split(a.group_by) if a.group_by else None, x=a.x, per=a.per, title=a.title,
+        metrics=split(a.metrics) if a.metrics else None).items() if v is not None})
+    out = Path(p.out or Path("outputs") / "reports" / a.experiment)
     res = write_report(df, p, out, other, plots=not a.no_plots)
     with pd.option_context("display.width", 200, "display.max_columns", 50):
         print(f"{len(df)} run(s) of experiment '{a.experiment}'"

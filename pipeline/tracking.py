@@ -28,6 +28,28 @@ from pipeline.registry import TRACKING
 
 SWEEP_ENV = "SCANREG_SWEEP"
 """Environment variable through which a sweep's jobs learn the store, experiment and parent run."""
+SWEEP_FILE = ".scanreg_sweep.json"
+"""The same, as a file in the sweep directory: for launchers whose workers do not inherit the launching
+process's environment (a Ray cluster, Slurm), given a shared file system."""
+
+
+def sweep_info() -> dict | None:
+    """What the launching process said about the running sweep: from the environment, else from the sweep
+    directory of the current Hydra job (multirun only)."""
+    if os.environ.get(SWEEP_ENV):
+        return json.loads(os.environ[SWEEP_ENV])
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hc = HydraConfig.get()
+        if hc.mode == RunMode.MULTIRUN:
+            f = Path(hc.sweep.dir) / SWEEP_FILE
+            if f.exists():
+                return json.loads(f.read_text())
+    except Exception:  # noqa: BLE001: not inside a Hydra job
+        pass
+    return None
 
 _sweep_outcome: dict[str, Any] = {}
 """Set by SweepCallback.on_multirun_end in the launching process: ``{"failed": n, "total": n}``."""
@@ -154,8 +176,11 @@ class MlflowTracking:
             return client, exp.experiment_id
 
     def start_run(self, run_name: str, params: dict[str, str], tags: dict[str, str]) -> RunLog:
-        sweep = json.loads(os.environ[SWEEP_ENV]) if SWEEP_ENV in os.environ else None
-        if sweep and sweep["uri"] == self.uri and sweep["experiment"] == self.p.experiment:
+        sweep = sweep_info()
+        # a sweep's jobs log where the launching process created the parent run, unless a job names another
+        # store explicitly (workers of a cluster may not share the launching process's environment or cwd)
+        if sweep and (self.p.uri is None or sweep["uri"] == self.uri) and sweep["experiment"] == self.p.experiment:
+            self.uri = sweep["uri"]
             client, eid = self._client(), sweep["experiment_id"]
             tags = {**tags, "mlflow.parentRunId": sweep["parent_run_id"]}
         else:
@@ -196,10 +221,11 @@ class SweepCallback(Callback):
                                          "scanreg.sweep": "parent", "scanreg.command": command,
                                          "scanreg.git_commit": git_revision()})
         Path(sweep_dir).mkdir(parents=True, exist_ok=True)
-        os.environ[SWEEP_ENV] = json.dumps({"uri": tr.uri, "experiment": params.experiment,
-                                            "experiment_id": eid, "parent_run_id": parent.info.run_id,
-                                            "total": sweep_size(config), "start": time.time(),
-                                            "progress": str(Path(sweep_dir) / ".progress")})
+        info = json.dumps({"uri": tr.uri, "experiment": params.experiment, "experiment_id": eid,
+                           "parent_run_id": parent.info.run_id, "total": sweep_size(config), "start": time.time(),
+                           "progress": str((Path(sweep_dir) / ".progress").resolve())})
+        os.environ[SWEEP_ENV] = info
+        (Path(sweep_dir) / SWEEP_FILE).write_text(info)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         info = json.loads(os.environ.pop(SWEEP_ENV, "null") or "null")
@@ -228,6 +254,26 @@ class SweepCallback(Callback):
                 _sweep_outcome["failed"] = _sweep_outcome.get("failed", 0) or 1
 
 
+def end_interrupted_sweep(reason: str = "interrupted", status: str = "KILLED") -> int:
+    """After an interrupt of a sweep (in the launching process): every child run still RUNNING, and the parent,
+    end KILLED with the reason, so that no run is left RUNNING. Returns the number of runs ended."""
+    info = json.loads(os.environ.pop(SWEEP_ENV, "null") or "null")
+    if not info:
+        return 0
+    tr = MlflowTracking(MlflowTracking.Params(uri=info["uri"], experiment=info["experiment"]))
+    client = tr._client()
+    children = client.search_runs([info["experiment_id"]],
+                                  filter_string=f"tags.mlflow.parentRunId = '{info['parent_run_id']}'",
+                                  max_results=50000)
+    n = 0
+    for r in children:
+        if r.info.status == "RUNNING":
+            RunLog(client, r.info.run_id).end(status, reason)
+            n += 1
+    RunLog(client, info["parent_run_id"]).end(status, reason)
+    return n + 1
+
+
 def sweep_size(config: DictConfig) -> int | None:
     """Number of jobs of a basic-sweeper sweep (command-line sweeps and ``hydra.sweeper.params``), else None."""
     try:
@@ -250,7 +296,7 @@ def sweep_size(config: DictConfig) -> int | None:
 
 def report_progress(status: str) -> None:
     """After a sweep job: append to the sweep's progress file and print a bar with the estimated time left."""
-    info = json.loads(os.environ.get(SWEEP_ENV, "null") or "null")
+    info = sweep_info()
     if not info or not info.get("progress"):
         return
     try:

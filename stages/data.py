@@ -79,6 +79,26 @@ class PoseParams:
     """Largest translation of the random initial pose, as a share of the bounding-box diagonal."""
     pose_seed: int = 0
     """Seed of the random initial pose; the same seed repeats the same case."""
+    min_angle_deg: float = 0.0
+    """Smallest rotation angle of the random initial pose (degrees; ignored for any rotation)."""
+    rotate_about: str = "origin"
+    """Centre of the random rotation: ``origin`` of the coordinates, or the ``centroid`` of the source (so that
+    a small angle is a small displacement, e.g. to start ICP near the truth)."""
+
+    def check(self):
+        if self.rotate_about not in ("origin", "centroid"):
+            raise ValueError(f"rotate_about must be origin or centroid, got '{self.rotate_about}'")
+        if not 0 <= self.min_angle_deg <= self.max_angle_deg:
+            raise ValueError(f"min_angle_deg must be in [0, max_angle_deg], got {self.min_angle_deg}")
+
+    def pose(self, salt: int, source_points: np.ndarray, diagonal: float) -> np.ndarray:
+        """The seeded random pose ``P`` applied to the source (its ground truth becomes ``T_gt @ inv(P)``)."""
+        P = random_pose(np.random.default_rng([self.pose_seed, salt]), self.max_angle_deg,
+                        self.max_translation * diagonal, self.min_angle_deg)
+        if self.rotate_about == "centroid":
+            c = source_points.mean(axis=0)
+            P[:3, 3] += c - P[:3, :3] @ c
+        return P
 
 
 @DATA.register("synthetic")
@@ -105,6 +125,7 @@ class Synthetic:
         """Seed of the target's sampling, cropping, noise and outliers."""
 
         def check(self):
+            super().check()
             if not 0.05 <= self.keep <= 1.0:
                 raise ValueError(f"keep must be in [0.05, 1], got {self.keep}")
             if self.n_points < 3:
@@ -133,8 +154,7 @@ class Synthetic:
             on = rng.normal(size=(n_out, 3))
             pts = np.vstack([pts, out])
             normals = np.vstack([normals, on / np.linalg.norm(on, axis=1, keepdims=True)])
-        diag = bbox_diagonal(mesh.vertices)
-        T = random_pose(np.random.default_rng([p.pose_seed, 202]), p.max_angle_deg, p.max_translation * diag)
+        T = p.pose(202, pts, bbox_diagonal(mesh.vertices))
         target = transform_geometry(T, Cloud(pts, normals, f"synthetic scan of {p.mesh}"))
         return Inputs(mesh, target, T, None, {"synthetic_spacing": spacing})
 
@@ -157,6 +177,10 @@ class Stanford:
         pair: Optional[str] = None
         """``TARGET:SOURCE`` scan names without extension (e.g. ``bun000:bun045``); when set it replaces
         ``target`` and ``source``, so that pairs can be swept: ``data.pair=bun000:bun045,top2:bun180``."""
+        pre_align: bool = False
+        """Move the source into the target's frame by the ground truth before the random pose, so that the
+        pose alone is the error to recover (small poses then start ICP near the truth); false: the scan's own
+        frame, as scanned."""
         overlap_distance: float = 3.0
         """Distance under which a source point counts as overlapping the target for the logged ``gt_overlap``
         (share of source points near the target at the true pose), in multiples of the target's median
@@ -193,8 +217,36 @@ class Stanford:
         tree = cKDTree(tgt_pts)
         spacing = float(np.median(tree.query(tgt_pts[:: max(1, len(tgt_pts) // 5000)], k=2)[0][:, 1]))
         overlap = float(np.mean(tree.query(apply_T(T_t_s, points_of(src)))[0] <= self.p.overlap_distance * spacing))
-        diag = bbox_diagonal(tgt_pts)
-        P = random_pose(np.random.default_rng([self.p.pose_seed, 303]), self.p.max_angle_deg,
-                        self.p.max_translation * diag)
+        if self.p.pre_align:
+            src, T_t_s = transform_geometry(T_t_s, src), np.eye(4)
+        P = self.p.pose(303, points_of(src), bbox_diagonal(tgt_pts))
         src = transform_geometry(P, src)
         return Inputs(src, tgt, T_t_s @ invert_T(P), None, {"gt_overlap": overlap})
+
+
+@DATA.register("pairs_3dmatch")
+class Pairs3DMatch:
+    """The real RGB-D fragment pair from 3DMatch in ../shared/data/3dmatch_pair (indoor room, points in metres,
+    about 2.5 cm apart, 45 % overlap): ``src.npy`` is the source, ``ref.npy`` the target, ``gt.npy`` the true
+    T_target_source; the source is further moved by a seeded random pose. A hard case for feature matching
+    (sparse, largely planar); judge it with 3DMatch tolerances (``evaluate.success_rotation_deg=15``,
+    ``evaluate.success_translation`` about 0.3 m / diagonal)."""
+
+    @dataclass
+    class Params(PoseParams):
+        folder: str = "shared:3dmatch_pair"
+        """Folder with src.npy, ref.npy and gt.npy (``shared:NAME`` = ../shared/data/NAME)."""
+
+    def __init__(self, params: Params):
+        self.p = params
+
+    def load(self, ctx: Context) -> Inputs:
+        folder = Path(expand_path(self.p.folder))
+        if not folder.is_dir():
+            raise InputError(f"data.folder {self.p.folder}: no such folder ({folder}); the 3DMatch pair lives in "
+                             "../shared/data/3dmatch_pair")
+        src = read_geometry(folder / "src.npy", "source")
+        tgt = read_geometry(folder / "ref.npy", "target")
+        T_gt = read_transform(folder / "gt.npy", "ground truth gt.npy")
+        P = self.p.pose(707, points_of(src), bbox_diagonal(points_of(tgt)))
+        return Inputs(transform_geometry(P, src), tgt, T_gt @ invert_T(P), None)

@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.config import Context, expand_path
 from pipeline.errors import ConfigError, InputError
-from pipeline.geometry import Mesh, apply_T, vertex_normals, bbox_diagonal, invert_T, random_pose, transform_geometry
+from pipeline.geometry import Mesh, apply_T, bbox_diagonal, invert_T, transform_geometry, vertex_normals
 from pipeline.io import read_mesh
 from pipeline.registry import DATA
 from stages.data import Inputs, PoseParams
@@ -122,6 +122,7 @@ class Dental:
         """Seed of the noise, holes, flaps and picks."""
 
         def check(self):
+            super().check()
             if self.arch not in ("mandible", "maxilla"):
                 raise ValueError(f"arch must be mandible or maxilla, got '{self.arch}'")
             if self.landmarks and not 3 <= self.landmarks <= 6:
@@ -152,8 +153,7 @@ class Dental:
         cast, cast_labels, tips = self.cast(erupted, rng)
         n_before = len(cast.faces)
         cast = self.add_defects(cast, cast_labels, rng)
-        P = random_pose(np.random.default_rng([p.pose_seed, 606]), p.max_angle_deg,
-                        p.max_translation * bbox_diagonal(target.vertices))
+        P = p.pose(606, cast.vertices, bbox_diagonal(target.vertices))
         source = transform_geometry(P, cast)
         source.source = f"cast scan of the {p.arch} (synthetic, seed {p.seed})"
         lm = self.pick_landmarks(erupted, tips, target, source, P, rng) if p.landmarks else None

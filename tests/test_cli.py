@@ -115,9 +115,9 @@ BAD_CASES = {
     "bad_index": (["data.source=idx.ply"], "source idx.ply: 1 face(s) index missing vertices"),
     "too_few_points": (["data.source=two.npy"], "source two.npy: 2 point(s) after sampling; at least 10"),
     "degenerate": (["data.source=flat.ply", "repair=none"], "no triangle has an area above 0"),
-    "unknown_group_choice": (["icp=bogus"], "unknown icp 'bogus'; valid icp choices: anderson, gicp, horn, point_to_plane"),
+    "unknown_group_choice": (["icp=bogus"], "unknown icp 'bogus'; valid icp choices: anderson, gicp, horn, open3d, point_to_plane"),
     "unknown_stage_name": (["coarse.name=bogus"], "unknown coarse 'bogus'; valid coarse names: landmarks, lo_ransac, none, open3d_fgr, open3d_fpfh_ransac"),
-    "wrong_type": (["icp.max_iterations=many"], "icp=horn: parameter 'max_iterations' expects int, got 'many'"),
+    "wrong_type": (["icp.max_iterations=many"], "icp=point_to_plane: parameter 'max_iterations' expects int, got 'many'"),
     "unknown_param": (["sampler.n_pionts=5"], "sampler=barycentric: unknown parameter 'n_pionts'"),
     "no_source": (["data.source=null"], "data=files: data.source is not set"),
 }

@@ -214,7 +214,7 @@ def sampled(mesh, n, seed):
     return Cloud(pts, nrm)
 
 
-@pytest.mark.parametrize("variant", ["horn", "point_to_plane", "anderson", "gicp"])
+@pytest.mark.parametrize("variant", ["horn", "point_to_plane", "anderson", "gicp", "open3d"])
 @pytest.mark.parametrize("angle", [5.0, 10.0])
 def test_icp_variants_recover_a_stanford_pose(variant, angle):
     """bun045 -> bun000 (real scans, 94 % overlap), started 5 or 10 degrees off the .conf ground truth."""

@@ -1,0 +1,203 @@
+"""Experiments, reports, the extra data providers and the dental case."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from conftest import ROOT, run_cli, shared
+from pipeline.app import CONF_DIR
+from pipeline.config import Context
+from pipeline.geometry import Cloud, Mesh, apply_T, invert_T, transform_errors, vertex_normals
+from pipeline.registry import DATA, load_all
+
+
+def runs(uri, experiment):
+    import mlflow
+
+    mlflow.set_tracking_uri(uri)
+    exp = mlflow.get_experiment_by_name(experiment)
+    return mlflow.search_runs([exp.experiment_id])
+
+
+def test_experiments_are_sweeps_that_write_their_report():
+    """Every experiment except the single dental run is a sweep (hydra.mode MULTIRUN) with its own MLflow
+    experiment and a report under experiments/."""
+    for p in sorted((CONF_DIR / "experiment").glob("*.yaml")):
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose("config", overrides=[f"experiment={p.stem}"], return_hydra_config=True)
+        if p.stem == "dental":
+            assert cfg.evaluate.deviation_map and cfg.coarse.name == "landmarks"
+            continue
+        assert str(cfg.hydra.mode) == "RunMode.MULTIRUN", p.name
+        assert cfg.report.enabled and cfg.report.out.startswith("experiments/"), p.name
+        assert cfg.tracking.experiment != "scanreg", p.name
+        assert cfg.hydra.sweeper.params, p.name
+
+
+@pytest.mark.slow
+def test_tiny_experiment_report_matches_result_json(tmp_path, mlflow_uri):
+    """A two-run experiment run as one command: its report table holds the runs' own result.json values."""
+    sweep = tmp_path / "sweep"
+    r = run_cli(["data=synthetic", "data.n_points=4000", "sampler.n_points=2000,3000", "-m",
+                 "tracking.experiment=tiny", "report.enabled=true", f"report.out={tmp_path / 'rep'}",
+                 "report.group_by=[sampler.n_points]", "report.x=sampler.n_points",
+                 "report.metrics=[icp_iterations,coarse_rotation_error_deg]", f"hydra.sweep.dir={sweep}"],
+                tmp_path, mlflow_uri)
+    assert r.returncode == 0, r.stderr
+    assert "sweep [" in r.stdout and "2/2 jobs" in r.stdout  # the progress bar
+    table = pd.read_csv(tmp_path / "rep" / "report.csv")
+    assert list(table["sampler.n_points"]) == [2000, 3000] and list(table["runs"]) == [1, 1]
+    for job, (_, row) in enumerate(table.iterrows()):
+        res = json.loads((sweep / str(job) / "result.json").read_text())
+        assert row["rotation_error_deg_median"] == pytest.approx(res["rotation_error_deg"], rel=1e-12)
+        assert row["translation_error_median"] == pytest.approx(res["translation_error"], rel=1e-12)
+        assert row["time_coarse_s_median"] == pytest.approx(res["time_coarse_s"], rel=1e-12)
+        assert row["success_rate"] == res["success"]
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "## How this was produced" in md and "commit:" in md and "scanreg" in md
+    assert (tmp_path / "rep" / "success.png").stat().st_size > 1000
+    assert (tmp_path / "rep" / "error_time_vs_sampler.n_points.png").exists()
+    # --compare-to puts two experiments side by side
+    r2 = run_cli(["-m", "data=synthetic", "data.n_points=4000", "sampler.n_points=2000", "tracking.experiment=tiny2",
+                  f"hydra.sweep.dir={tmp_path / 's2'}"], tmp_path, mlflow_uri)
+    assert r2.returncode == 0, r2.stderr
+    rep = run_cli(["--experiment", "tiny", "--compare-to", "tiny2", "--group-by", "sampler.n_points", "--uri",
+                   mlflow_uri, "--out", str(tmp_path / "cmp")], tmp_path, module="pipeline.report")
+    assert rep.returncode == 0, rep.stderr
+    cmp = pd.read_csv(tmp_path / "cmp" / "compare.csv")
+    assert "success_rate [tiny]" in cmp and "success_rate [tiny2]" in cmp and len(cmp) == 2
+
+
+def test_method_presets_switch_several_stages():
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=["method=open3d"])
+        default = compose("config", overrides=["method=scanreg"])
+    assert cfg.coarse.name == "open3d_fpfh_ransac" and cfg.icp.name == "open3d"
+    assert default.coarse.name == "lo_ransac" and default.icp.name == "point_to_plane"
+
+
+def test_stanford_pairs_and_overlap():
+    shared("stanford_bunny/bun.conf")
+    load_all()
+    cls = DATA.get("stanford")
+    a = cls(cls.Params(pair="bun000:bun045", pose_seed=3)).load(Context(0, ROOT))
+    b = cls(cls.Params(source="bun045.ply", target="bun000.ply", pose_seed=3)).load(Context(0, ROOT))
+    assert np.array_equal(a.T_gt, b.T_gt) and 0.85 < a.info["gt_overlap"] < 0.97
+    from pipeline.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="TARGET:SOURCE"):
+        cls(cls.Params(pair="bun000")).load(Context(0, ROOT))
+    with pytest.raises(ConfigError, match="not in bun.conf"):
+        cls(cls.Params(pair="bun000:nope")).load(Context(0, ROOT))
+
+
+def test_3dmatch_pair_ground_truth():
+    shared("3dmatch_pair/gt.npy")
+    from scipy.spatial import cKDTree
+
+    load_all()
+    cls = DATA.get("pairs_3dmatch")
+    inp = cls(cls.Params(pose_seed=2)).load(Context(0, ROOT))
+    d, _ = cKDTree(inp.target.points).query(apply_T(inp.T_gt, inp.source.points))
+    # the folder's README: 45 % of the source within 5 cm of the target at the true pose
+    assert 0.40 < np.mean(d < 0.05) < 0.50
+    R = inp.T_gt[:3, :3]
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------------- dental
+@pytest.fixture(scope="module")
+def dental_case():
+    shared("open_full_jaw_p26/mandible/tooth_18.ply")
+    load_all()
+    cls = DATA.get("dental")
+    p = cls.Params(noise=0.0, holes=0, flaps=0, pick_error=0.0, landmarks=5, pose_seed=4)
+    return cls(p), cls(p).load(Context(0, ROOT))
+
+
+def test_dental_case_geometry(dental_case):
+    from pipeline.deviation import signed_deviation
+    from stages.repair import audit_mesh
+
+    gen, inp = dental_case
+    assert inp.target_labels is not None and set(np.unique(inp.target_labels)) == set(range(17, 33))
+    # the cast is one connected, oriented, open surface
+    a = audit_mesh(inp.source)
+    assert a["components"] == 1 and a["non_manifold_edges"] == 0 and a["inconsistent_orientation_edges"] == 0
+    assert a["boundary_loops"] >= 1
+    # noise-free: at the true pose, the crown tops lie on the CT surface (height-field interpolation only)
+    back = Mesh(apply_T(inp.T_gt, inp.source.vertices), inp.source.faces)
+    nrm = vertex_normals(back)
+    axis = nrm.mean(axis=0)
+    up = nrm @ (axis / np.linalg.norm(axis)) > 0.9  # facing the occlusal side
+    dev, _, ids = signed_deviation(back.vertices, nrm, Cloud(inp.target.vertices), inp.target)
+    crown_tops = up & (np.abs(dev) < 0.5)
+    assert crown_tops.mean() > 0.05
+    assert np.median(np.abs(dev[crown_tops])) < 0.02  # mm
+    # landmarks: exact cusp tips when the pick error is 0, consistent with the ground truth
+    lt, ls = inp.landmarks
+    assert len(lt) == 5
+    assert np.abs(apply_T(inp.T_gt, ls) - lt).max() < 0.2  # nearest cast vertex to the tip (grid 0.15 mm)
+
+
+def test_dental_pick_error_and_determinism():
+    shared("open_full_jaw_p26/mandible/tooth_18.ply")
+    load_all()
+    cls = DATA.get("dental")
+    a = cls(cls.Params(pick_error=1.0, landmarks=6, seed=2, pose_seed=1)).load(Context(0, ROOT))
+    b = cls(cls.Params(pick_error=1.0, landmarks=6, seed=2, pose_seed=1)).load(Context(0, ROOT))
+    assert np.array_equal(a.source.vertices, b.source.vertices) and np.array_equal(a.landmarks[1], b.landmarks[1])
+    err = np.linalg.norm(apply_T(a.T_gt, a.landmarks[1]) - a.landmarks[0], axis=1)
+    assert 0.3 < np.sqrt(np.mean(err ** 2)) < 3.0  # two picks of 1 mm RMS each
+
+
+def test_deviation_of_a_known_offset(tmp_path):
+    """A surface moved 50 um along its normals deviates by +50 um; per-part statistics split by label."""
+    import pymeshlab
+
+    from pipeline.deviation import evaluate_deviation
+    from pipeline.io import resolve_path, read_mesh
+    from pipeline.metrics import EvalParams
+
+    mesh = read_mesh(resolve_path("pkg:pymeshlab/tests/sample_meshes/bunny.obj"))
+    scale = 50.0 / np.ptp(mesh.vertices, axis=0).max()  # about 50 mm across
+    mesh = Mesh(mesh.vertices * scale, mesh.faces)
+    moved = Mesh(mesh.vertices + 0.05 * vertex_normals(mesh), mesh.faces)
+    labels = (mesh.vertices[mesh.faces].mean(axis=1)[:, 0] > np.median(mesh.vertices[:, 0])).astype(int) + 1
+    from stages.sampler import barycentric_sample
+
+    pts, nrm, _ = barycentric_sample(moved, 20000, np.random.default_rng(0))
+    m, paths = evaluate_deviation(tmp_path, Cloud(pts, nrm), moved, Cloud(mesh.vertices), mesh, labels,
+                                  EvalParams(deviation_map=True), "part")
+    assert m["dev_median_um"] == pytest.approx(50.0, abs=3.0)
+    assert m["dev_within_100um"] > 0.95 and m["dev_p05_um"] > 30
+    assert m["dev_rms_um_part_1"] == pytest.approx(50.0, abs=5.0) and m["dev_rms_um_part_2"] == pytest.approx(50, abs=5)
+    names = {p.name for p in paths}
+    assert {"deviation_map.ply", "deviation_histogram.png", "deviation_map.png", "deviation_parts.csv"} <= names
+    from pipeline.io import read_geometry
+
+    ply = read_geometry(tmp_path / "deviation_map.ply")
+    assert len(ply.vertices) == len(moved.vertices)
+    header = (tmp_path / "deviation_map.ply").read_bytes()[:400]
+    assert b"property float quality" in header and b"property uchar red" in header
+
+
+@pytest.mark.slow
+def test_dental_experiment_end_to_end(tmp_path):
+    shared("open_full_jaw_p26/mandible/tooth_18.ply")
+    out = tmp_path / "run"
+    r = run_cli(["experiment=dental", "tracking=none", f"hydra.run.dir={out}"], tmp_path, timeout=600)
+    assert r.returncode == 0, r.stderr
+    res = json.loads((out / "result.json").read_text())
+    assert res["rotation_error_deg"] < 0.5 and res["translation_error"] < 0.1, res
+    assert res["coarse_rotation_error_deg"] > res["rotation_error_deg"]  # landmarks alone are worse
+    assert res["repair_before_self_intersecting_faces"] > 0 and res["repair_after_self_intersecting_faces"] == 0
+    assert res["repair_after_components"] == 1
+    assert 10 < res["dev_rms_um"] < 200 and res["dev_compared_share"] > 0.2
+    assert sum(k.startswith("dev_rms_um_tooth_") for k in res) == 14
+    for f in ("deviation_map.ply", "deviation_histogram.png", "deviation_map.png", "deviation_tooths.csv"):
+        assert (out / f).exists(), f
