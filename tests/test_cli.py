@@ -43,7 +43,7 @@ def test_demo_recovers_random_pose_and_logs(tmp_path, mlflow_uri):
     df = runs(mlflow_uri, "demo")
     row = df.iloc[0]
     assert row["status"] == "FINISHED"
-    assert row["tags.group.icp"] == "horn" and row["tags.group.coarse"] == "open3d_fpfh_ransac"
+    assert row["tags.group.icp"] == "point_to_plane" and row["tags.group.coarse"] == "lo_ransac"
     assert row["params.icp.max_iterations"] == "100"
     for k in RESULT_KEYS - {"T_target_source"}:
         assert row[f"metrics.{k}"] == pytest.approx(res[k]), k

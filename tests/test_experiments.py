@@ -38,11 +38,20 @@ def test_experiments_are_sweeps_that_write_their_report():
         assert cfg.hydra.sweeper.params, p.name
 
 
+def test_report_block_matches_its_params():
+    from dataclasses import fields
+
+    from pipeline.report import ReportParams
+
+    cfg = OmegaConf.load(CONF_DIR / "config.yaml")
+    assert set(cfg.report) == {f.name for f in fields(ReportParams)}
+
+
 @pytest.mark.slow
 def test_tiny_experiment_report_matches_result_json(tmp_path, mlflow_uri):
     """A two-run experiment run as one command: its report table holds the runs' own result.json values."""
     sweep = tmp_path / "sweep"
-    r = run_cli(["data=synthetic", "data.n_points=4000", "sampler.n_points=2000,3000", "-m",
+    r = run_cli(["-m", "data=synthetic", "data.n_points=4000", "sampler.n_points=2000,3000",
                  "tracking.experiment=tiny", "report.enabled=true", f"report.out={tmp_path / 'rep'}",
                  "report.group_by=[sampler.n_points]", "report.x=sampler.n_points",
                  "report.metrics=[icp_iterations,coarse_rotation_error_deg]", f"hydra.sweep.dir={sweep}"],
