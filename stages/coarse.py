@@ -141,7 +141,9 @@ class LoRansac:
         points to within ``distance_threshold``). Guided samples are all-inlier far more often when inliers
         are rare; the adaptive stopping rule uses the measured probability of an all-inlier guided sample."""
         normal_weight: float = 1.0
-        """Weight w of the normal term of the final fit (0: points only)."""
+        """Weight w of the normal term of the final fit, in squared inlier thresholds: a normal residual of
+        1 (about 60 degrees) costs as much as a point residual of ``w`` times ``distance_threshold`` (0: points
+        only). Scaled so, the fit does not depend on the input's units."""
         min_inliers: int = 6
         """Fewer inliers than this is reported as a failure."""
         seed: int = 0
@@ -309,8 +311,9 @@ class LoRansac:
                     n0, n1 = N0[inl], N1[inl]
                     flip = np.einsum("ij,ij->i", n1 @ T[:3, :3].T, n0) < 0
                     n1 = np.where(flip[:, None], -n1, n1)
-                T = rigid_points_normals(P0[inl], P1[inl], n0, n1, p.normal_weight)
-            best_T, best_inl = T, inliers(T)
+                T = rigid_points_normals(P0[inl], P1[inl], n0, n1, p.normal_weight * thr * thr)
+            if inliers(T).sum() >= best_inl.sum():  # the final fit may not lose the model's support
+                best_T, best_inl = T, inliers(T)
         return best_T, best_inl, drawn
 
 
