@@ -253,6 +253,9 @@ def _read_ply_element_binary(data, pos, endian, name, n, props, label):
             arr = np.frombuffer(data, rec, n, pos)
             if (arr["c"] == k).all():
                 return {pname: arr["v"].astype(np.int64)}, pos + row * n
+        if cdt.itemsize == 1:  # variable-length lists with byte counts (Stanford range_grid, mixed polygons)
+            rows, end = _ragged_uchar_lists(data, pos, n, idt, name, label)
+            return {pname: rows}, end
     out = {pname: [] for pname, _, _ in props}
     dv = memoryview(data)
     for _ in range(n):
@@ -274,6 +277,46 @@ def _read_ply_element_binary(data, pos, endian, name, n, props, label):
                 out[pname].append(np.frombuffer(dv, idt, k, pos).astype(np.int64))
                 pos += k * idt.itemsize
     return out, pos
+
+
+class Ragged:
+    """Rows of different lengths stored flat: ``values[offsets[i]:offsets[i] + counts[i]]`` is row i."""
+
+    def __init__(self, counts: np.ndarray, values: np.ndarray):
+        self.counts, self.values = counts, values
+        self.offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64) if len(counts) else counts
+
+    def __len__(self) -> int:
+        return len(self.counts)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        return self.values[self.offsets[i]:self.offsets[i] + self.counts[i]]
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+
+def _ragged_uchar_lists(data, pos: int, n: int, idt: np.dtype, name: str, label: str) -> tuple[Ragged, int]:
+    """``n`` binary list rows ``[uchar count][count items]`` from byte ``pos``: one pass over the counts in
+    Python (bytes indexing), then one vectorised gather of the items. Returns the rows and the end position."""
+    size, end = idt.itemsize, len(data)
+    starts, counts = [0] * n, [0] * n
+    p = pos
+    for r in range(n):
+        if p >= end:
+            raise InputError(f"{label}: truncated PLY data in element '{name}' (file ends early)")
+        c = data[p]
+        starts[r], counts[r] = p + 1, c
+        p += 1 + c * size
+    if p > end:
+        raise InputError(f"{label}: truncated PLY data in element '{name}' (file ends early)")
+    counts_a = np.asarray(counts, dtype=np.int64)
+    total = int(counts_a.sum())
+    first = np.repeat(np.asarray(starts, dtype=np.int64), counts_a)
+    within = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(counts_a) - counts_a, counts_a)
+    byte_idx = (first + within * size)[:, None] + np.arange(size)
+    raw = np.frombuffer(data, np.uint8)[byte_idx.ravel()] if total else np.zeros(0, np.uint8)
+    return Ragged(counts_a, raw.view(idt).astype(np.int64)), p
 
 
 def _fan_triangulate(faces, label: str) -> np.ndarray:
@@ -300,9 +343,15 @@ def _triangulate_range_grid(lists, cols: int, rows: int, nverts: int, label: str
     (a, b, d) when their three samples exist; if neither does, it tries the other diagonal: (c, a, b), (b, d, c).
     """
     idx = np.full(cols * rows, -1, dtype=np.int64)
-    for i, cell in enumerate(lists):
-        if len(cell):
-            idx[i] = cell[0]
+    if isinstance(lists, Ragged):
+        if len(lists) > len(idx):
+            raise InputError(f"{label}: range_grid has {len(lists)} cells for a {cols} x {rows} grid")
+        has = np.flatnonzero(lists.counts > 0)
+        idx[has] = lists.values[lists.offsets[has]]
+    else:
+        for i, cell in enumerate(lists):
+            if len(cell):
+                idx[i] = cell[0]
     if idx.max() >= nverts:
         raise InputError(f"{label}: range_grid refers to vertex {idx.max()} of {nverts}")
     g = idx.reshape(rows, cols)
