@@ -103,7 +103,10 @@ def test_sigint_leaves_no_run_running(tmp_path, mlflow_uri):
     p = subprocess.Popen([sys.executable, "-m", "pipeline.app", "-m", "data=synthetic", "seed=0,1,2,3,4,5,6,7",
                           "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "tracking.experiment=sigint",
                           f"hydra.sweep.dir={sweep}"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+                         stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         # a shell's background job (CI started with '&') ignores SIGINT, and children inherit
+                         # that; a terminal's Ctrl-C reaches a process with the default disposition
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     progress = sweep / ".progress"
     t0 = time.time()
     while time.time() - t0 < 300 and not (progress.exists() and progress.read_text().strip()):
