@@ -57,7 +57,7 @@ def run_job(cfg: DictConfig) -> dict | None:
         _err(str(e) if isinstance(e, ScanregError) else f"tracking: {type(e).__name__}: {e}".splitlines()[0])
         if multirun:
             report_progress("FAILED")
-            return None
+            return _failed_objective(cfg)
         raise SystemExit(1)
 
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(resolved))
@@ -94,7 +94,7 @@ def run_job(cfg: DictConfig) -> dict | None:
         _err(reason)
         if multirun:
             report_progress("FAILED")
-            return None
+            return _failed_objective(cfg)
         raise SystemExit(1)
 
     if run:
@@ -105,7 +105,18 @@ def run_job(cfg: DictConfig) -> dict | None:
     print(f"results: {run_dir}" + (f"  (MLflow run {run.run_id})" if run else ""))
     if multirun:
         report_progress("FINISHED")
+    objective = cfg.get("objective")
+    if objective:  # what a tuning sweeper (Optuna) minimises
+        if objective not in res.metrics:
+            _err(f"objective '{objective}' is not a metric of this run; e.g. rotation_error_deg, rms, time_total_s")
+            return float("inf")
+        return float(res.metrics[objective])
     return res.to_json()
+
+
+def _failed_objective(cfg: DictConfig):
+    """A failed job's value for a tuning sweeper: the worst possible, so the sweep goes on."""
+    return float("inf") if cfg.get("objective") else None
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")

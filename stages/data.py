@@ -37,40 +37,6 @@ class Inputs:
     """What a part is called in metric names (``tooth``)."""
 
 
-@DATA.register("files")
-class Files:
-    """Source and target read from files (meshes or point clouds), with optional ground truth and landmarks."""
-
-    @dataclass
-    class Params:
-        source: Optional[str] = None
-        """Path of the source (the scan to move): mesh (.ply .stl .obj .off) or cloud (.ply .pcd .xyz .npy).
-        ``pkg:PACKAGE/PATH`` names a file inside an installed package, ``shared:PATH`` one under ../shared/data."""
-        target: Optional[str] = None
-        """Path of the target (the fixed scan), same formats."""
-        gt: Optional[str] = None
-        """Optional ground-truth T_target_source: 4x4 text or .npy, mapping source points into the target frame
-        (translation in input units)."""
-        landmarks: Optional[str] = None
-        """Optional CSV of picked pairs: target x,y,z then source x,y,z per row (input units)."""
-
-    def __init__(self, params: Params):
-        self.p = params
-
-    def load(self, ctx: Context) -> Inputs:
-        for key in ("source", "target"):
-            if not getattr(self.p, key):
-                raise ConfigError(
-                    f"data=files: data.{key} is not set; run e.g. 'scanreg data.source=A.ply data.target=B.ply', "
-                    "or the demo: 'scanreg data=synthetic'"
-                )
-        src = read_geometry(expand_path(self.p.source), "source")
-        tgt = read_geometry(expand_path(self.p.target), "target")
-        gt = read_transform(expand_path(self.p.gt), "ground truth data.gt") if self.p.gt else None
-        lm = read_landmarks(expand_path(self.p.landmarks)) if self.p.landmarks else None
-        return Inputs(src, tgt, gt, lm)
-
-
 @dataclass
 class PoseParams:
     max_angle_deg: float = 180.0
@@ -99,6 +65,50 @@ class PoseParams:
             c = source_points.mean(axis=0)
             P[:3, 3] += c - P[:3, :3] @ c
         return P
+
+
+@DATA.register("files")
+class Files:
+    """Source and target read from files (meshes or point clouds), with optional ground truth and landmarks."""
+
+    @dataclass
+    class Params(PoseParams):
+        max_angle_deg: float = 0.0
+        """Largest rotation of a further random pose of the source, degrees (0 with ``max_translation`` 0: the
+        source as read; >= 180: any rotation); the ground truth and landmarks follow it."""
+        max_translation: float = 0.0
+        """Largest translation of that pose, as a share of the target's bounding-box diagonal."""
+        source: Optional[str] = None
+        """Path of the source (the scan to move): mesh (.ply .stl .obj .off) or cloud (.ply .pcd .xyz .npy).
+        ``pkg:PACKAGE/PATH`` names a file inside an installed package, ``shared:PATH`` one under ../shared/data."""
+        target: Optional[str] = None
+        """Path of the target (the fixed scan), same formats."""
+        gt: Optional[str] = None
+        """Optional ground-truth T_target_source: 4x4 text or .npy, mapping source points into the target frame
+        (translation in input units)."""
+        landmarks: Optional[str] = None
+        """Optional CSV of picked pairs: target x,y,z then source x,y,z per row (input units)."""
+
+    def __init__(self, params: Params):
+        self.p = params
+
+    def load(self, ctx: Context) -> Inputs:
+        for key in ("source", "target"):
+            if not getattr(self.p, key):
+                raise ConfigError(
+                    f"data=files: data.{key} is not set; run e.g. 'scanreg data.source=A.ply data.target=B.ply', "
+                    "or the demo: 'scanreg data=synthetic'"
+                )
+        src = read_geometry(expand_path(self.p.source), "source")
+        tgt = read_geometry(expand_path(self.p.target), "target")
+        gt = read_transform(expand_path(self.p.gt), "ground truth data.gt") if self.p.gt else None
+        lm = read_landmarks(expand_path(self.p.landmarks)) if self.p.landmarks else None
+        if self.p.max_angle_deg > 0 or self.p.max_translation > 0:  # a further seeded pose of the source
+            P = self.p.pose(808, points_of(src), bbox_diagonal(points_of(tgt)))
+            src = transform_geometry(P, src)
+            gt = None if gt is None else gt @ invert_T(P)
+            lm = None if lm is None else (lm[0], apply_T(P, lm[1]))
+        return Inputs(src, tgt, gt, lm)
 
 
 @DATA.register("synthetic")

@@ -32,6 +32,9 @@ def test_experiments_are_sweeps_that_write_their_report():
         if p.stem == "dental":
             assert cfg.evaluate.deviation_map and cfg.coarse.name == "landmarks"
             continue
+        if p.stem.startswith("tune_"):  # tuning: Optuna minimises the objective; its result is the sweeper's
+            assert "optuna" in str(cfg.hydra.sweeper._target_).lower() and cfg.objective
+            continue
         assert str(cfg.hydra.mode) == "RunMode.MULTIRUN", p.name
         assert cfg.report.enabled and cfg.report.out.startswith("experiments/"), p.name
         assert cfg.tracking.experiment != "scanreg", p.name
@@ -210,3 +213,46 @@ def test_dental_experiment_end_to_end(tmp_path):
     assert sum(k.startswith("dev_rms_um_tooth_") for k in res) == 14
     for f in ("deviation_map.ply", "deviation_histogram.png", "deviation_map.png", "deviation_tooths.csv"):
         assert (out / f).exists(), f
+
+
+def test_files_with_a_further_pose(tmp_path):
+    """data=files can move the source by a seeded pose too; the ground truth and landmarks follow it."""
+    from pipeline.geometry import make_T, random_pose
+
+    rng = np.random.default_rng(0)
+    tgt = rng.normal(size=(200, 3))
+    T = random_pose(rng, 30.0, 0.5)
+    np.save(tmp_path / "t.npy", tgt)
+    np.save(tmp_path / "s.npy", apply_T(invert_T(T), tgt))
+    np.savetxt(tmp_path / "T.txt", T)
+    (tmp_path / "lm.csv").write_text("\n".join(",".join(map(str, [*tgt[i], *apply_T(invert_T(T), tgt[i:i + 1])[0]]))
+                                               for i in range(4)))
+    load_all()
+    cls = DATA.get("files")
+    kw = dict(source=str(tmp_path / "s.npy"), target=str(tmp_path / "t.npy"), gt=str(tmp_path / "T.txt"),
+              landmarks=str(tmp_path / "lm.csv"))
+    plain = cls(cls.Params(**kw)).load(Context(0, ROOT))
+    assert np.array_equal(plain.T_gt, T)
+    moved = cls(cls.Params(**kw, max_angle_deg=180.0, max_translation=0.5, pose_seed=5)).load(Context(0, ROOT))
+    assert not np.allclose(moved.T_gt, T)
+    assert np.allclose(apply_T(moved.T_gt, moved.source.points), tgt, atol=1e-9)
+    assert np.allclose(apply_T(moved.T_gt, moved.landmarks[1]), moved.landmarks[0], atol=1e-9)
+
+
+@pytest.mark.slow
+def test_optuna_sweep_tunes_against_the_registration_error(tmp_path, mlflow_uri):
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper", reason="./run installs hydra-optuna-sweeper")
+    sweep = tmp_path / "sweep"
+    r = run_cli(["experiment=tune_lo_ransac", "data=synthetic", "~data.pair", "data.n_points=4000",
+                 "sampler.n_points=2000", "hydra.sweeper.n_trials=3", "tracking.experiment=optuna",
+                 f"hydra.sweep.dir={sweep}"], tmp_path, mlflow_uri, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    import yaml
+
+    res = yaml.safe_load((sweep / "optimization_results.yaml").read_text())
+    assert set(res["best_params"]) == {"coarse.distance_threshold", "salience.salient_radius"}
+    df = runs(mlflow_uri, "optuna")
+    parent = df[df["tags.scanreg.sweep"] == "parent"].iloc[0]
+    children = df[df["tags.mlflow.parentRunId"] == parent["run_id"]]
+    assert len(children) == 3 and parent["status"] == "FINISHED"
+    assert res["best_value"] == pytest.approx(children["metrics.rotation_error_deg"].min())
