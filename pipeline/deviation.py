@@ -25,11 +25,9 @@ import numpy as np
 from pipeline.geometry import Cloud, Mesh, face_normals, vertex_normals
 
 
-def signed_deviation(points: np.ndarray, normals: np.ndarray | None, target: Cloud, mesh: Mesh | None):
-    """``(signed distance, compared-normal cosine or None, part index of the closest face or None)``."""
-    from stages.icp import ClosestPoints
-
-    cp = ClosestPoints(target, mesh)
+def signed_deviation(points: np.ndarray, normals: np.ndarray | None, cp):
+    """``(signed distance, compared-normal cosine or None, part index of the closest face or None)`` against
+    the target behind ``cp`` (a :class:`stages.icp.ClosestPoints`, built once per target)."""
     q, d, qn = cp(points)
     ids = getattr(cp, "last_primitive_ids", None)
     if qn is not None:
@@ -139,10 +137,11 @@ def write_outputs(run_dir: Path, geom, dev_v: np.ndarray, ok_v: np.ndarray, dev_
     return paths
 
 
-def evaluate_deviation(run_dir: Path, aligned: Cloud, aligned_geom, target: Cloud, mesh: Mesh | None,
-                       labels: np.ndarray | None, p, label_name: str = "part") -> tuple[dict, list[Path]]:
-    """Metrics ``dev_*`` (overall and ``dev_rms_<unit>_<label_name>_<n>`` per part) and the output files."""
-    dev, cos, ids = signed_deviation(aligned.points, aligned.normals, target, mesh)
+def evaluate_deviation(run_dir: Path, aligned: Cloud, aligned_geom, cp, labels: np.ndarray | None, p,
+                       label_name: str = "part") -> tuple[dict, list[Path]]:
+    """Metrics ``dev_*`` (overall and ``dev_rms_<unit>_<label_name>_<n>`` per part) and the output files;
+    ``cp`` finds closest points on the target (its triangles when it is a mesh)."""
+    dev, cos, ids = signed_deviation(aligned.points, aligned.normals, cp)
     ok = compared_mask(dev, cos, p.deviation_max_distance, p.deviation_max_angle_deg)
     m = stats(dev[ok], p.deviation_scale, p.deviation_unit, p.deviation_bands)
     m["dev_compared_share"] = float(ok.mean())
@@ -156,7 +155,7 @@ def evaluate_deviation(run_dir: Path, aligned: Cloud, aligned_geom, target: Clou
             table.append({label_name: int(n), **s})
             m[f"dev_rms_{p.deviation_unit}_{label_name}_{int(n)}"] = s[f"rms_{p.deviation_unit}"]
     if isinstance(aligned_geom, Mesh):
-        dev_v, cos_v, _ = signed_deviation(aligned_geom.vertices, vertex_normals(aligned_geom), target, mesh)
+        dev_v, cos_v, _ = signed_deviation(aligned_geom.vertices, vertex_normals(aligned_geom), cp)
     else:
         dev_v, cos_v = dev, cos
     ok_v = compared_mask(dev_v, cos_v, p.deviation_max_distance, p.deviation_max_angle_deg)

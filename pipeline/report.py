@@ -107,10 +107,19 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
     return df
 
 
-def column_for(key: str, df: pd.DataFrame) -> str:
-    for c in (f"params.{key}", f"tags.{key}", f"metrics.{key}", key):
+def find_column(key: str, df: pd.DataFrame, bare: bool = True) -> str | None:
+    """The column holding a config key, tag or metric (``params.``, ``tags.``, ``metrics.`` prefixed, then the
+    key itself when ``bare``), or None."""
+    for c in (f"params.{key}", f"tags.{key}", f"metrics.{key}", *([key] if bare else [])):
         if c in df.columns:
             return c
+    return None
+
+
+def column_for(key: str, df: pd.DataFrame) -> str:
+    c = find_column(key, df)
+    if c is not None:
+        return c
     raise SystemExit(f"error: unknown group-by key '{key}'; e.g. {', '.join(varying_keys(df)) or 'sampler.n_points'}")
 
 
@@ -409,7 +418,7 @@ def showcase_section(df: pd.DataFrame, sel: dict, out: Path) -> list[str]:
 
 
 def _has_key(df: pd.DataFrame, key: str) -> bool:
-    return any(c in df.columns for c in (f"params.{key}", f"tags.{key}", f"metrics.{key}"))
+    return find_column(key, df, bare=False) is not None
 
 
 def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None:

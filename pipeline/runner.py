@@ -147,7 +147,8 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
         aligned = apply_T(T, src.points)
         on_points = ClosestPoints(tgt)(aligned)
         m.update(alignment_metrics(on_points[1], ev, spacing))
-        on_surface = on_points if ctx.target_mesh is None else ClosestPoints(tgt, ctx.target_mesh)(aligned)
+        surface = None if ctx.target_mesh is None else ClosestPoints(tgt, ctx.target_mesh)
+        on_surface = on_points if surface is None else surface(aligned)
         m.update(surface_deviation(aligned, on_surface, ev, spacing))
         if inputs.T_gt is not None:
             m.update(gt_metrics(T0, inputs.T_gt, ctx.diagonal, ev, prefix="coarse_"))
@@ -157,13 +158,13 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
             for name, TT in (("coarse", T0), ("final", T)):
                 r = np.linalg.norm(apply_T(TT, ls) - lt, axis=1)
                 m[f"landmark_{name}_rms"] = float(np.sqrt(np.mean(r ** 2)))
-            ctx.step_metrics["landmark_final_residual"] = np.linalg.norm(apply_T(T, ls) - lt, axis=1).tolist()
+            ctx.step_metrics["landmark_final_residual"] = r.tolist()
         if ev.deviation_map:
             from pipeline.deviation import evaluate_deviation
 
             labels = inputs.target_labels if target_labels_valid else None
             dm, dev_paths = evaluate_deviation(run_dir, transform_geometry(T, src), transform_geometry(T, geoms["source"]),
-                                               tgt, ctx.target_mesh, labels, ev, inputs.label_name)
+                                               surface or ClosestPoints(tgt), labels, ev, inputs.label_name)
             m.update(dm)
     m["time_total_s"] = (time.perf_counter_ns() - t_start) / 1e9
 

@@ -233,9 +233,7 @@ class SweepCallback(Callback):
             return
         tr = MlflowTracking(MlflowTracking.Params(uri=info["uri"], experiment=info["experiment"]))
         client = tr._client()
-        children = client.search_runs([info["experiment_id"]],
-                                      filter_string=f"tags.mlflow.parentRunId = '{info['parent_run_id']}'",
-                                      max_results=50000)
+        children = _children(client, info)
         failed = sum(r.info.status != "FINISHED" for r in children)
         log = RunLog(client, info["parent_run_id"])
         log.log_metrics({"sweep_runs": len(children), "sweep_failed": failed})
@@ -254,6 +252,13 @@ class SweepCallback(Callback):
                 _sweep_outcome["failed"] = _sweep_outcome.get("failed", 0) or 1
 
 
+def _children(client, info: dict) -> list:
+    """The child runs of the sweep described by ``info`` (see :func:`sweep_info`)."""
+    return client.search_runs([info["experiment_id"]],
+                              filter_string=f"tags.mlflow.parentRunId = '{info['parent_run_id']}'",
+                              max_results=50000)
+
+
 def end_interrupted_sweep(reason: str = "interrupted", status: str = "KILLED") -> int:
     """After an interrupt of a sweep (in the launching process): every child run still RUNNING, and the parent,
     end KILLED with the reason, so that no run is left RUNNING. Returns the number of runs ended."""
@@ -262,9 +267,7 @@ def end_interrupted_sweep(reason: str = "interrupted", status: str = "KILLED") -
         return 0
     tr = MlflowTracking(MlflowTracking.Params(uri=info["uri"], experiment=info["experiment"]))
     client = tr._client()
-    children = client.search_runs([info["experiment_id"]],
-                                  filter_string=f"tags.mlflow.parentRunId = '{info['parent_run_id']}'",
-                                  max_results=50000)
+    children = _children(client, info)
     n = 0
     for r in children:
         if r.info.status == "RUNNING":

@@ -211,7 +211,7 @@ class LoRansac:
             return T, inl
 
         def accept(T_cand, count):
-            """Local optimisation of a candidate that beats the best; returns the updated iteration target."""
+            """Local optimisation of a candidate that beats the best; it becomes the best model."""
             nonlocal best_T, best_inl, best_n
             T_lo, inl_lo = local_opt(inliers(T_cand))
             if inl_lo.sum() < count:

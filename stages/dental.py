@@ -234,6 +234,7 @@ class Dental:
             keep &= ~gone[f].any(axis=1)
         f = f[keep]
         extra_v, extra_f, off = [], [], len(v)
+        normals = vertex_normals(Mesh(v, f)) if p.flaps else None
         for c in rng.choice(crown_idx, size=min(p.flaps, len(crown_idx)), replace=False) if p.flaps else []:
             near = np.zeros(len(v), bool)
             near[tree.query_ball_point(v[c], p.flap_radius)] = True
@@ -241,7 +242,7 @@ class Dental:
             if not len(patch):
                 continue
             used, inv = np.unique(patch, return_inverse=True)
-            axis = np.cross(vertex_normals(Mesh(v, f))[c], rng.normal(size=3))
+            axis = np.cross(normals[c], rng.normal(size=3))
             axis /= np.linalg.norm(axis)
             from scipy.spatial.transform import Rotation
 

@@ -397,7 +397,7 @@ class Open3dIcp(IcpBase):
             if abs(history[-2] - history[-1]) < tau:
                 converged = True
                 break
-        if not history[-1] > 0 and len(np.asarray(r.correspondence_set) if iterations else []) == 0:
+        if len(r.correspondence_set) == 0:  # max_iterations >= 1: r is the last call's result
             raise StageError(f"icp=open3d: no source point within {maxd_o3d:.4g} of the target; the coarse "
                              "alignment is too far off or max_correspondence_distance too small")
         ctx.step_metrics["icp_rms"] = history

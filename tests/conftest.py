@@ -40,3 +40,13 @@ def run_cli(args: list[str], cwd: Path, uri: str | None = None, timeout: int = 3
 
 def rng(seed=0):
     return np.random.default_rng(seed)
+
+
+def runs(uri: str, experiment: str):
+    """Every run of an MLflow experiment as a pandas frame (the experiment must exist)."""
+    import mlflow
+
+    mlflow.set_tracking_uri(uri)
+    exp = mlflow.get_experiment_by_name(experiment)
+    assert exp is not None, f"experiment {experiment} was not created"
+    return mlflow.search_runs([exp.experiment_id])

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import ROOT, run_cli, shared
+from conftest import ROOT, run_cli, shared, runs
 from pipeline.geometry import Cloud, apply_T, random_pose, transform_geometry
 from pipeline.io import read_mesh, write_ply, write_transform
 from stages.sampler import barycentric_sample
@@ -16,13 +16,6 @@ RESULT_KEYS = {
 }
 
 
-def runs(uri, experiment):
-    import mlflow
-
-    mlflow.set_tracking_uri(uri)
-    exp = mlflow.get_experiment_by_name(experiment)
-    assert exp is not None, f"experiment {experiment} was not created"
-    return mlflow.search_runs([exp.experiment_id])
 
 
 @pytest.mark.slow

@@ -8,19 +8,13 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from conftest import ROOT, run_cli, shared
+from conftest import ROOT, run_cli, shared, runs
 from pipeline.app import CONF_DIR
 from pipeline.config import Context
 from pipeline.geometry import Cloud, Mesh, apply_T, invert_T, transform_errors, vertex_normals
 from pipeline.registry import DATA, load_all
 
 
-def runs(uri, experiment):
-    import mlflow
-
-    mlflow.set_tracking_uri(uri)
-    exp = mlflow.get_experiment_by_name(experiment)
-    return mlflow.search_runs([exp.experiment_id])
 
 
 def test_experiments_are_sweeps_that_write_their_report():
@@ -146,7 +140,9 @@ def test_dental_case_geometry(dental_case):
     nrm = vertex_normals(back)
     axis = nrm.mean(axis=0)
     up = nrm @ (axis / np.linalg.norm(axis)) > 0.9  # facing the occlusal side
-    dev, _, ids = signed_deviation(back.vertices, nrm, Cloud(inp.target.vertices), inp.target)
+    from stages.icp import ClosestPoints
+
+    dev, _, ids = signed_deviation(back.vertices, nrm, ClosestPoints(Cloud(inp.target.vertices), inp.target))
     crown_tops = up & (np.abs(dev) < 0.5)
     assert crown_tops.mean() > 0.05
     assert np.median(np.abs(dev[crown_tops])) < 0.02  # mm
@@ -183,7 +179,9 @@ def test_deviation_of_a_known_offset(tmp_path):
     from stages.sampler import barycentric_sample
 
     pts, nrm, _ = barycentric_sample(moved, 20000, np.random.default_rng(0))
-    m, paths = evaluate_deviation(tmp_path, Cloud(pts, nrm), moved, Cloud(mesh.vertices), mesh, labels,
+    from stages.icp import ClosestPoints
+
+    m, paths = evaluate_deviation(tmp_path, Cloud(pts, nrm), moved, ClosestPoints(Cloud(mesh.vertices), mesh), labels,
                                   EvalParams(deviation_map=True), "part")
     assert m["dev_median_um"] == pytest.approx(50.0, abs=3.0)
     assert m["dev_within_100um"] > 0.95 and m["dev_p05_um"] > 30

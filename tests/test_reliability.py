@@ -12,16 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import ROOT, run_cli
+from conftest import ROOT, run_cli, runs
 
 
-def runs(uri, experiment):
-    import mlflow
-
-    mlflow.set_tracking_uri(uri)
-    exp = mlflow.get_experiment_by_name(experiment)
-    assert exp is not None, f"experiment {experiment} missing"
-    return mlflow.search_runs([exp.experiment_id])
 
 
 def bunny_cloud(n, seed, pose_seed=None):
