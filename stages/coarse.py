@@ -131,7 +131,8 @@ class LoRansac:
         min_iterations: int = 200
         """Fewest hypotheses drawn."""
         batch: int = 256
-        """Hypotheses evaluated together (vectorised)."""
+        """Hypotheses evaluated together (vectorised) by ``sampling: uniform``; guided sampling draws 64 seeds
+        of 8 samples at a time."""
         lo_iterations: int = 10
         """Rounds of least-squares re-estimation on the inliers of each new best model."""
         sampling: str = "guided"
