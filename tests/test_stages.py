@@ -233,6 +233,24 @@ def test_icp_variants_recover_a_stanford_pose(variant, angle):
     assert 0.8 < res.metrics["icp_fitness"] <= 1.0
 
 
+@pytest.mark.parametrize("variant", ["horn", "point_to_plane"])
+def test_coarse_to_fine_icp_reaches_the_full_icp_end_point(variant):
+    """initial_share: iterating first on a tenth of the source points ends where ICP on every point ends."""
+    tgt_mesh, src_mesh, T_gt = stanford_pair()
+    tgt, src = sampled(tgt_mesh, 30000, 0), sampled(src_mesh, 30000, 1)
+    c = ctx(spacing=estimate_spacing(tgt.points, np.random.default_rng(0)))
+    T0 = offset_pose(T_gt, src.points, 10.0, 7)
+    kw = dict(max_correspondence_distance=10.0, tau=1e-6)
+    full = icp_stage(variant, **kw).run(tgt, src, T0, c)
+    ctf = icp_stage(variant, initial_share=0.1, **kw).run(tgt, src, T0, c)
+    assert transform_errors(ctf.T_target_source, full.T_target_source)[0] < 0.01
+    assert transform_errors(ctf.T_target_source, T_gt)[0] < 0.5
+    assert len(ctf.rms_history) == ctf.iterations + 2  # two phases, each with its final pairing
+    assert ctf.metrics["icp_fitness"] == pytest.approx(full.metrics["icp_fitness"], abs=0.01)
+    with pytest.raises(Exception, match="initial_share"):
+        icp_stage(variant, initial_share=0.0)
+
+
 def test_horn_with_a_mesh_target_reaches_a_lower_rms_than_with_its_vertices():
     tgt_mesh, src_mesh, T_gt = stanford_pair()
     src = sampled(src_mesh, 20000, 1)

@@ -5,7 +5,8 @@
 Case: pymeshfix's bunny sampled twice independently (N points each, normals from the triangles); the source
 moved by 10 degrees about a random axis through its centre plus 2 % of the diagonal. Every measurement runs in a
 fresh subprocess: per-iteration time is (time of 30 iterations - time of 1) / 29 with the same pair limit, both
-on all cores (Open3D's OpenMP, pykdtree's OpenMP); "to convergence" runs each method with its own stopping rule.
+on all cores (Open3D's OpenMP, pykdtree's OpenMP); "to convergence" runs each method with its own stopping rule
+and its ``conf/icp`` defaults (point_to_plane: coarse-to-fine from a quarter of the points).
 Peak memory is the subprocess's maximum resident set size minus that of a process that only loaded the data.
 """
 
@@ -78,8 +79,12 @@ def run_case(method: str, n: int, iters: int | None) -> dict:
     else:
         from pipeline.registry import ICP, make_params
 
+        from omegaconf import OmegaConf
+
         cls = ICP.get(method)
-        kw = {"max_correspondence_distance": MAXD}
+        kw = {k: v for k, v in OmegaConf.to_container(OmegaConf.load(
+            Path(__file__).resolve().parents[2] / "conf" / "icp" / f"{method}.yaml")).items() if k != "name"}
+        kw["max_correspondence_distance"] = MAXD  # each variant with its conf/icp defaults, one pair limit
         if iters:
             kw.update(tau=0.0, max_iterations=iters)
         ctx = Context(seed=0, run_dir=None)
