@@ -164,6 +164,12 @@ class LoRansac:
         self.p = params
 
     def run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
+        from pipeline.geometry import blas_single_thread
+
+        with blas_single_thread():  # small products between OpenMP calls (Open3D, k-d trees): see its note
+            return self._run(target, source, ctx)
+
+    def _run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
         st = ctx.stages
         kt, ks = st["salience"].keypoints(target, ctx), st["salience"].keypoints(source, ctx)
         if len(kt) < 3 or len(ks) < 3:
@@ -236,50 +242,70 @@ class LoRansac:
             # hypothesis is scored on C_i only (its inliers are there). A seed yields an all-inlier sample
             # with probability q = w (1 - (1 - r^2)^T), w the inlier share, r the inlier share of C_i.
             per_seed, S = 8, 64
-            D1 = lambda a, b: np.linalg.norm(P1[a][:, None, :] - P1[b][None, :, :], axis=2)
-            D0 = lambda a, b: np.linalg.norm(P0[a][:, None, :] - P0[b][None, :, :], axis=2)
+            from scipy.spatial.distance import cdist
+
+            D1 = lambda a, b: cdist(P1[a], P1[b])
+            D0 = lambda a, b: cdist(P0[a], P0[b])
             r_est = 0.0
             while drawn < max(needed, p.min_iterations) and drawn < p.max_iterations:
+                # one batch of S seeds, vectorised over the seeds (ragged sets padded, masks mark the members)
                 seeds = rng.integers(0, M, size=S)
-                C = np.abs(D1(seeds, np.arange(M)) - D0(seeds, np.arange(M))) < 2 * thr
-                for s_i, i in enumerate(seeds):
-                    if drawn >= p.max_iterations:
-                        break
-                    cand = np.flatnonzero(C[s_i])
-                    cand = cand[cand != i]
-                    drawn += per_seed
-                    if len(cand) < 2:
-                        continue
-                    # j, k among candidates whose distance to i agrees within thr; k compatible with j
-                    close = cand[np.abs(D1([i], cand)[0] - D0([i], cand)[0]) < thr]
-                    if len(close) < 2:
-                        continue
-                    js = close[rng.integers(0, len(close), size=per_seed)]
-                    Cj = np.abs(D1(js, close) - D0(js, close)) < thr
-                    r = np.where(Cj & (close[None, :] != js[:, None]), rng.random(Cj.shape), -1.0)
-                    kk = np.argmax(r, axis=1)
-                    ok = r[np.arange(per_seed), kk] >= 0
-                    if not ok.any():
-                        continue
-                    idx = np.stack([np.full(ok.sum(), i), js[ok], close[kk[ok]]], axis=1)
-                    a, b = P1[idx], P0[idx]
-                    good = valid(a, b)
-                    if not good.any():
-                        continue
-                    Ts = kabsch_batch(b[good], a[good])
-                    pool = np.append(cand, i)
-                    moved = np.einsum("bij,mj->bmi", Ts[:, :3, :3], P1[pool]) + Ts[:, None, :3, 3]
-                    counts = (np.linalg.norm(moved - P0[pool][None], axis=2) < thr).sum(axis=1)
-                    k = int(np.argmax(counts))
-                    if counts[k] > best_n:
-                        accept(Ts[k], counts[k])
-                        I = np.flatnonzero(best_inl)
-                        if len(I) >= 3:  # r: inlier share of the compatible sets of the best model's inliers
-                            sub = I[rng.permutation(len(I))[:32]]
-                            Cs = np.abs(D1(sub, np.arange(M)) - D0(sub, np.arange(M))) < 2 * thr
-                            r_est = float((Cs[:, I].sum(axis=1) / np.maximum(Cs.sum(axis=1), 1)).mean())
-                        q = best_n / M * (1 - (1 - r_est ** 2) ** per_seed)
-                        needed = needed_for(q) * per_seed
+                S_, rows = len(seeds), np.arange(len(seeds))
+                drawn += S_ * per_seed
+                diff = np.abs(D1(seeds, np.arange(M)) - D0(seeds, np.arange(M)))
+                # j, k among the correspondences whose distance to the seed agrees within thr
+                close = diff < thr
+                close[rows, seeds] = False
+                n_close = close.sum(axis=1)
+                if n_close.max() < 2:
+                    continue
+                L = int(n_close.max())
+                close_idx = np.argsort(~close, axis=1, kind="stable")[:, :L]  # members first, in index order
+                member = np.arange(L)[None, :] < n_close[:, None]
+                jpos = np.minimum((rng.random((S_, per_seed)) * n_close[:, None]).astype(np.int64), L - 1)
+                js = np.take_along_axis(close_idx, jpos, axis=1)  # (S, per_seed)
+                # k compatible with j as well (and not j)
+                e1 = _norm3(P1[js][:, :, None, :] - P1[close_idx][:, None, :, :])
+                e0 = _norm3(P0[js][:, :, None, :] - P0[close_idx][:, None, :, :])
+                ck = (np.abs(e1 - e0) < thr) & member[:, None, :] & (close_idx[:, None, :] != js[:, :, None])
+                r = np.where(ck, rng.random(ck.shape), -1.0)
+                kpos = np.argmax(r, axis=2)
+                ok = (np.take_along_axis(r, kpos[..., None], axis=2)[..., 0] >= 0) & (n_close >= 2)[:, None]
+                if not ok.any():
+                    continue
+                ks = np.take_along_axis(close_idx, kpos, axis=1)
+                idx = np.stack([np.broadcast_to(seeds[:, None], js.shape), js, ks], axis=2)[ok]
+                sid = np.broadcast_to(rows[:, None], js.shape)[ok]
+                a, b = P1[idx], P0[idx]
+                good = valid(a, b)
+                if not good.any():
+                    continue
+                Ts, sid = kabsch_batch(b[good], a[good]), sid[good]
+                # score each hypothesis on its seed's compatible set (every inlier of a model with the seed as
+                # an inlier is there)
+                pool = diff < 2 * thr
+                n_pool = pool.sum(axis=1)
+                Lp = int(n_pool.max())
+                pool_idx = np.argsort(~pool, axis=1, kind="stable")[:, :Lp]
+                in_pool = np.arange(Lp)[None, :] < n_pool[:, None]
+                counts = np.empty(len(Ts), np.int64)
+                for c0 in range(0, len(Ts), 64):  # bounded memory
+                    sl = slice(c0, c0 + 64)
+                    pi = pool_idx[sid[sl]]
+                    res = P1[pi] @ Ts[sl, :3, :3].transpose(0, 2, 1) + (Ts[sl, None, :3, 3] - P0[pi])
+                    res *= res
+                    sq = res[..., 0] + res[..., 1] + res[..., 2]
+                    counts[sl] = ((sq < thr * thr) & in_pool[sid[sl]]).sum(axis=1)
+                k = int(np.argmax(counts))
+                if counts[k] > best_n:
+                    accept(Ts[k], counts[k])
+                    I = np.flatnonzero(best_inl)
+                    if len(I) >= 3:  # r: inlier share of the compatible sets of the best model's inliers
+                        sub = I[rng.permutation(len(I))[:32]]
+                        Cs = np.abs(D1(sub, np.arange(M)) - D0(sub, np.arange(M))) < 2 * thr
+                        r_est = float((Cs[:, I].sum(axis=1) / np.maximum(Cs.sum(axis=1), 1)).mean())
+                    q = best_n / M * (1 - (1 - r_est ** 2) ** per_seed)
+                    needed = needed_for(q) * per_seed
         else:
             while drawn < max(needed, p.min_iterations) and drawn < p.max_iterations:
                 B = min(p.batch, p.max_iterations - drawn)
@@ -316,6 +342,11 @@ class LoRansac:
             if inliers(T).sum() >= best_inl.sum():  # the final fit may not lose the model's support
                 best_T, best_inl = T, inliers(T)
         return best_T, best_inl, drawn
+
+
+def _norm3(x: np.ndarray) -> np.ndarray:
+    """Norms along a last axis of length 3 (a reduction over 3 elements is slow in NumPy)."""
+    return np.sqrt(x[..., 0] ** 2 + x[..., 1] ** 2 + x[..., 2] ** 2)
 
 
 @COARSE.register("landmarks")

