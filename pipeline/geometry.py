@@ -24,10 +24,22 @@ class Mesh:
     faces: np.ndarray
     source: str = ""
     """Where it came from (path or description), for messages."""
+    closure_faces: int = 0
+    """The last this-many faces were added to close an open scan into a thin shell (``repair.open_border=shell``):
+    they are not scanned surface, and :meth:`scanned` leaves them out."""
 
     @property
     def n_points(self) -> int:
         return len(self.vertices)
+
+    def scanned(self) -> "Mesh":
+        """The mesh without its closure faces (and the vertices only they use): what samplers and the
+        evaluation see."""
+        if not self.closure_faces:
+            return self
+        f = self.faces[: len(self.faces) - self.closure_faces]
+        used, inv = np.unique(f, return_inverse=True)
+        return Mesh(self.vertices[used], inv.reshape(f.shape).astype(np.int64), self.source)
 
 
 @dataclass

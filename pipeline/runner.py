@@ -108,6 +108,8 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
                         raise
                     m.update(rm)
 
+    # a scan closed as a shell by the repair (repair.open_border=shell) is sampled and compared on its scanned side
+    geoms = {role: g.scanned() if isinstance(g, Mesh) else g for role, g in geoms.items()}
     clouds: dict[str, Cloud] = {}
     with timer("sample"):
         for role, g in geoms.items():

@@ -9,11 +9,13 @@ and the output:
 
 The run fails with one clear line when the repair removed more than ``max_removed_area`` of the surface, or
 moved it by more than ``max_hausdorff`` of the diagonal. This is MeshFix's known failure of reducing a dental
-bridge to one tooth, or of eating an open scan whose outer border was capped.
+bridge to one tooth, or of eating an open scan whose outer border was capped. Open scans are made watertight
+without that loss by ``open_border=shell`` (:func:`close_as_shell`).
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,18 +130,161 @@ class GuardParams:
     diagonal from the repaired surface."""
     audit_samples: int = 20000
     """Points sampled on each surface to measure the Hausdorff distances and the removed share."""
+    open_border: str = "cap"
+    """What becomes of an open scan's outer border, the longest boundary loop (with ``max_hole_edges`` set:
+    every loop longer than that). ``cap``: filled like any hole (MeshFix's way; right for closed models with
+    holes, but on an open scan the cap cuts through the surface and the guard fails the run). ``open``: left
+    open. ``shell``: the scan is closed as a thin shell, its surface plus an offset copy ``shell_thickness``
+    behind it, joined along the border: watertight without changing or removing any scanned surface; samplers
+    and the evaluation use the scanned side only."""
+    shell_thickness: float = 0.001
+    """``open_border=shell``: distance of the back side behind the surface, as a share of the bounding-box
+    diagonal (less where the space behind the surface is narrower, see :func:`close_as_shell`)."""
 
     def check(self):
         if self.apply_to not in ("source", "target", "both"):
             raise ValueError(f"apply_to must be source, target or both, got '{self.apply_to}'")
+        if self.open_border not in ("cap", "open", "shell"):
+            raise ValueError(f"open_border must be cap, open or shell, got '{self.open_border}'")
+        if not self.shell_thickness > 0:
+            raise ValueError(f"shell_thickness must be > 0, got {self.shell_thickness}")
+
+
+def boundary_edges(mesh: Mesh, with_faces: bool = False):
+    """Directed boundary edges (a, b), as their one face traverses them (and that face's index)."""
+    f = mesh.faces
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = np.sort(directed, axis=1)
+    _, inv, counts = np.unique(e, axis=0, return_inverse=True, return_counts=True)
+    on = counts[inv.ravel()] == 1
+    return (directed[on], np.flatnonzero(on) % max(len(f), 1)) if with_faces else directed[on]
+
+
+def boundary_loop_sizes(mesh: Mesh) -> np.ndarray:
+    """Number of edges of each boundary loop (connected chain of boundary edges)."""
+    bnd = boundary_edges(mesh)
+    if not len(bnd):
+        return np.zeros(0, np.int64)
+    bv, binv = np.unique(bnd, return_inverse=True)
+    binv = binv.reshape(-1, 2)
+    g = coo_matrix((np.ones(len(bnd)), (binv[:, 0], binv[:, 1])), shape=(len(bv), len(bv)))
+    lab = connected_components(g, directed=False)[1]
+    return np.bincount(lab[binv[:, 0]])
+
+
+def close_as_shell(mesh: Mesh, thickness: float, rounds: int = 6, attempts: int = 6) -> Mesh:
+    """Close an oriented, edge-manifold open surface into a thin shell: the surface, a copy moved up to
+    ``thickness`` behind it with its faces reversed (the back), and a strip of two triangles per boundary edge
+    joining them. The result is watertight and consistently oriented (outward normals); the added faces come
+    last and are counted in ``closure_faces``.
+
+    The offset of each back vertex is at most a third of the free space behind it, and is halved (up to
+    ``rounds`` times) where a back or strip face still intersects something. What no offset can fix, a spike
+    (a vertex no direction lies behind), a fin, or a border that touches itself, is cut out: the few scanned
+    faces involved are removed and the shell is built again (up to ``attempts`` times)."""
+    front = mesh
+    for _ in range(attempts):
+        shell, sel, edge_faces = _shell(front, thickness, rounds)
+        if not sel.any():
+            break
+        # the scanned faces involved: those selected, the originals of selected back faces, the border faces
+        # of selected strip faces
+        nf = len(front.faces)
+        idx = np.flatnonzero(sel)
+        bad = np.unique(np.concatenate([idx[idx < 2 * nf] % nf, edge_faces[(idx[idx >= 2 * nf] - 2 * nf)
+                                                                             % len(edge_faces)]]))
+        keep = np.ones(nf, bool)
+        keep[bad] = False
+        front = _manifold(Mesh(front.vertices, front.faces[keep], mesh.source))
+    return shell
+
+
+def _manifold(mesh: Mesh) -> Mesh:
+    """Unreferenced vertices removed, non-manifold edges and vertices repaired, only the largest component."""
+    ms = _meshset(mesh)
+    ms.meshing_remove_unreferenced_vertices()
+    ms.meshing_repair_non_manifold_edges(method=0)
+    ms.meshing_repair_non_manifold_vertices()
+    cm = ms.current_mesh()
+    out = Mesh(cm.vertex_matrix().astype(np.float64), cm.face_matrix().astype(np.int64), mesh.source)
+    lab = _face_components(out)
+    keep = lab == np.argmax(np.bincount(lab))
+    used, inv = np.unique(out.faces[keep], return_inverse=True)
+    return Mesh(out.vertices[used], inv.reshape(-1, 3).astype(np.int64), mesh.source)
+
+
+def _shell(mesh: Mesh, thickness: float, rounds: int) -> tuple[Mesh, np.ndarray, np.ndarray]:
+    """The shell of :func:`close_as_shell`, the mask of its faces that still intersect another, and the
+    scanned face at each boundary edge."""
+    import open3d as o3d
+
+    bnd, edge_faces = boundary_edges(mesh, with_faces=True)
+    v, f, nv = mesh.vertices, mesh.faces, len(mesh.vertices)
+    if not len(bnd):
+        return mesh, np.zeros(len(f), bool), edge_faces
+    n = offset_directions(mesh)
+    # where the surface comes back behind itself (a fold, a thin wall) the offset stops at a third of the gap
+    c = v.mean(axis=0)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor((v - c).astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    start = v - c - 1e-3 * thickness * n
+    gap = scene.cast_rays(o3d.core.Tensor(np.hstack([start, -n]).astype(np.float32)))["t_hit"].numpy()
+    offset = np.minimum(thickness, gap / 3.0)
+    a, b = bnd[:, 0], bnd[:, 1]
+    # the strip traverses each border edge b -> a (its face has a -> b) and the back's reversed edge a' -> b'
+    strip = np.concatenate([np.stack([b, a, a + nv], axis=1), np.stack([b, a + nv, b + nv], axis=1)])
+    added = np.concatenate([f[:, ::-1] + nv, strip])
+    faces = np.concatenate([f, added]).astype(np.int64)
+    for _ in range(rounds):
+        shell = Mesh(np.vstack([v, v - offset[:, None] * n]), faces, mesh.source, closure_faces=len(added))
+        ms = _meshset(shell)
+        ms.compute_selection_by_self_intersections_per_face()
+        sel = ms.current_mesh().face_selection_array().astype(bool)
+        if not sel.any():
+            break
+        idx = np.unique(faces[sel])
+        offset[idx[idx >= nv] - nv] *= 0.5
+    return shell, sel, edge_faces
+
+
+def offset_directions(mesh: Mesh, rounds: int = 20) -> np.ndarray:
+    """Per vertex, a unit direction that lies on the front side of every face around it (positive dot product
+    with each face normal) where one exists: the vertex normal, pulled towards the normals of the faces it
+    fails. Offsetting a vertex against it keeps every copied face behind its original, also at sharp ridges
+    where the plain vertex normal would flip a face through its neighbour."""
+    from pipeline.geometry import face_normals, vertex_normals
+
+    fn = face_normals(mesh)
+    d = vertex_normals(mesh)
+    f = mesh.faces
+    for _ in range(rounds):
+        dots = np.einsum("fkj,fj->fk", d[f], fn)  # (M, 3): each face against the directions of its corners
+        bad = dots < 0.3
+        if not bad.any():
+            break
+        push = np.zeros_like(d)
+        for k in range(3):
+            np.add.at(push, f[bad[:, k], k], fn[bad[:, k]])
+        d = d + 0.5 * push
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    return d
 
 
 def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mesh, dict[str, float]]:
     """Run ``stage`` on ``mesh``, audit before/after under ``prefix`` (``repair_``/``target_repair_``), apply
     the guard. Returns the mesh to go on with and the metrics."""
+    import dataclasses
+
     p: GuardParams = stage.p
     before = audit_mesh(mesh)
+    if p.open_border != "cap" and getattr(p, "fill_holes", getattr(p, "close_holes", False)):
+        sizes = boundary_loop_sizes(mesh)
+        if len(sizes) and not p.max_hole_edges:  # keep loops over half the longest (the outer border) open
+            stage = copy.copy(stage)
+            stage.p = dataclasses.replace(p, max_hole_edges=int(sizes.max()) // 2)
     out = stage.run(mesh, ctx)
+    if p.open_border == "shell":
+        out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
     after = audit_mesh(out)
     m = {f"{prefix}before_{k}": v for k, v in before.items()}
     m.update({f"{prefix}after_{k}": v for k, v in after.items()})
@@ -165,8 +310,9 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     m[f"{prefix}guard_ok"] = float(not problems)
     if problems:
         msg = (f"repair={stage.name}: {mesh.source}: the repair {' and '.join(problems)}; it would destroy part "
-               "of the model. An open scan's outer border capped by hole filling does this: keep it open with "
-               "repair.max_hole_edges=N (fewer edges than the border), or inspect with repair.check_only=true")
+               "of the model. An open scan's outer border capped by hole filling does this: close the scan as a "
+               "thin shell with repair.open_border=shell, keep the border open with repair.open_border=open, or "
+               "inspect with repair.check_only=true")
         if not p.check_only:
             raise StageError(msg, metrics=m)
         print(f"warning: {msg}")

@@ -202,7 +202,7 @@ def test_repair_guard_fails_the_run_with_its_audit(tmp_path, mlflow_uri):
                  f"hydra.run.dir={tmp_path / 'g'}"], tmp_path, mlflow_uri)
     assert r.returncode == 1
     last = r.stderr.strip().splitlines()[-1]
-    assert last.startswith("error: repair=meshfix:") and "of the surface" in last and "max_hole_edges" in last
+    assert last.startswith("error: repair=meshfix:") and "of the surface" in last and "repair.open_border=shell" in last
     assert "removed_area_share" in r.stdout  # the before/after table is still shown
     row = runs(mlflow_uri, "guard").iloc[0]
     assert row["status"] == "FAILED" and row["metrics.repair_guard_ok"] == 0

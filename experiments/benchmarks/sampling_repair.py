@@ -5,7 +5,8 @@
 Sampling: scanreg's ``barycentric`` against Open3D's ``sample_points_uniformly`` (and the other samplers)
 for N points on pymeshfix's bunny (100k faces); best of ``--repeat`` runs each, single process, same threads.
 Repair: each backend on the defect meshes, against pymeshfix's stock ``MeshFix.repair()`` on the same mesh,
-with the audit's verdict. Real scans from ../shared/data are included when present.
+with the audit's verdict (default guard limits); open scans also with repair.open_border=open and =shell. Real
+scans from ../shared/data are included when present.
 """
 
 from __future__ import annotations
@@ -77,8 +78,7 @@ def bench_repair() -> list[str]:
         rows.append(f"| {label} | pymeshfix MeshFix.repair() (anchor) | {anchor:.2f} | 1.00 | - |")
         configs = [("meshfix", {}), ("meshlab", {})]
         if not label.startswith("StanfordBunny") and "screwdriver" not in label:
-            configs += [("meshfix", {"max_hole_edges": 300 if "bun000" in label else 100}),
-                        ("meshlab", {"max_hole_edges": 300 if "bun000" in label else 100})]
+            configs += [(b, {"open_border": o}) for o in ("open", "shell") for b in ("meshfix", "meshlab")]
         for name, kw in configs:
             cls = REPAIR.get(name)
             st = cls(make_params(cls.Params, {**kw, "check_only": True}, name))
@@ -90,7 +90,8 @@ def bench_repair() -> list[str]:
                     mm = e.metrics
             t = (time.perf_counter_ns() - t0) / 1e9
             a = {k[2:]: v for k, v in mm.items()}
-            verdict = (f"{'ok' if a['guard_ok'] else 'GUARD'}: loops {a['before_boundary_loops']}->"
+            verdict = (f"{'ok' if a['guard_ok'] else 'GUARD'}{', watertight' if a['after_watertight'] else ''}: "
+                       f"loops {a['before_boundary_loops']}->"
                        f"{a['after_boundary_loops']}, self-int {a['before_self_intersecting_faces']}->"
                        f"{a['after_self_intersecting_faces']}, removed {a['removed_area_share']:.1%}, "
                        f"Hausdorff {a['hausdorff_max_rel']:.2%} of diag")
