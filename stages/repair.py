@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import connected_components
 
 from pipeline.config import Context
 from pipeline.errors import StageError
-from pipeline.geometry import Mesh, bbox_diagonal
+from pipeline.geometry import Mesh, bbox_diagonal, row_norms
 from pipeline.registry import REPAIR
 from stages.sampler import barycentric_sample, triangle_areas_normals
 
@@ -125,6 +125,10 @@ class GuardParams:
     max_hausdorff: float = 0.01
     """Fail when a point of the input surface lies farther than this share of the bounding-box diagonal
     from the repaired surface (one-sided Hausdorff distance, input -> output)."""
+    max_hausdorff_edges: float = 2.0
+    """The Hausdorff limit is at least this many median edge lengths of the input: on a coarse mesh one
+    triangle can span more than ``max_hausdorff`` of the diagonal, and dropping a sliver at a ragged border
+    must not fail the run (0: the diagonal share alone)."""
     removed_tolerance: float = 0.002
     """An input surface point counts as removed when it lies farther than this share of the bounding-box
     diagonal from the repaired surface."""
@@ -304,9 +308,14 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     problems = []
     if removed > p.max_removed_area:
         problems.append(f"removed {removed:.1%} of the surface (limit repair.max_removed_area={p.max_removed_area:g})")
-    if d_in.max() > p.max_hausdorff * diag:
-        problems.append(f"moved it by up to {d_in.max() / diag:.2%} of the diagonal "
-                        f"(limit repair.max_hausdorff={p.max_hausdorff:g})")
+    v, f = mesh.vertices, mesh.faces
+    edge = float(np.median(row_norms((v[f[:, [1, 2, 0]]] - v[f]).reshape(-1, 3)))) if len(f) else 0.0
+    limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
+    m[f"{prefix}hausdorff_limit_rel"] = float(limit / diag)
+    if d_in.max() > limit:
+        problems.append(f"moved it by up to {d_in.max() / diag:.2%} of the diagonal (limit "
+                        f"{limit / diag:.2%}: repair.max_hausdorff={p.max_hausdorff:g}, or "
+                        f"repair.max_hausdorff_edges={p.max_hausdorff_edges:g} median edges if more)")
     m[f"{prefix}guard_ok"] = float(not problems)
     if problems:
         msg = (f"repair={stage.name}: {mesh.source}: the repair {' and '.join(problems)}; it would destroy part "

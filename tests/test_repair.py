@@ -155,14 +155,13 @@ def test_open_scans_become_watertight_shells(backend, mesh):
 
     m = load(mesh)
     small = "meshlab_defects" in mesh
-    # the small defect meshes lose their defects (self-intersecting and non-manifold fins) to the repair, and
-    # those stand 1.5-3 % of the diagonal off the surface: the Hausdorff guard is raised for them
-    out, metrics = repair_with_audit(stage(backend, open_border="shell", max_hausdorff=0.05 if small else 0.01),
-                                     m, CTX, "r_")
+    out, metrics = repair_with_audit(stage(backend, open_border="shell"), m, CTX, "r_")  # the default guard
     a = strip(metrics)
     assert_clean(a)
     assert a["guard_ok"] == 1 and a["removed_area_share"] < (0.1 if small else 0.01)
-    assert a["hausdorff_max_rel"] < (0.05 if small else 0.01)
+    # the small meshes' median edge is 1.3 % (many_small_holes) and 3.8 % (non_manif_hole) of the diagonal: the
+    # few border slivers the repair drops move the surface by about an edge, which the guard allows there
+    assert a["hausdorff_max_rel"] < a["hausdorff_limit_rel"] <= (0.08 if small else 0.01)
     assert a["hausdorff_added_max_rel"] < 0.05  # the back lies just behind the surface
     assert out.closure_faces > 0
     scanned = out.scanned()
