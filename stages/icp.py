@@ -5,7 +5,7 @@ the same numbers, defined once:
 
 - ``rms_history`` (MLflow step metric ``icp_rms_step``): at each iterate, the RMS distance of the pairs used
   (after rejection and trimming), before the update; the last entry is at the final pose (coarse-to-fine,
-  ``initial_share`` < 1: the subset's iterates, then every point's);
+  ``initial_share`` < 1: the subset's iterates, then every point's; always ``iterations`` + 1 entries);
 - ``icp_rms``: the last entry of that history;
 - ``icp_fitness``: the share of source points whose closest target point at the final pose lies within
   ``max_correspondence_distance`` (every point when it is null);
@@ -180,7 +180,8 @@ class IcpBase:
                                      T_init, cp, tau, maxd, ctx)
                 res = self.iterate(target, source, first.T_target_source, cp, tau, maxd, ctx)
                 res.iterations += first.iterations
-                res.rms_history = first.rms_history + res.rms_history
+                # the subset's last entry is at the pose where every point's first one is: keep the latter
+                res.rms_history = first.rms_history[:-1] + res.rms_history
             else:
                 res = self.iterate(target, source, T_init, cp, tau, maxd, ctx)
         ctx.step_metrics["icp_rms"] = res.rms_history
