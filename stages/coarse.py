@@ -9,7 +9,8 @@ import numpy as np
 
 from pipeline.config import Context, Distances, to_abs
 from pipeline.errors import ConfigError, StageError
-from pipeline.geometry import Cloud
+from pipeline.geometry import (Cloud, apply_T, blas_single_thread, horn_quaternion, kabsch_batch, rigid_points_normals,
+                               row_norms)
 from pipeline.registry import COARSE
 from stages.descriptor import to_o3d
 
@@ -164,8 +165,6 @@ class LoRansac:
         self.p = params
 
     def run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
-        from pipeline.geometry import blas_single_thread
-
         with blas_single_thread():  # small products between OpenMP calls (Open3D, k-d trees): see its note
             return self._run(target, source, ctx)
 
@@ -194,8 +193,6 @@ class LoRansac:
 
     def estimate(self, P0, P1, N0, N1, thr):
         """RANSAC over correspondences P1 -> P0: ``(T_target_source, inlier mask, hypotheses drawn)``."""
-        from pipeline.geometry import apply_T, horn_quaternion, kabsch_batch, rigid_points_normals
-
         p = self.p
         rng = np.random.default_rng([p.seed, 404])
         M = len(P0)
@@ -256,17 +253,15 @@ class LoRansac:
                 # j, k among the correspondences whose distance to the seed agrees within thr
                 close = diff < thr
                 close[rows, seeds] = False
-                n_close = close.sum(axis=1)
+                close_idx, member, n_close = _padded_members(close)
                 if n_close.max() < 2:
                     continue
-                L = int(n_close.max())
-                close_idx = np.argsort(~close, axis=1, kind="stable")[:, :L]  # members first, in index order
-                member = np.arange(L)[None, :] < n_close[:, None]
+                L = close_idx.shape[1]
                 jpos = np.minimum((rng.random((S_, per_seed)) * n_close[:, None]).astype(np.int64), L - 1)
                 js = np.take_along_axis(close_idx, jpos, axis=1)  # (S, per_seed)
                 # k compatible with j as well (and not j)
-                e1 = _norm3(P1[js][:, :, None, :] - P1[close_idx][:, None, :, :])
-                e0 = _norm3(P0[js][:, :, None, :] - P0[close_idx][:, None, :, :])
+                e1 = row_norms(P1[js][:, :, None, :] - P1[close_idx][:, None, :, :])
+                e0 = row_norms(P0[js][:, :, None, :] - P0[close_idx][:, None, :, :])
                 ck = (np.abs(e1 - e0) < thr) & member[:, None, :] & (close_idx[:, None, :] != js[:, :, None])
                 r = np.where(ck, rng.random(ck.shape), -1.0)
                 kpos = np.argmax(r, axis=2)
@@ -283,11 +278,7 @@ class LoRansac:
                 Ts, sid = kabsch_batch(b[good], a[good]), sid[good]
                 # score each hypothesis on its seed's compatible set (every inlier of a model with the seed as
                 # an inlier is there)
-                pool = diff < 2 * thr
-                n_pool = pool.sum(axis=1)
-                Lp = int(n_pool.max())
-                pool_idx = np.argsort(~pool, axis=1, kind="stable")[:, :Lp]
-                in_pool = np.arange(Lp)[None, :] < n_pool[:, None]
+                pool_idx, in_pool, _ = _padded_members(diff < 2 * thr)
                 counts = np.empty(len(Ts), np.int64)
                 for c0 in range(0, len(Ts), 64):  # bounded memory
                     sl = slice(c0, c0 + 64)
@@ -344,9 +335,12 @@ class LoRansac:
         return best_T, best_inl, drawn
 
 
-def _norm3(x: np.ndarray) -> np.ndarray:
-    """Norms along a last axis of length 3 (a reduction over 3 elements is slow in NumPy)."""
-    return np.sqrt(x[..., 0] ** 2 + x[..., 1] ** 2 + x[..., 2] ** 2)
+def _padded_members(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each row of a boolean (S, M) mask: the column indices where it holds, in order, padded to the
+    longest row (S, L); which of those are real members; and how many each row has."""
+    n = mask.sum(axis=1)
+    L = max(int(n.max()), 1)
+    return np.argsort(~mask, axis=1, kind="stable")[:, :L], np.arange(L)[None, :] < n[:, None], n
 
 
 @COARSE.register("landmarks")
@@ -385,8 +379,6 @@ class Landmarks:
 
 def landmark_fit(target_pts: np.ndarray, source_pts: np.ndarray) -> tuple[np.ndarray, dict, np.ndarray]:
     """Horn's fit of landmark pairs with per-landmark residuals and leave-one-out errors."""
-    from pipeline.geometry import apply_T, horn_quaternion
-
     k = len(target_pts)
     centred = source_pts - source_pts.mean(axis=0)
     if k < 3 or np.linalg.matrix_rank(centred, tol=1e-9 * max(1.0, np.abs(centred).max())) < 2:

@@ -31,7 +31,8 @@ from scipy.spatial import cKDTree
 
 from pipeline.config import Context, expand_path
 from pipeline.errors import ConfigError, InputError
-from pipeline.geometry import Mesh, apply_T, bbox_diagonal, invert_T, transform_geometry, vertex_normals
+from pipeline.geometry import (Mesh, apply_T, bbox_diagonal, invert_T, submesh, transform_geometry,
+                               vertex_normals)
 from pipeline.io import read_mesh
 from pipeline.registry import DATA
 from stages.data import Inputs, PoseParams
@@ -73,12 +74,6 @@ def merge(meshes: list[Mesh], labels: list[int]) -> tuple[Mesh, np.ndarray]:
         lab.append(np.full(len(m.faces), n, np.int64))
         off += len(m.vertices)
     return Mesh(np.vstack(v), np.vstack(f)), np.concatenate(lab)
-
-
-def submesh(m: Mesh, face_mask: np.ndarray) -> Mesh:
-    f = m.faces[face_mask]
-    used, inv = np.unique(f, return_inverse=True)
-    return Mesh(m.vertices[used], inv.reshape(-1, 3).astype(np.int64), m.source)
 
 
 @DATA.register("dental")
@@ -253,8 +248,7 @@ class Dental:
         if extra_v:
             v = np.vstack([v, *extra_v])
             f = np.vstack([f, *extra_f])
-        used, inv = np.unique(f, return_inverse=True)
-        return Mesh(v[used], inv.reshape(-1, 3).astype(np.int64), mesh.source)
+        return submesh(Mesh(v, f, mesh.source))
 
     def pick_landmarks(self, teeth, tips, target: Mesh, source: Mesh, P, rng):
         """Cusp tips of ``landmarks`` teeth spread along the arch, each picked with an error on both surfaces."""

@@ -171,13 +171,11 @@ class IcpBase:
         maxd = to_abs(p.max_correspondence_distance, p.distances, ctx.spacing)
         cp = self.closest(target, ctx)
         order = morton_order(source.points)  # cache-coherent queries; the result does not depend on the order
-        source = Cloud(source.points[order], None if source.normals is None else source.normals[order], source.source)
+        source = source.subset(order)
         with blas_single_thread():
             step = int(round(1.0 / p.initial_share))
             if step > 1 and len(source.points) >= 3 * step:
-                first = self.iterate(target, Cloud(source.points[::step], None if source.normals is None
-                                                   else source.normals[::step], source.source),
-                                     T_init, cp, tau, maxd, ctx)
+                first = self.iterate(target, source.subset(slice(None, None, step)), T_init, cp, tau, maxd, ctx)
                 res = self.iterate(target, source, first.T_target_source, cp, tau, maxd, ctx)
                 res.iterations += first.iterations
                 # the subset's last entry is at the pose where every point's first one is: keep the latter

@@ -16,7 +16,7 @@ without that loss by ``open_border=shell`` (:func:`close_as_shell`).
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import connected_components
 
 from pipeline.config import Context
 from pipeline.errors import StageError
-from pipeline.geometry import Mesh, bbox_diagonal, row_norms
+from pipeline.geometry import Mesh, bbox_diagonal, face_normals, row_norms, submesh, vertex_normals
 from pipeline.registry import REPAIR
 from stages.sampler import barycentric_sample, triangle_areas_normals
 
@@ -45,22 +45,12 @@ def mesh_stats(mesh: Mesh) -> dict[str, float]:
     f = mesh.faces
     nv, nf = len(mesh.vertices), len(f)
     areas, _ = triangle_areas_normals(mesh)
-    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e = np.sort(directed, axis=1)
-    uniq, counts = np.unique(e, axis=0, return_counts=True)
+    directed, edge, counts = _edge_table(f)
     _, dcounts = np.unique(directed, axis=0, return_counts=True)
-    bnd = uniq[counts == 1]
+    bnd = directed[counts[edge] == 1]
     used = np.unique(f)
-    rows = np.repeat(np.arange(nf), 3)
-    adj = coo_matrix((np.ones(3 * nf), (rows, f.ravel())), shape=(nf, nv)).tocsr()
-    n_comp = connected_components(adj @ adj.T, directed=False)[0] if nf else 0
-    if len(bnd):
-        bv, binv = np.unique(bnd, return_inverse=True)
-        binv = binv.reshape(-1, 2)
-        g = coo_matrix((np.ones(len(bnd)), (binv[:, 0], binv[:, 1])), shape=(len(bv), len(bv)))
-        loops = connected_components(g, directed=False)[0]
-    else:
-        loops = 0
+    n_comp = int(_face_components(mesh).max()) + 1 if nf else 0
+    loops = len(_loop_sizes(bnd))
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
     out = {
         "vertices": nv,
@@ -154,19 +144,16 @@ class GuardParams:
             raise ValueError(f"shell_thickness must be > 0, got {self.shell_thickness}")
 
 
-def boundary_edges(mesh: Mesh, with_faces: bool = False):
-    """Directed boundary edges (a, b), as their one face traverses them (and that face's index)."""
-    f = mesh.faces
+def _edge_table(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The faces' directed edges (3M, 2; face k's at rows k, M + k, 2M + k), the undirected edge of each, and
+    the number of faces on each undirected edge."""
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e = np.sort(directed, axis=1)
-    _, inv, counts = np.unique(e, axis=0, return_inverse=True, return_counts=True)
-    on = counts[inv.ravel()] == 1
-    return (directed[on], np.flatnonzero(on) % max(len(f), 1)) if with_faces else directed[on]
+    _, edge, counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
+    return directed, edge.ravel(), counts
 
 
-def boundary_loop_sizes(mesh: Mesh) -> np.ndarray:
-    """Number of edges of each boundary loop (connected chain of boundary edges)."""
-    bnd = boundary_edges(mesh)
+def _loop_sizes(bnd: np.ndarray) -> np.ndarray:
+    """Number of edges of each boundary loop (connected chain) of the boundary edges ``bnd`` (E, 2)."""
     if not len(bnd):
         return np.zeros(0, np.int64)
     bv, binv = np.unique(bnd, return_inverse=True)
@@ -174,6 +161,18 @@ def boundary_loop_sizes(mesh: Mesh) -> np.ndarray:
     g = coo_matrix((np.ones(len(bnd)), (binv[:, 0], binv[:, 1])), shape=(len(bv), len(bv)))
     lab = connected_components(g, directed=False)[1]
     return np.bincount(lab[binv[:, 0]])
+
+
+def boundary_edges(mesh: Mesh, with_faces: bool = False):
+    """Directed boundary edges (a, b), as their one face traverses them (and that face's index)."""
+    directed, edge, counts = _edge_table(mesh.faces)
+    on = counts[edge] == 1
+    return (directed[on], np.flatnonzero(on) % max(len(mesh.faces), 1)) if with_faces else directed[on]
+
+
+def boundary_loop_sizes(mesh: Mesh) -> np.ndarray:
+    """Number of edges of each boundary loop (connected chain of boundary edges)."""
+    return _loop_sizes(boundary_edges(mesh))
 
 
 def close_as_shell(mesh: Mesh, thickness: float, rounds: int = 6, attempts: int = 6) -> Mesh:
@@ -212,9 +211,7 @@ def _manifold(mesh: Mesh) -> Mesh:
     cm = ms.current_mesh()
     out = Mesh(cm.vertex_matrix().astype(np.float64), cm.face_matrix().astype(np.int64), mesh.source)
     lab = _face_components(out)
-    keep = lab == np.argmax(np.bincount(lab))
-    used, inv = np.unique(out.faces[keep], return_inverse=True)
-    return Mesh(out.vertices[used], inv.reshape(-1, 3).astype(np.int64), mesh.source)
+    return submesh(out, lab == np.argmax(np.bincount(lab)))
 
 
 def _shell(mesh: Mesh, thickness: float, rounds: int) -> tuple[Mesh, np.ndarray, np.ndarray]:
@@ -256,8 +253,6 @@ def offset_directions(mesh: Mesh, rounds: int = 20) -> np.ndarray:
     with each face normal) where one exists: the vertex normal, pulled towards the normals of the faces it
     fails. Offsetting a vertex against it keeps every copied face behind its original, also at sharp ridges
     where the plain vertex normal would flip a face through its neighbour."""
-    from pipeline.geometry import face_normals, vertex_normals
-
     fn = face_normals(mesh)
     d = vertex_normals(mesh)
     f = mesh.faces
@@ -270,22 +265,20 @@ def offset_directions(mesh: Mesh, rounds: int = 20) -> np.ndarray:
         for k in range(3):
             np.add.at(push, f[bad[:, k], k], fn[bad[:, k]])
         d = d + 0.5 * push
-        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+        d /= np.maximum(row_norms(d), 1e-300)[:, None]
     return d
 
 
 def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mesh, dict[str, float]]:
     """Run ``stage`` on ``mesh``, audit before/after under ``prefix`` (``repair_``/``target_repair_``), apply
     the guard. Returns the mesh to go on with and the metrics."""
-    import dataclasses
-
     p: GuardParams = stage.p
     before = audit_mesh(mesh)
     if p.open_border != "cap" and getattr(p, "fill_holes", getattr(p, "close_holes", False)):
         sizes = boundary_loop_sizes(mesh)
         if len(sizes) and not p.max_hole_edges:  # keep loops over half the longest (the outer border) open
             stage = copy.copy(stage)
-            stage.p = dataclasses.replace(p, max_hole_edges=int(sizes.max()) // 2)
+            stage.p = replace(p, max_hole_edges=int(sizes.max()) // 2)
     out = stage.run(mesh, ctx)
     if p.open_border == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
@@ -309,7 +302,7 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     if removed > p.max_removed_area:
         problems.append(f"removed {removed:.1%} of the surface (limit repair.max_removed_area={p.max_removed_area:g})")
     v, f = mesh.vertices, mesh.faces
-    edge = float(np.median(row_norms((v[f[:, [1, 2, 0]]] - v[f]).reshape(-1, 3)))) if len(f) else 0.0
+    edge = float(np.median(row_norms(v[f[:, [1, 2, 0]]] - v[f]))) if len(f) else 0.0
     limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
     m[f"{prefix}hausdorff_limit_rel"] = float(limit / diag)
     if d_in.max() > limit:
@@ -344,6 +337,7 @@ class NoRepair:
 
 
 def _face_components(mesh: Mesh) -> np.ndarray:
+    """The connected component of each face (faces sharing a vertex are connected), labelled from 0."""
     f = mesh.faces
     nf, nv = len(f), len(mesh.vertices)
     adj = coo_matrix((np.ones(3 * nf), (np.repeat(np.arange(nf), 3), f.ravel())), shape=(nf, nv)).tocsr()

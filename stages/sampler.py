@@ -84,9 +84,9 @@ class SamplerBase:
         voxel = to_abs(self.p.cloud_voxel, self.p.cloud_distances, own)
         if not voxel > 0:
             raise ConfigError(f"sampler={self.name}: cloud_voxel must be > 0, got {self.p.cloud_voxel}")
-        idx = voxel_representatives(cloud.points, voxel)
-        normals = None if cloud.normals is None else cloud.normals[idx]
-        return Cloud(cloud.points[idx], normals, cloud.source, {"voxel": voxel})
+        out = cloud.subset(voxel_representatives(cloud.points, voxel))
+        out.extra["voxel"] = voxel
+        return out
 
 
 def _o3d_mesh(mesh: Mesh):
