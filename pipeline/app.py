@@ -11,10 +11,10 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.config import PROJECT_ROOT
-from pipeline.errors import ScanregError
+from scanreg.config import CONF_PACKAGE, conf_dir
+from scanreg.errors import ScanregError
 
-CONF_DIR = PROJECT_ROOT / "conf"
+CONF_DIR = conf_dir()
 STAGE_GROUPS = ("data", "repair", "sampler", "salience", "descriptor", "matcher", "coarse", "icp", "tracking")
 PRESET_GROUPS = ("method", "experiment")
 """Groups of ``# @package _global_`` files that set several stage groups at once."""
@@ -24,11 +24,24 @@ def _err(msg: str) -> None:
     print(f"error: {msg}", file=sys.stderr, flush=True)
 
 
+def validate_config(cfg: DictConfig) -> dict:
+    """Build every stage of ``cfg`` and check the ``report`` block, without running anything: a bad name,
+    parameter or value fails here, before any work. Returns the built stages."""
+    from scanreg.registry import make_params
+    from scanreg.report import ReportParams
+    from scanreg.runner import build_stages
+
+    stages = build_stages(cfg)
+    if cfg.get("report") is not None:
+        make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
+    return stages
+
+
 def run_job(cfg: DictConfig) -> dict | None:
-    from pipeline.registry import TRACKING, load_all
-    from pipeline.runner import run_pipeline, summary_lines
-    from pipeline.config import git_revision
-    from pipeline.tracking import flatten, report_progress
+    from scanreg.registry import TRACKING, load_all
+    from scanreg.runner import run_pipeline, summary_lines
+    from scanreg.config import git_revision
+    from scanreg.tracking import flatten, report_progress
 
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
@@ -64,6 +77,7 @@ def run_job(cfg: DictConfig) -> dict | None:
     try:
         if resolve_error:
             raise ScanregError(resolve_error)
+        validate_config(cfg)
         res = run_pipeline(cfg, run_dir)
     except KeyboardInterrupt:
         if run:
@@ -85,7 +99,7 @@ def run_job(cfg: DictConfig) -> dict | None:
             run.log_artifacts([run_dir / "config.yaml"])
             run.end("FAILED", reason)
         if getattr(e, "metrics", None):
-            from pipeline.runner import repair_table
+            from scanreg.runner import repair_table
 
             for prefix, role in (("repair_", "source"), ("target_repair_", "target")):
                 lines = repair_table(e.metrics, prefix, role)
@@ -119,12 +133,30 @@ def _failed_objective(cfg: DictConfig):
     return float("inf") if cfg.get("objective") else None
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
+@hydra.main(config_path=f"pkg://{CONF_PACKAGE}", config_name="config", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> dict | None:
     return run_job(cfg)
 
 
-def check_group_overrides(argv: list[str]) -> str | None:
+def group_choices(group: str, config_dirs=()) -> list[str]:
+    """The YAML names of a config group in the shipped configs and in extra config folders (``--config-dir``,
+    ``hydra.searchpath``: ``file://`` or plain paths, ``pkg://`` packages)."""
+    from importlib.resources import files
+
+    roots = [CONF_DIR]
+    for d in config_dirs:
+        d = str(d)
+        if d.startswith("pkg://"):
+            try:
+                roots.append(Path(str(files(d[len("pkg://"):].replace("/", ".")))))
+            except (ModuleNotFoundError, TypeError):
+                continue
+        else:
+            roots.append(Path(d.removeprefix("file://")).expanduser())
+    return sorted({p.stem for r in roots for p in (r / group).glob("*.yaml")})
+
+
+def check_group_overrides(argv: list[str], config_dirs=()) -> str | None:
     """Unknown choices of a stage group (``repair=foo``) as one line, before Hydra prints its longer error."""
     for arg in argv:
         if arg.startswith("-") or "=" not in arg:
@@ -133,7 +165,7 @@ def check_group_overrides(argv: list[str]) -> str | None:
         key = key.lstrip("+")
         if key not in STAGE_GROUPS + PRESET_GROUPS:
             continue
-        valid = sorted(p.stem for p in (CONF_DIR / key).glob("*.yaml"))
+        valid = group_choices(key, config_dirs)
         for v in value.split(","):
             v = v.strip()
             if v.startswith(("choice(", "range(", "glob(")) or v in ("null", ""):
@@ -147,25 +179,36 @@ _FLAGS_WITH_VALUE = {"-cn", "--config-name", "-cp", "--config-path", "-cd", "--c
                      "--experimental-rerun"}
 
 
-def _task_overrides(argv: list[str]) -> tuple[str, list[str]]:
-    """(config name, the command line's overrides) with every sweep reduced to its first value."""
+def _task_overrides(argv: list[str]) -> tuple[str, list[str], list[str]]:
+    """(config name, the command line's overrides with every sweep reduced to its first value, extra config
+    folders from ``--config-dir`` and ``hydra.searchpath``)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    name, raw, skip = "config", [], False
+    name, raw, dirs, skip = "config", [], [], False
     for i, a in enumerate(argv):
         if skip:
             skip = False
+            continue
+        flag, eq, val = a.partition("=")
+        if flag in ("-cd", "--config-dir") and eq:
+            dirs.append(val)
             continue
         if a in _FLAGS_WITH_VALUE:
             skip = True
             if a in ("-cn", "--config-name") and i + 1 < len(argv):
                 name = argv[i + 1]
+            if a in ("-cd", "--config-dir") and i + 1 < len(argv):
+                dirs.append(argv[i + 1])
             continue
         if a.startswith("-"):
             continue
         raw.append(a)
     out = []
     for o in OverridesParser.create().parse_overrides(raw):
+        if o.key_or_group == "hydra.searchpath":
+            v = o.value()
+            dirs += [str(x) for x in (v if isinstance(v, list) else [v])]
+            continue
         if o.key_or_group.startswith("hydra"):
             continue
         if o.is_sweep_override():
@@ -176,7 +219,7 @@ def _task_overrides(argv: list[str]) -> tuple[str, list[str]]:
             out.append(f"{o.get_key_element()}={first}")
         else:
             out.append(o.input_line)
-    return name, out
+    return name, out, dirs
 
 
 def precheck(argv: list[str]) -> tuple[str, DictConfig | None] | None:
@@ -186,49 +229,48 @@ def precheck(argv: list[str]) -> tuple[str, DictConfig | None] | None:
     """
     import re
 
-    from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException
 
-    msg = check_group_overrides(argv)
+    from scanreg.config import compose
+
     try:
-        name, overrides = _task_overrides(argv)
+        name, overrides, dirs = _task_overrides(argv)
     except HydraException as e:
         return f"bad override: {str(e).splitlines()[0]}", None
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        def try_compose(ovs):
-            try:
-                return compose(name, overrides=ovs), None
-            except Exception as e:  # noqa: BLE001
-                return None, e
+    msg = check_group_overrides(argv, dirs)
 
-        if msg:
-            bad = [o for o in overrides if o.lstrip("+").split("=")[0] not in STAGE_GROUPS + PRESET_GROUPS]
-            return msg, try_compose(bad)[0]
-        cfg, err = try_compose(overrides)
-        if err is None:
-            return None
-        text = " ".join(str(err).split())
-        m = re.search(r"Could not override '([^']+)'", text)
-        if not m:
-            cause = " ".join(str(err.__cause__ or "").split())
-            return (text + (f" ({cause})" if cause else ""))[:500], None
-        key = m.group(1)
-        rest = [o for o in overrides if o.lstrip("+~").split("=")[0] != key]
-        good, _ = try_compose(rest)
-        group, _, param = key.partition(".")
-        if good is not None and group in STAGE_GROUPS and param:
-            from pipeline.errors import ConfigError
-            from pipeline.registry import REGISTRIES, load_all
+    def try_compose(ovs):
+        try:
+            return compose(ovs, name, dirs), None
+        except Exception as e:  # noqa: BLE001
+            return None, e
 
-            from pipeline.registry import make_params
+    if msg:
+        bad = [o for o in overrides if o.lstrip("+").split("=")[0] not in STAGE_GROUPS + PRESET_GROUPS]
+        return msg, try_compose(bad)[0]
+    cfg, err = try_compose(overrides)
+    if err is None:
+        return None
+    text = " ".join(str(err).split())
+    m = re.search(r"Could not override '([^']+)'", text)
+    if not m:
+        cause = " ".join(str(err.__cause__ or "").split())
+        return (text + (f" ({cause})" if cause else ""))[:500], None
+    key = m.group(1)
+    rest = [o for o in overrides if o.lstrip("+~").split("=")[0] != key]
+    good, _ = try_compose(rest)
+    group, _, param = key.partition(".")
+    if good is not None and group in STAGE_GROUPS and param:
+        from scanreg.errors import ConfigError
+        from scanreg.registry import REGISTRIES, load_all, make_params
 
-            load_all()
-            try:  # the registry's own message for an unknown parameter
-                cls = REGISTRIES[group].get(good[group].name)
-                make_params(cls.Params, {param.split(".")[0]: None}, f"{group}={good[group].name}")
-            except ConfigError as e:
-                return str(e), good
-        return f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)", good
+        load_all()
+        try:  # the registry's own message for an unknown parameter
+            cls = REGISTRIES[group].get(good[group].name)
+            make_params(cls.Params, {param.split(".")[0]: None}, f"{group}={good[group].name}")
+        except ConfigError as e:
+            return str(e), good
+    return f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)", good
 
 
 def record_failed_run(cfg: DictConfig | None, reason: str, argv: list[str]) -> None:
@@ -236,8 +278,8 @@ def record_failed_run(cfg: DictConfig | None, reason: str, argv: list[str]) -> N
     if cfg is None:
         return
     try:
-        from pipeline.registry import TRACKING, load_all
-        from pipeline.tracking import flatten
+        from scanreg.registry import TRACKING, load_all
+        from scanreg.tracking import flatten
 
         load_all()
         run = TRACKING.build(cfg.tracking).start_run(
@@ -266,7 +308,7 @@ def main() -> None:
             raise SystemExit(2)
     import signal
 
-    from pipeline.tracking import _sweep_outcome, end_interrupted_sweep
+    from scanreg.tracking import _sweep_outcome, end_interrupted_sweep
 
     def _terminate(signum, frame):  # SIGTERM (a scheduler's preemption, kill) ends runs like Ctrl-C does
         raise KeyboardInterrupt

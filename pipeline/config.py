@@ -11,6 +11,33 @@ from typing import Any
 import numpy as np
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
+"""The source checkout (``pipeline/`` is the package ``scanreg``) in an editable install; in a wheel install the
+folder holding the package, which is no checkout: :func:`shared_data_dir` and :func:`git_revision` check."""
+
+CONF_PACKAGE = "scanreg.conf"
+"""The package holding the YAML configs, Hydra's primary config source ``pkg://scanreg.conf``."""
+
+
+def conf_dir() -> Path:
+    """The folder of the shipped configs (``conf/`` of the checkout, or the installed package's copy)."""
+    from importlib.resources import files
+
+    return Path(str(files(CONF_PACKAGE)))
+
+
+def search_path_override(config_dirs) -> list[str]:
+    """``hydra.searchpath=[...]`` for extra config folders (a user's experiments and presets), or nothing."""
+    dirs = [d if "://" in str(d) else f"file://{Path(d).expanduser().resolve()}" for d in config_dirs]
+    return [f"hydra.searchpath=[{','.join(dirs)}]"] if dirs else []
+
+
+def compose(overrides=(), config_name: str = "config", config_dirs=()):
+    """The run configuration as ``scanreg`` composes it: the shipped configs (``pkg://scanreg.conf``), plus
+    ``config_dirs`` on Hydra's search path, with command-line style ``overrides``. Returns a ``DictConfig``."""
+    from hydra import compose as hydra_compose, initialize_config_module
+
+    with initialize_config_module(CONF_PACKAGE, version_base="1.3"):
+        return hydra_compose(config_name, overrides=[*overrides, *search_path_override(config_dirs)])
 
 
 class Distances(str, Enum):
@@ -32,7 +59,7 @@ def to_abs(value: float | None, unit: Distances, spacing: float) -> float | None
 def shared_data_dir() -> Path:
     """``$SCANREG_SHARED_DATA``, else ``../shared/data`` beside the project root."""
     env = os.environ.get("SCANREG_SHARED_DATA")
-    return Path(env) if env else (PROJECT_ROOT.parent / "shared" / "data")
+    return Path(env) if env else (PROJECT_ROOT.parent / "shared" / "data")  # beside a checkout
 
 
 def expand_path(s: str) -> str:
@@ -70,6 +97,8 @@ def git_revision() -> str:
     """The project's git commit (``+dirty`` when the work tree has changes), or ``unknown`` outside git."""
     import subprocess
 
+    if not (PROJECT_ROOT / "pyproject.toml").is_file():  # an installed wheel: no checkout to ask
+        return "unknown"
     try:
         head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=PROJECT_ROOT, capture_output=True,
                               text=True, timeout=10)

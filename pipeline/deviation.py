@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.geometry import Cloud, Mesh, face_normals, vertex_normals
+from scanreg.geometry import Cloud, Mesh, face_normals, vertex_normals
 
 
 def signed_deviation(points: np.ndarray, normals: np.ndarray | None, cp):
     """``(signed distance, compared-normal cosine or None, part index of the closest face or None)`` against
-    the target behind ``cp`` (a :class:`stages.icp.ClosestPoints`, built once per target)."""
+    the target behind ``cp`` (a :class:`scanreg.closest.ClosestPoints`, built once per target)."""
     q, d, qn = cp(points)
     ids = getattr(cp, "last_primitive_ids", None)
     if qn is not None:
@@ -84,7 +84,7 @@ def write_outputs(run_dir: Path, geom, dev_v: np.ndarray, ok_v: np.ndarray, dev_
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pipeline.io import write_ply
+    from scanreg.io import write_ply
 
     scale, unit, rng = p.deviation_scale, p.deviation_unit, p.deviation_range
     paths = [run_dir / "deviation_map.ply", run_dir / "deviation_histogram.png", run_dir / "deviation_map.png"]

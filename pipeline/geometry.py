@@ -8,12 +8,13 @@ point sets take ``(target, source)`` in that order and return ``T_target_source`
 from __future__ import annotations
 
 import contextlib
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.errors import InputError
+from scanreg.errors import InputError
 
 
 @dataclass
@@ -308,3 +309,45 @@ def vertex_normals(mesh: Mesh) -> np.ndarray:
     for k in range(3):
         np.add.at(n, mesh.faces[:, k], fn)
     return n / np.maximum(row_norms(n)[:, None], 1e-300)
+
+
+def triangle_areas_normals(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Per-face areas and unit normals (counter-clockwise winding = outward); degenerate faces get area 0."""
+    v, f = mesh.vertices, mesh.faces
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    norm = np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    normals = np.divide(cross, norm[:, None], out=np.zeros_like(cross), where=norm[:, None] > 0)
+    return 0.5 * norm, normals
+
+
+def barycentric_sample(
+    mesh: Mesh, n_points: int, rng: np.random.Generator, min_area: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Area-weighted random points on a mesh: ``(points, normals, face index)``.
+
+    Each point falls on a triangle with probability proportional to its area (triangles with area <=
+    ``min_area`` never): the per-triangle counts are drawn at once from the multinomial distribution, which is
+    the same law as ``n_points`` independent area-weighted draws. On its triangle a point is
+    ``a + u (b - a) + v (c - a)`` with ``u, v ~ U(0, 1)``, reflected to ``1 - u, 1 - v`` when ``u + v > 1``. The
+    normal is the triangle's. Points come grouped by triangle (in face order).
+    """
+    v, f = mesh.vertices, mesh.faces
+    a = v[f[:, 0]]
+    e1 = v[f[:, 1]] - a
+    e2 = v[f[:, 2]] - a
+    cross = np.cross(e1, e2)
+    norm = np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    w = np.where(0.5 * norm > min_area, norm, 0.0)
+    total = math.fsum(w)
+    if not total > 0:
+        raise InputError(f"{mesh.source or 'mesh'}: no triangle has an area above {min_area:g}: nothing to sample")
+    counts = rng.multinomial(n_points, w / total)
+    face = np.repeat(np.arange(len(f)), counts)
+    uv = rng.random((n_points, 2))
+    flip = uv[:, 0] + uv[:, 1] > 1.0
+    uv[flip] = 1.0 - uv[flip]
+    pts = a[face]
+    pts += uv[:, :1] * e1[face]
+    pts += uv[:, 1:] * e2[face]
+    normals = cross / np.where(norm > 0, norm, 1.0)[:, None]
+    return pts, normals[face], face

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.geometry import Cloud, Geometry, Mesh, make_T, validate_mesh, validate_points
+from scanreg.errors import InputError
+from scanreg.geometry import Cloud, Geometry, Mesh, make_T, validate_mesh, validate_points
 
 MESH_EXTS = {".ply", ".stl", ".obj", ".off"}
 CLOUD_EXTS = {".ply", ".pcd", ".xyz", ".txt", ".npy", ".pts"}

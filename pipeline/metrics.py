@@ -8,8 +8,8 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.config import Distances, to_abs
-from pipeline.geometry import transform_errors
+from scanreg.config import Distances, to_abs
+from scanreg.geometry import transform_errors
 
 
 @dataclass
@@ -78,7 +78,7 @@ def surface_deviation(aligned: np.ndarray, closest: tuple, p: EvalParams, spacin
     """Point-to-surface distances of the aligned source points to the target, over the inliers (distance
     within ``inlier_distance``), in input units.
 
-    ``closest`` is what :class:`stages.icp.ClosestPoints` returns for ``aligned``: closest points on the target
+    ``closest`` is what :class:`scanreg.closest.ClosestPoints` returns for ``aligned``: closest points on the target
     mesh's triangles when the target is a mesh, else the nearest target points, their distances, and the
     target normals there. Distances are signed (positive outside, along the outward normal) when normals are
     known: a mesh, whose orientation the repair made coherent, or a cloud with normals; ``p2s_signed`` is then

@@ -28,7 +28,7 @@ from typing import Any, Callable
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from pipeline.errors import ConfigError
+from scanreg.errors import ConfigError
 
 
 class Registry:
@@ -132,15 +132,23 @@ REGISTRIES: dict[str, Registry] = {
 }
 
 
+STAGE_ENTRY_POINTS = "scanreg.stages"
+"""Entry-point group whose modules register stages (``scanreg``'s own in pyproject.toml; a plugin package adds
+its stage modules to the same group)."""
+
+
 def load_all() -> None:
-    """Import every stage module so that their ``register`` decorators run."""
+    """Import every stage module named in the ``scanreg.stages`` entry-point group so that their ``register``
+    decorators run. The framework thus reaches stages only through the registries, never by importing them."""
     import importlib
+    from importlib.metadata import entry_points
 
-    import stages
-
-    for mod in stages.MODULES:
-        importlib.import_module(f"stages.{mod}")
-    importlib.import_module("pipeline.tracking")
+    eps = sorted(entry_points(group=STAGE_ENTRY_POINTS), key=lambda e: e.name)
+    if not eps:
+        raise ConfigError("no stage modules found (entry points 'scanreg.stages'): is scanreg installed "
+                          "(pip install -e . or a wheel)?")
+    for ep in eps:
+        importlib.import_module(ep.value)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -73,7 +73,7 @@ class ReportParams:
 
 def load_runs(experiment: str, uri: str | None = None, parent: str | None = None) -> pd.DataFrame:
     """Child runs of ``parent`` (``latest``: the newest sweep), or every non-parent run of the experiment."""
-    from pipeline.tracking import MlflowTracking, _quiet_mlflow
+    from scanreg.tracking import MlflowTracking, _quiet_mlflow
 
     _quiet_mlflow()
     import mlflow
@@ -425,7 +425,7 @@ def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None
     """Called when an experiment's sweep ends (``report.enabled``): write its report."""
     from omegaconf import OmegaConf
 
-    from pipeline.registry import make_params
+    from scanreg.registry import make_params
 
     p = make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
     out = Path(p.out or Path("outputs") / "reports" / experiment)
@@ -456,14 +456,12 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     base = ReportParams(enabled=True)
     if a.config:
-        from hydra import compose, initialize_config_dir
         from omegaconf import OmegaConf
 
-        from pipeline.app import CONF_DIR
-        from pipeline.registry import make_params
+        from scanreg.config import compose
+        from scanreg.registry import make_params
 
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose("config", overrides=[f"experiment={a.config}"])
+        cfg = compose([f"experiment={a.config}"])
         base = make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
         if a.experiment == ap.get_default("experiment"):
             a.experiment = cfg.tracking.experiment

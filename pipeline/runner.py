@@ -2,7 +2,7 @@
 
 ``run_pipeline`` builds every stage from the composed config first (so a bad name or parameter fails before
 any work), then runs them, writes ``result.json``, ``T_target_source.txt`` and ``aligned_source.ply`` into the
-run directory, and returns the result. Tracking is the caller's business (``pipeline.app``).
+run directory, and returns the result. Tracking is the caller's business (``scanreg.app``).
 """
 
 from __future__ import annotations
@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.config import Context
-from pipeline.errors import InputError, ScanregError
-from pipeline.geometry import Cloud, Mesh, apply_T, bbox_diagonal, transform_geometry
-from pipeline.io import write_ply, write_transform
-from pipeline.metrics import EvalParams, alignment_metrics, estimate_spacing, gt_metrics, surface_deviation
-from pipeline.registry import COARSE, DATA, ICP, REPAIR, SAMPLER, load_all, make_params, REGISTRIES
-from stages.icp import ClosestPoints
+from scanreg.config import Context
+from scanreg.errors import InputError, ScanregError
+from scanreg.geometry import Cloud, Mesh, apply_T, bbox_diagonal, transform_geometry
+from scanreg.io import write_ply, write_transform
+from scanreg.metrics import EvalParams, alignment_metrics, estimate_spacing, gt_metrics, surface_deviation
+from scanreg.registry import COARSE, DATA, ICP, REPAIR, SAMPLER, load_all, make_params, REGISTRIES
+from scanreg.closest import ClosestPoints
 
 MIN_POINTS = 10
 """Fewest points a cloud may have after sampling (the coarse and fine stages need neighbourhoods)."""
@@ -71,10 +71,6 @@ def build_stages(cfg: DictConfig) -> dict:
         if fam in getattr(stages["coarse"], "uses", ()):
             stages[fam] = inst
     stages["evaluate"] = make_params(EvalParams, OmegaConf.to_container(cfg.evaluate, resolve=True), "evaluate")
-    if cfg.get("report") is not None:  # validated here so that a bad key fails before the sweep's work
-        from pipeline.report import ReportParams
-
-        make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
     return stages
 
 
@@ -95,14 +91,12 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
     geoms = {"source": inputs.source, "target": inputs.target}
     with timer("repair"):
         if cfg.repair.name != "none":
-            from stages.repair import repair_with_audit
-
             apply_to = getattr(st["repair"].p, "apply_to", "both")
             for role, g in geoms.items():
                 if isinstance(g, Mesh) and apply_to in (role, "both"):
                     try:
-                        geoms[role], rm = repair_with_audit(st["repair"], g, ctx, "repair_" if role == "source"
-                                                            else "target_repair_")
+                        geoms[role], rm = st["repair"].repair(g, ctx, "repair_" if role == "source"
+                                                              else "target_repair_")
                     except ScanregError as e:
                         e.metrics = {**m, **e.metrics}
                         raise
@@ -162,7 +156,7 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
                 m[f"landmark_{name}_rms"] = float(np.sqrt(np.mean(r ** 2)))
             ctx.step_metrics["landmark_final_residual"] = r.tolist()
         if ev.deviation_map:
-            from pipeline.deviation import evaluate_deviation
+            from scanreg.deviation import evaluate_deviation
 
             labels = inputs.target_labels if target_labels_valid else None
             dm, dev_paths = evaluate_deviation(run_dir, transform_geometry(T, src), transform_geometry(T, geoms["source"]),

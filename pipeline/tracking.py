@@ -23,8 +23,8 @@ from typing import Any, Optional
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.errors import ConfigError
-from pipeline.registry import TRACKING
+from scanreg.errors import ConfigError
+from scanreg.registry import TRACKING
 
 SWEEP_ENV = "SCANREG_SWEEP"
 """Environment variable through which a sweep's jobs learn the store, experiment and parent run."""
@@ -199,7 +199,7 @@ class SweepCallback(Callback):
         _sweep_outcome.clear()
         os.environ.pop(SWEEP_ENV, None)
         try:
-            from pipeline.registry import TRACKING as T
+            from scanreg.registry import TRACKING as T
 
             cls, params = T.params(config.tracking)
         except ConfigError:
@@ -208,7 +208,7 @@ class SweepCallback(Callback):
             return
         import sys
 
-        from pipeline.config import git_revision
+        from scanreg.config import git_revision
 
         tr = MlflowTracking(params)
         client, eid = tr.prepare()
@@ -242,7 +242,7 @@ class SweepCallback(Callback):
         print(f"sweep: {len(children)} run(s), {failed} failed; parent run {info['parent_run_id']} in experiment "
               f"'{info['experiment']}' at {info['uri']}")
         if config.get("report") is not None and config.report.get("enabled"):
-            from pipeline.report import report_for_sweep
+            from scanreg.report import report_for_sweep
 
             try:
                 report_for_sweep(config, info["parent_run_id"], info["uri"], info["experiment"])

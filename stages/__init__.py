@@ -1,3 +1,3 @@
-"""Stage implementations, one module per stage family (``pipeline.registry.load_all`` imports them all)."""
-
-MODULES = ("data", "repair", "sampler", "salience", "descriptor", "matcher", "coarse", "icp", "dental")
+"""Stage implementations, one module per stage family. They register themselves by name when imported;
+``scanreg.registry.load_all`` imports every module listed under the ``scanreg.stages`` entry-point group
+(pyproject.toml), so that the framework never imports a stage module by name and other packages can add stages."""

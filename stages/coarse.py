@@ -7,12 +7,12 @@ from typing import Optional
 
 import numpy as np
 
-from pipeline.config import Context, Distances, to_abs
-from pipeline.errors import ConfigError, StageError
-from pipeline.geometry import (Cloud, apply_T, blas_single_thread, horn_quaternion, kabsch_batch, rigid_points_normals,
+from scanreg.config import Context, Distances, to_abs
+from scanreg.errors import ConfigError, StageError
+from scanreg.geometry import (Cloud, apply_T, blas_single_thread, horn_quaternion, kabsch_batch, rigid_points_normals,
                                row_norms)
-from pipeline.registry import COARSE
-from stages.descriptor import to_o3d
+from scanreg.registry import COARSE
+from scanreg.stages.descriptor import to_o3d
 
 
 @COARSE.register("none")

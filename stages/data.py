@@ -9,14 +9,14 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.config import Context, expand_path
-from pipeline.errors import ConfigError, InputError
-from pipeline.geometry import (
+from scanreg.config import Context, expand_path
+from scanreg.errors import ConfigError, InputError
+from scanreg.geometry import (
     Cloud, Geometry, Mesh, apply_T, bbox_diagonal, invert_T, points_of, random_pose, transform_geometry,
 )
-from pipeline.io import read_geometry, read_landmarks, read_mesh, read_stanford_conf, read_transform, resolve_path
-from pipeline.registry import DATA
-from stages.sampler import barycentric_sample, triangle_areas_normals
+from scanreg.io import read_geometry, read_landmarks, read_mesh, read_stanford_conf, read_transform, resolve_path
+from scanreg.registry import DATA
+from scanreg.geometry import barycentric_sample, triangle_areas_normals
 
 
 @dataclass

@@ -29,13 +29,13 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.config import Context, expand_path
-from pipeline.errors import ConfigError, InputError
-from pipeline.geometry import (Mesh, apply_T, bbox_diagonal, invert_T, submesh, transform_geometry,
+from scanreg.config import Context, expand_path
+from scanreg.errors import ConfigError, InputError
+from scanreg.geometry import (Mesh, apply_T, bbox_diagonal, invert_T, submesh, transform_geometry,
                                vertex_normals)
-from pipeline.io import read_mesh
-from pipeline.registry import DATA
-from stages.data import Inputs, PoseParams
+from scanreg.io import read_mesh
+from scanreg.registry import DATA
+from scanreg.stages.data import Inputs, PoseParams
 
 
 @dataclass
@@ -79,7 +79,7 @@ def merge(meshes: list[Mesh], labels: list[int]) -> tuple[Mesh, np.ndarray]:
 @DATA.register("dental")
 class Dental:
     """A cast scan of one dental arch (crowns, gum, noise, holes, self-intersections) against the CT surface of
-    the same teeth, with ground truth and picked cusp-tip landmarks. See :mod:`stages.dental`."""
+    the same teeth, with ground truth and picked cusp-tip landmarks. See :mod:`scanreg.stages.dental`."""
 
     @dataclass
     class Params(PoseParams):

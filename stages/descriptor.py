@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.config import Context, Distances, to_abs
-from pipeline.geometry import Cloud
-from pipeline.registry import DESCRIPTOR
+from scanreg.config import Context, Distances, to_abs
+from scanreg.geometry import Cloud
+from scanreg.registry import DESCRIPTOR
 
 
 def to_o3d(points: np.ndarray, normals: np.ndarray | None = None):
@@ -78,7 +78,7 @@ def local_frames(points: np.ndarray, normals: np.ndarray | None, keypoints: np.n
       neighbour offset (a continuous variant of SHOT's majority rule, which flips on ties); y = z x x. Where
       l2 ~ l3 the x axis itself is ill-defined, and the frame cannot repeat exactly.
     """
-    from stages.salience import neighbourhoods
+    from scanreg.stages.salience import neighbourhoods
 
     kp = points[keypoints]
     j, d, valid = neighbourhoods(points, radius, max_neighbors, kp)
@@ -124,8 +124,8 @@ class Histogram3P:
         self.p = params
 
     def compute(self, cloud: Cloud, keypoints: np.ndarray, ctx: Context) -> np.ndarray:
-        from stages.icp import estimate_normals
-        from stages.salience import neighbourhoods
+        from scanreg.closest import estimate_normals
+        from scanreg.stages.salience import neighbourhoods
 
         p, u, s = self.p, self.p.distances, ctx.spacing
         R = to_abs(p.radius, u, s)

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.config import Context
-from pipeline.registry import MATCHER
+from scanreg.config import Context
+from scanreg.registry import MATCHER
 
 
 @MATCHER.register("mutual_knn")

@@ -17,10 +17,10 @@ from typing import Optional
 
 import numpy as np
 
-from pipeline.config import Context, Distances, to_abs
-from pipeline.errors import StageError
-from pipeline.geometry import Cloud
-from pipeline.registry import SALIENCE
+from scanreg.config import Context, Distances, to_abs
+from scanreg.errors import StageError
+from scanreg.geometry import Cloud
+from scanreg.registry import SALIENCE
 
 MEASURES = {
     "min_ratio": "min(l1/l2, l2/l3)",

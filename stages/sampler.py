@@ -3,57 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-import math
 from typing import Optional
 
 import numpy as np
 
-from pipeline.config import Context, Distances, to_abs
-from pipeline.errors import ConfigError, InputError
-from pipeline.geometry import Cloud, Mesh
-from pipeline.registry import SAMPLER
-
-
-def triangle_areas_normals(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """Per-face areas and unit normals (counter-clockwise winding = outward); degenerate faces get area 0."""
-    v, f = mesh.vertices, mesh.faces
-    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    norm = np.sqrt(np.einsum("ij,ij->i", cross, cross))
-    normals = np.divide(cross, norm[:, None], out=np.zeros_like(cross), where=norm[:, None] > 0)
-    return 0.5 * norm, normals
-
-
-def barycentric_sample(
-    mesh: Mesh, n_points: int, rng: np.random.Generator, min_area: float = 0.0
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Area-weighted random points on a mesh: ``(points, normals, face index)``.
-
-    Each point falls on a triangle with probability proportional to its area (triangles with area <=
-    ``min_area`` never): the per-triangle counts are drawn at once from the multinomial distribution, which is
-    the same law as ``n_points`` independent area-weighted draws. On its triangle a point is
-    ``a + u (b - a) + v (c - a)`` with ``u, v ~ U(0, 1)``, reflected to ``1 - u, 1 - v`` when ``u + v > 1``. The
-    normal is the triangle's. Points come grouped by triangle (in face order).
-    """
-    v, f = mesh.vertices, mesh.faces
-    a = v[f[:, 0]]
-    e1 = v[f[:, 1]] - a
-    e2 = v[f[:, 2]] - a
-    cross = np.cross(e1, e2)
-    norm = np.sqrt(np.einsum("ij,ij->i", cross, cross))
-    w = np.where(0.5 * norm > min_area, norm, 0.0)
-    total = math.fsum(w)
-    if not total > 0:
-        raise InputError(f"{mesh.source or 'mesh'}: no triangle has an area above {min_area:g}: nothing to sample")
-    counts = rng.multinomial(n_points, w / total)
-    face = np.repeat(np.arange(len(f)), counts)
-    uv = rng.random((n_points, 2))
-    flip = uv[:, 0] + uv[:, 1] > 1.0
-    uv[flip] = 1.0 - uv[flip]
-    pts = a[face]
-    pts += uv[:, :1] * e1[face]
-    pts += uv[:, 1:] * e2[face]
-    normals = cross / np.where(norm > 0, norm, 1.0)[:, None]
-    return pts, normals[face], face
+from scanreg.config import Context, Distances, to_abs
+from scanreg.errors import ConfigError
+from scanreg.geometry import Cloud, Mesh, barycentric_sample, triangle_areas_normals  # noqa: F401
+from scanreg.registry import SAMPLER
 
 
 @dataclass
@@ -77,8 +34,8 @@ class SamplerBase:
     def run_cloud(self, cloud: Cloud, ctx: Context) -> Cloud:
         if self.p.cloud_voxel is None:
             return cloud
-        from pipeline.metrics import estimate_spacing
-        from stages.salience import voxel_representatives
+        from scanreg.metrics import estimate_spacing
+        from scanreg.stages.salience import voxel_representatives
 
         own = estimate_spacing(cloud.points, ctx.rng(3))
         voxel = to_abs(self.p.cloud_voxel, self.p.cloud_distances, own)

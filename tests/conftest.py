@@ -19,7 +19,7 @@ def shared(rel: str) -> Path:
 
 
 def pkg_file(spec: str) -> Path:
-    from pipeline.io import resolve_path
+    from scanreg.io import resolve_path
 
     return resolve_path(spec)
 
@@ -29,7 +29,7 @@ def mlflow_uri(tmp_path_factory) -> str:
     return f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
 
 
-def run_cli(args: list[str], cwd: Path, uri: str | None = None, timeout: int = 300, module: str = "pipeline.app"):
+def run_cli(args: list[str], cwd: Path, uri: str | None = None, timeout: int = 300, module: str = "scanreg.app"):
     env = dict(os.environ)
     env.pop("SCANREG_SWEEP", None)
     if uri:

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, run_cli, shared, runs
-from pipeline.geometry import Cloud, apply_T, random_pose, transform_geometry
-from pipeline.io import read_mesh, write_ply, write_transform
-from stages.sampler import barycentric_sample
+from scanreg.geometry import Cloud, apply_T, random_pose, transform_geometry
+from scanreg.io import read_mesh, write_ply, write_transform
+from scanreg.geometry import barycentric_sample
 
 RESULT_KEYS = {
     "T_target_source", "rms", "fitness", "n_source_points", "n_target_points", "icp_iterations",
@@ -152,7 +152,7 @@ def test_sweep_parent_children_and_report(tmp_path, mlflow_uri):
     assert sorted(children["params.sampler.n_points"]) == ["3000", "6000"]
     assert set(children["status"]) == {"FINISHED"}
     rep = run_cli(["--experiment", "sweep", "--uri", mlflow_uri, "--out", str(tmp_path / "rep")], tmp_path,
-                  module="pipeline.report")
+                  module="scanreg.report")
     assert rep.returncode == 0, rep.stderr
     import pandas as pd
 

@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 
 from conftest import shared
-from pipeline.config import Context, Distances
-from pipeline.errors import StageError
-from pipeline.geometry import Cloud, apply_T, random_pose, transform_errors
-from pipeline.io import read_mesh
-from pipeline.metrics import estimate_spacing
-from pipeline.registry import COARSE, DESCRIPTOR, SALIENCE, load_all, make_params
-from stages.salience import MATRICES, MEASURES
-from stages.sampler import barycentric_sample
+from scanreg.config import Context, Distances
+from scanreg.errors import StageError
+from scanreg.geometry import Cloud, apply_T, random_pose, transform_errors
+from scanreg.io import read_mesh
+from scanreg.metrics import estimate_spacing
+from scanreg.registry import COARSE, DESCRIPTOR, SALIENCE, load_all, make_params
+from scanreg.stages.salience import MATRICES, MEASURES
+from scanreg.geometry import barycentric_sample
 
 load_all()
 
@@ -98,7 +98,7 @@ def test_descriptor_invariant_to_rotation(bunny, name):
 
 
 def test_local_frames_repeat_across_scans(bunny):
-    from stages.descriptor import local_frames
+    from scanreg.stages.descriptor import local_frames
 
     cloud, sp = bunny
     kp = np.arange(0, len(cloud.points), 97)
@@ -128,8 +128,8 @@ def test_lo_ransac_recovers_a_pose_from_matches_with_70_percent_outliers():
 
 def test_lo_ransac_end_to_end_on_stanford_scans():
     folder = shared("stanford_bunny")
-    from pipeline.io import read_stanford_conf
-    from pipeline.geometry import invert_T
+    from scanreg.io import read_stanford_conf
+    from scanreg.geometry import invert_T
 
     poses = read_stanford_conf(folder / "bun.conf")
     t, s = read_mesh(folder / "bun000.ply"), read_mesh(folder / "bun045.ply")
@@ -140,14 +140,14 @@ def test_lo_ransac_end_to_end_on_stanford_scans():
     tgt, src = Cloud(tp, tn), Cloud(apply_T(P, sp_), sn @ P[:3, :3].T)
     c = ctx(max(estimate_spacing(tp, np.random.default_rng(0)), estimate_spacing(sp_, np.random.default_rng(0))))
     c.stages = {"salience": build(SALIENCE, "uniform"), "descriptor": build(DESCRIPTOR, "fpfh"),
-                "matcher": build(__import__("pipeline.registry").registry.MATCHER, "mutual_knn")}
+                "matcher": build(__import__("scanreg.registry").registry.MATCHER, "mutual_knn")}
     T, m = build(COARSE, "lo_ransac").run(tgt, src, c)
     rot, trans = transform_errors(T, T_gt)
     assert rot < 5 and m["coarse_inliers"] >= 6, (rot, m)
 
 
 def test_landmarks_known_transform_and_a_bad_pick():
-    from stages.coarse import landmark_fit
+    from scanreg.stages.coarse import landmark_fit
 
     rng = np.random.default_rng(0)
     src = rng.uniform(0, 50, size=(6, 3))

@@ -7,10 +7,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pipeline.app import CONF_DIR, STAGE_GROUPS, check_group_overrides, precheck
-from pipeline.errors import ConfigError
-from pipeline.registry import REGISTRIES, field_docs, load_all, make_params
-from pipeline.runner import build_stages
+from scanreg.app import CONF_DIR, STAGE_GROUPS, check_group_overrides, precheck
+from scanreg.errors import ConfigError
+from scanreg.registry import REGISTRIES, field_docs, load_all, make_params
+from scanreg.app import validate_config as build_stages
 
 load_all()
 
@@ -59,7 +59,7 @@ def test_unknown_name_lists_valid_ones():
 
 
 def test_wrong_type_and_unknown_parameter():
-    from stages.icp import Horn
+    from scanreg.stages.icp import Horn
 
     with pytest.raises(ConfigError, match=r"icp=horn: parameter 'max_iterations' expects int, got 'abc'"):
         make_params(Horn.Params, {"max_iterations": "abc"}, "icp=horn")
@@ -72,7 +72,7 @@ def test_wrong_type_and_unknown_parameter():
 
 
 def test_check_hook_runs():
-    from stages.sampler import Barycentric
+    from scanreg.stages.sampler import Barycentric
 
     with pytest.raises(ConfigError, match="exactly one of n_points and density"):
         make_params(Barycentric.Params, {"n_points": None, "density": None}, "sampler=barycentric")
@@ -97,3 +97,20 @@ def test_experiment_files_are_global_overrides():
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose("config", overrides=[f"experiment={p.stem}"])
         build_stages(cfg)
+
+
+def test_user_config_dir_plugs_in(tmp_path):
+    """A user's own config folder (their presets and experiments) on Hydra's search path: --config-dir on the
+    command line, config_dirs in the Python API."""
+    from scanreg.app import precheck
+    from scanreg.config import compose
+
+    (tmp_path / "experiment").mkdir()
+    (tmp_path / "experiment" / "my_density.yaml").write_text(
+        "# @package _global_\ndefaults:\n  - override /icp: horn\nsampler:\n  n_points: 3000\n")
+    assert precheck(["--config-dir", str(tmp_path), "experiment=my_density"]) is None
+    assert precheck([f"hydra.searchpath=[file://{tmp_path}]", "experiment=my_density"]) is None
+    msg, _ = precheck(["experiment=my_density"])
+    assert "unknown experiment 'my_density'" in msg
+    cfg = compose(["experiment=my_density"], config_dirs=[tmp_path])
+    assert cfg.sampler.n_points == 3000 and cfg.icp.name == "horn"

@@ -9,10 +9,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from conftest import ROOT, run_cli, shared, runs
-from pipeline.app import CONF_DIR
-from pipeline.config import Context
-from pipeline.geometry import Cloud, Mesh, apply_T, invert_T, transform_errors, vertex_normals
-from pipeline.registry import DATA, load_all
+from scanreg.app import CONF_DIR
+from scanreg.config import Context
+from scanreg.geometry import Cloud, Mesh, apply_T, invert_T, transform_errors, vertex_normals
+from scanreg.registry import DATA, load_all
 
 
 
@@ -38,7 +38,7 @@ def test_experiments_are_sweeps_that_write_their_report():
 def test_report_block_matches_its_params():
     from dataclasses import fields
 
-    from pipeline.report import ReportParams
+    from scanreg.report import ReportParams
 
     cfg = OmegaConf.load(CONF_DIR / "config.yaml")
     assert set(cfg.report) == {f.name for f in fields(ReportParams)}
@@ -72,7 +72,7 @@ def test_tiny_experiment_report_matches_result_json(tmp_path, mlflow_uri):
                   f"hydra.sweep.dir={tmp_path / 's2'}"], tmp_path, mlflow_uri)
     assert r2.returncode == 0, r2.stderr
     rep = run_cli(["--experiment", "tiny", "--compare-to", "tiny2", "--group-by", "sampler.n_points", "--uri",
-                   mlflow_uri, "--out", str(tmp_path / "cmp")], tmp_path, module="pipeline.report")
+                   mlflow_uri, "--out", str(tmp_path / "cmp")], tmp_path, module="scanreg.report")
     assert rep.returncode == 0, rep.stderr
     cmp = pd.read_csv(tmp_path / "cmp" / "compare.csv")
     assert "success_rate [tiny]" in cmp and "success_rate [tiny2]" in cmp and len(cmp) == 2
@@ -93,7 +93,7 @@ def test_stanford_pairs_and_overlap():
     a = cls(cls.Params(pair="bun000:bun045", pose_seed=3)).load(Context(0, ROOT))
     b = cls(cls.Params(source="bun045.ply", target="bun000.ply", pose_seed=3)).load(Context(0, ROOT))
     assert np.array_equal(a.T_gt, b.T_gt) and 0.85 < a.info["gt_overlap"] < 0.97
-    from pipeline.errors import ConfigError
+    from scanreg.errors import ConfigError
 
     with pytest.raises(ConfigError, match="TARGET:SOURCE"):
         cls(cls.Params(pair="bun000")).load(Context(0, ROOT))
@@ -126,8 +126,8 @@ def dental_case():
 
 
 def test_dental_case_geometry(dental_case):
-    from pipeline.deviation import signed_deviation
-    from stages.repair import audit_mesh
+    from scanreg.deviation import signed_deviation
+    from scanreg.topology import audit_mesh
 
     gen, inp = dental_case
     assert inp.target_labels is not None and set(np.unique(inp.target_labels)) == set(range(17, 33))
@@ -140,7 +140,7 @@ def test_dental_case_geometry(dental_case):
     nrm = vertex_normals(back)
     axis = nrm.mean(axis=0)
     up = nrm @ (axis / np.linalg.norm(axis)) > 0.9  # facing the occlusal side
-    from stages.icp import ClosestPoints
+    from scanreg.closest import ClosestPoints
 
     dev, _, ids = signed_deviation(back.vertices, nrm, ClosestPoints(Cloud(inp.target.vertices), inp.target))
     crown_tops = up & (np.abs(dev) < 0.5)
@@ -167,19 +167,19 @@ def test_deviation_of_a_known_offset(tmp_path):
     """A surface moved 50 um along its normals deviates by +50 um; per-part statistics split by label."""
     import pymeshlab
 
-    from pipeline.deviation import evaluate_deviation
-    from pipeline.io import resolve_path, read_mesh
-    from pipeline.metrics import EvalParams
+    from scanreg.deviation import evaluate_deviation
+    from scanreg.io import resolve_path, read_mesh
+    from scanreg.metrics import EvalParams
 
     mesh = read_mesh(resolve_path("pkg:pymeshlab/tests/sample_meshes/bunny.obj"))
     scale = 50.0 / np.ptp(mesh.vertices, axis=0).max()  # about 50 mm across
     mesh = Mesh(mesh.vertices * scale, mesh.faces)
     moved = Mesh(mesh.vertices + 0.05 * vertex_normals(mesh), mesh.faces)
     labels = (mesh.vertices[mesh.faces].mean(axis=1)[:, 0] > np.median(mesh.vertices[:, 0])).astype(int) + 1
-    from stages.sampler import barycentric_sample
+    from scanreg.geometry import barycentric_sample
 
     pts, nrm, _ = barycentric_sample(moved, 20000, np.random.default_rng(0))
-    from stages.icp import ClosestPoints
+    from scanreg.closest import ClosestPoints
 
     m, paths = evaluate_deviation(tmp_path, Cloud(pts, nrm), moved, ClosestPoints(Cloud(mesh.vertices), mesh), labels,
                                   EvalParams(deviation_map=True), "part")
@@ -188,7 +188,7 @@ def test_deviation_of_a_known_offset(tmp_path):
     assert m["dev_rms_um_part_1"] == pytest.approx(50.0, abs=5.0) and m["dev_rms_um_part_2"] == pytest.approx(50, abs=5)
     names = {p.name for p in paths}
     assert {"deviation_map.ply", "deviation_histogram.png", "deviation_map.png", "deviation_parts.csv"} <= names
-    from pipeline.io import read_geometry
+    from scanreg.io import read_geometry
 
     ply = read_geometry(tmp_path / "deviation_map.ply")
     assert len(ply.vertices) == len(moved.vertices)
@@ -215,7 +215,7 @@ def test_dental_experiment_end_to_end(tmp_path):
 
 def test_files_with_a_further_pose(tmp_path):
     """data=files can move the source by a seeded pose too; the ground truth and landmarks follow it."""
-    from pipeline.geometry import make_T, random_pose
+    from scanreg.geometry import make_T, random_pose
 
     rng = np.random.default_rng(0)
     tgt = rng.normal(size=(200, 3))

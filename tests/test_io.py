@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from conftest import pkg_file, shared
-from pipeline.errors import InputError
-from pipeline.geometry import Cloud, Mesh, apply_T, invert_T
-from pipeline.io import (
+from scanreg.errors import InputError
+from scanreg.geometry import Cloud, Mesh, apply_T, invert_T
+from scanreg.io import (
     read_geometry, read_landmarks, read_mesh, read_stanford_conf, read_transform, write_ply, write_transform,
 )
 
@@ -159,7 +159,7 @@ def test_directory_is_not_a_file(tmp_path):
 
 
 def test_transform_io(tmp_path):
-    from pipeline.geometry import random_pose
+    from scanreg.geometry import random_pose
 
     T = random_pose(np.random.default_rng(3), 180, 5)
     write_transform(tmp_path / "T.txt", T)

@@ -18,9 +18,9 @@ from conftest import ROOT, run_cli, runs
 
 
 def bunny_cloud(n, seed, pose_seed=None):
-    from pipeline.geometry import apply_T, random_pose
-    from pipeline.io import read_mesh, resolve_path
-    from stages.sampler import barycentric_sample
+    from scanreg.geometry import apply_T, random_pose
+    from scanreg.io import read_mesh, resolve_path
+    from scanreg.geometry import barycentric_sample
 
     mesh = read_mesh(resolve_path("pkg:pymeshlab/tests/sample_meshes/bunny.obj"))
     pts, _, _ = barycentric_sample(mesh, n, np.random.default_rng(seed))
@@ -93,7 +93,7 @@ def test_sigint_leaves_no_run_running(tmp_path, mlflow_uri):
     env = dict(os.environ, MLFLOW_TRACKING_URI=mlflow_uri)
     env.pop("SCANREG_SWEEP", None)
     sweep = tmp_path / "sweep"
-    p = subprocess.Popen([sys.executable, "-m", "pipeline.app", "-m", "data=synthetic", "seed=0,1,2,3,4,5,6,7",
+    p = subprocess.Popen([sys.executable, "-m", "scanreg.app", "-m", "data=synthetic", "seed=0,1,2,3,4,5,6,7",
                           "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "tracking.experiment=sigint",
                           f"hydra.sweep.dir={sweep}"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, start_new_session=True,
@@ -177,8 +177,8 @@ def write_case(folder: Path, name: str) -> Path:
 
 @pytest.mark.parametrize("name", list(MALFORMED))
 def test_malformed_files_give_a_clear_error(tmp_path, name):
-    from pipeline.errors import InputError
-    from pipeline.io import read_geometry
+    from scanreg.errors import InputError
+    from scanreg.io import read_geometry
 
     p = write_case(tmp_path, name)
     with pytest.raises(InputError) as e:
@@ -188,8 +188,8 @@ def test_malformed_files_give_a_clear_error(tmp_path, name):
 
 
 def test_other_bad_paths(tmp_path):
-    from pipeline.errors import InputError
-    from pipeline.io import read_geometry
+    from scanreg.errors import InputError
+    from scanreg.io import read_geometry
 
     (tmp_path / "dir.ply").mkdir()
     with pytest.raises(InputError, match="is a directory|not a file"):
@@ -228,9 +228,9 @@ def test_readers_never_crash_or_hang_on_mutated_files(tmp_path):
     from hypothesis import HealthCheck, given, settings
     from hypothesis import strategies as st
 
-    from pipeline.errors import InputError
-    from pipeline.geometry import Cloud, Mesh
-    from pipeline.io import read_geometry
+    from scanreg.errors import InputError
+    from scanreg.geometry import Cloud, Mesh
+    from scanreg.io import read_geometry
 
     seeds = {"a.ply": PLY_ASCII, "b.ply": _binary_ply(), "c.stl": _binary_stl(), "d.stl": STL_ASCII, "e.obj": OBJ,
              "f.off": b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "g.xyz": b"0 0 0\n1 0 0\n0 1 0\n"}
@@ -264,9 +264,9 @@ def test_yaml_cannot_import_code():
     config error, never an import."""
     from hydra import compose, initialize_config_dir
 
-    from pipeline.app import CONF_DIR
-    from pipeline.errors import ConfigError
-    from pipeline.runner import build_stages
+    from scanreg.app import CONF_DIR
+    from scanreg.errors import ConfigError
+    from scanreg.app import validate_config as build_stages
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         a = compose("config", overrides=["+repair._target_=os.system"])
@@ -407,7 +407,7 @@ def test_sweep_into_a_postgres_backed_mlflow_server(tmp_path, postgres_mlflow_se
     arts = {a.path for a in MlflowClient(uri).list_artifacts(children.iloc[0]["run_id"])}
     assert {"result.json", "T_target_source.txt"} <= arts  # served by the tracking server
     rep = run_cli(["--experiment", "team", "--uri", uri, "--out", str(tmp_path / "rep")], tmp_path,
-                  module="pipeline.report")
+                  module="scanreg.report")
     assert rep.returncode == 0, rep.stderr
 
 

@@ -4,11 +4,12 @@ import numpy as np
 import pytest
 
 from conftest import shared
-from pipeline.config import Context
-from pipeline.errors import StageError
-from pipeline.io import read_mesh
-from pipeline.registry import REPAIR, make_params
-from stages.repair import audit_mesh, mesh_stats, repair_with_audit
+from scanreg.config import Context
+from scanreg.errors import StageError
+from scanreg.io import read_mesh
+from scanreg.registry import REPAIR, make_params
+from scanreg.stages.repair import repair_with_audit
+from scanreg.topology import audit_mesh, mesh_stats
 
 CTX = Context(seed=0, run_dir=None)
 
@@ -102,7 +103,7 @@ def test_meshlab_on_a_stanford_scan_with_border_open():
 
 
 def test_audit_counts_self_intersections_and_nonmanifold_vertices():
-    from pipeline.geometry import Mesh
+    from scanreg.geometry import Mesh
 
     # two triangles crossing each other
     v = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [0.5, 0.5, -1], [0.5, 0.5, 1], [1.5, 1.5, 0]], float)
@@ -119,8 +120,8 @@ def test_audit_counts_self_intersections_and_nonmanifold_vertices():
 def test_close_as_shell_on_an_open_surface():
     """A bumpy open sheet closed as a thin shell: watertight, outward oriented, no self-intersection, the
     scanned side unchanged and recovered by Mesh.scanned()."""
-    from pipeline.geometry import Mesh
-    from stages.repair import close_as_shell
+    from scanreg.geometry import Mesh
+    from scanreg.shell import close_as_shell
 
     n = 20
     x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
@@ -151,7 +152,7 @@ def test_open_scans_become_watertight_shells(backend, mesh):
     """repair.open_border=shell: every hole but the outer border filled, then the scan closed as a thin shell.
     One watertight, edge- and vertex-manifold, oriented component with no self-intersecting face, with almost
     nothing removed; samplers see only the scanned side."""
-    from stages.repair import surface_distances
+    from scanreg.topology import surface_distances
 
     m = load(mesh)
     small = "meshlab_defects" in mesh
@@ -167,7 +168,7 @@ def test_open_scans_become_watertight_shells(backend, mesh):
     scanned = out.scanned()
     assert len(scanned.faces) == len(out.faces) - out.closure_faces
     assert mesh_stats(scanned)["boundary_loops"] >= 1  # the scanned side alone is open again
-    from pipeline.geometry import bbox_diagonal
+    from scanreg.geometry import bbox_diagonal
 
     # the scanned side is (up to the float32 distance query) the repaired surface, which the input lies on
     assert surface_distances(scanned, out, 2000, 0).max() < 1e-5 * bbox_diagonal(m.vertices)

@@ -5,15 +5,17 @@ import pytest
 from scipy import stats
 
 from conftest import shared
-from pipeline.config import Context, Distances
-from pipeline.geometry import (
+from scanreg.config import Context, Distances
+from scanreg.geometry import (
     Cloud, Mesh, apply_T, horn_quaternion, invert_T, kabsch_svd, make_T, random_pose, rotation_angle_deg,
     transform_errors,
 )
-from pipeline.io import read_mesh, read_stanford_conf
-from pipeline.metrics import estimate_spacing
-from stages.repair import MeshFix, mesh_stats
-from stages.sampler import Barycentric, barycentric_sample, triangle_areas_normals
+from scanreg.io import read_mesh, read_stanford_conf
+from scanreg.metrics import estimate_spacing
+from scanreg.stages.repair.meshfix import MeshFix
+from scanreg.topology import mesh_stats
+from scanreg.geometry import barycentric_sample, triangle_areas_normals
+from scanreg.stages.sampler import Barycentric
 
 TET = Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float), np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
 
@@ -138,7 +140,7 @@ def test_meshfix_makes_one_closed_manifold(path):
 
 
 def test_uniform_keypoints_one_per_voxel():
-    from stages.salience import Uniform
+    from scanreg.stages.salience import Uniform
 
     pts = np.random.default_rng(0).uniform(0, 10, size=(5000, 3))
     idx = Uniform(Uniform.Params(voxel=2.0, distances=Distances.absolute)).keypoints(Cloud(pts), ctx())
@@ -148,7 +150,7 @@ def test_uniform_keypoints_one_per_voxel():
 
 
 def test_mutual_knn_recovers_a_permutation():
-    from stages.matcher import MutualKNN
+    from scanreg.stages.matcher import MutualKNN
 
     rng = np.random.default_rng(0)
     d = rng.normal(size=(300, 33))
@@ -160,8 +162,8 @@ def test_mutual_knn_recovers_a_permutation():
 
 
 def test_fpfh_is_rotation_invariant():
-    from stages.descriptor import FPFH
-    from stages.salience import Uniform
+    from scanreg.stages.descriptor import FPFH
+    from scanreg.stages.salience import Uniform
 
     m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
     pts, n, _ = barycentric_sample(m, 8000, np.random.default_rng(0))
@@ -202,7 +204,7 @@ def offset_pose(T_gt, src_pts, angle, seed):
 
 
 def icp_stage(name, **kw):
-    from pipeline.registry import ICP, load_all, make_params
+    from scanreg.registry import ICP, load_all, make_params
 
     load_all()
     cls = ICP.get(name)
@@ -304,20 +306,20 @@ def test_trimming_and_normal_rejection():
     assert transform_errors(trimmed.T_target_source, T)[0] < 0.3 < transform_errors(pure.T_target_source, T)[0]
     st = icp_stage("horn", max_normal_angle_deg=45.0)
     flipped = Cloud(b.points, -b.normals)
-    from stages.icp import ClosestPoints
+    from scanreg.closest import ClosestPoints
 
     with pytest.raises(Exception, match="paired"):
         st.pairs(flipped.points, flipped.normals, ClosestPoints(Cloud(b.points, b.normals)), None, 0)
 
 
 def test_signed_point_to_surface_distances():
-    from pipeline.metrics import EvalParams, surface_deviation
+    from scanreg.metrics import EvalParams, surface_deviation
 
     plane = Mesh(np.array([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], float), np.array([[0, 1, 2], [0, 2, 3]]))
     rng = np.random.default_rng(0)
     pts = np.c_[rng.uniform(-4, 4, size=(1000, 2)), np.full(1000, 0.1)]
     pts[:500, 2] = -0.2
-    from stages.icp import ClosestPoints
+    from scanreg.closest import ClosestPoints
 
     m = surface_deviation(pts, ClosestPoints(Cloud(plane.vertices), plane)(pts), EvalParams(inlier_distance=1.0,
                           distances=Distances.absolute), 1.0)
@@ -333,7 +335,7 @@ def test_signed_point_to_surface_distances():
 def test_every_sampler_puts_points_on_the_surface(name):
     import open3d as o3d
 
-    from pipeline.registry import SAMPLER, make_params
+    from scanreg.registry import SAMPLER, make_params
 
     m = read_mesh("pkg:pymeshlab/tests/sample_meshes/bone.ply")
     cls = SAMPLER.get(name)
@@ -351,7 +353,7 @@ def test_every_sampler_puts_points_on_the_surface(name):
 
 
 def test_poisson_disk_is_more_even_than_random():
-    from stages.sampler import PoissonDisk
+    from scanreg.stages.sampler import PoissonDisk
 
     m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
     pd = PoissonDisk(PoissonDisk.Params(n_points=5000)).run(m, ctx())
@@ -363,7 +365,7 @@ def test_poisson_disk_is_more_even_than_random():
 
 
 def test_cloud_inputs_pass_through_or_are_voxel_downsampled():
-    from stages.sampler import Barycentric
+    from scanreg.stages.sampler import Barycentric
 
     pts = np.random.default_rng(0).uniform(0, 10, size=(20000, 3))
     c = Cloud(pts)

@@ -27,11 +27,11 @@ MAXD = 10.0  # pair limit in sampling spacings (10 degrees moves the far side by
 
 
 def make_case(n: int):
-    from pipeline.geometry import Cloud, apply_T, make_T, transform_errors  # noqa: F401
-    from pipeline.io import read_mesh
-    from pipeline.metrics import estimate_spacing
+    from scanreg.geometry import Cloud, apply_T, make_T, transform_errors  # noqa: F401
+    from scanreg.io import read_mesh
+    from scanreg.metrics import estimate_spacing
     from scipy.spatial.transform import Rotation
-    from stages.sampler import barycentric_sample
+    from scanreg.geometry import barycentric_sample
 
     m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
     a, an, _ = barycentric_sample(m, n, np.random.default_rng(1))
@@ -52,12 +52,12 @@ def make_case(n: int):
 
 def run_case(method: str, n: int, iters: int | None) -> dict:
     """One measurement in this process. iters=None: to convergence."""
-    from pipeline.config import Context
-    from pipeline.geometry import transform_errors
+    from scanreg.config import Context
+    from scanreg.geometry import transform_errors
 
     import open3d  # noqa: F401  (imports and registries outside the measured region, for every method)
 
-    from pipeline.registry import load_all
+    from scanreg.registry import load_all
 
     load_all()
     tgt, src, T_gt, spacing = make_case(n)
@@ -77,7 +77,7 @@ def run_case(method: str, n: int, iters: int | None) -> dict:
         r = reg.registration_icp(ps, pt, MAXD * spacing, np.eye(4), est, crit)
         T, its = np.asarray(r.transformation), None
     else:
-        from pipeline.registry import ICP, make_params
+        from scanreg.registry import ICP, make_params
 
         from omegaconf import OmegaConf
 

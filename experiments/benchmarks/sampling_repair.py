@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import Context, shared_data_dir
-from pipeline.errors import StageError
-from pipeline.io import read_mesh
-from pipeline.registry import REPAIR, SAMPLER, make_params
+from scanreg.config import Context, shared_data_dir
+from scanreg.errors import StageError
+from scanreg.io import read_mesh
+from scanreg.registry import REPAIR, SAMPLER, make_params
 
 
 def best_of(fn, repeat: int) -> float:
@@ -58,7 +58,7 @@ def bench_sampling(n: int, repeat: int) -> list[str]:
 def bench_repair() -> list[str]:
     import pymeshfix
 
-    from stages.repair import repair_with_audit
+    from scanreg.stages.repair import repair_with_audit
 
     meshes = {"StanfordBunny.ply (pymeshfix)": "pkg:pymeshfix/examples/StanfordBunny.ply"}
     shared = shared_data_dir()
@@ -108,7 +108,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--out", default=str(Path(__file__).with_suffix(".md")))
     a = ap.parse_args()
-    from pipeline.registry import load_all
+    from scanreg.registry import load_all
 
     load_all()
     lines = bench_sampling(a.points, a.repeat) + [""] + bench_repair()

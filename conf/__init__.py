@@ -1,0 +1,1 @@
+"""scanreg's Hydra configs (package data): found as ``pkg://scanreg.conf``."""

@@ -1,0 +1,104 @@
+"""``repair=meshfix``: MeshFix (Attene 2010) through pymeshfix, audited."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from scanreg.config import Context
+from scanreg.errors import StageError
+from scanreg.geometry import Mesh
+from scanreg.registry import REPAIR
+from scanreg.stages.repair.audit import AuditedRepair, GuardParams
+from scanreg.topology import _face_components, _meshset, mesh_stats
+
+
+@REPAIR.register("meshfix")
+class MeshFix(AuditedRepair):
+    """MeshFix (Attene 2010) through pymeshfix. It keeps the largest component (or joins components), fixes
+    connectivity and orientation, removes degenerate and self-intersecting triangles, and fills holes."""
+
+    @dataclass
+    class Params(GuardParams):
+        keep_largest: bool = True
+        """Remove all but the largest connected component before repairing."""
+        join_components: bool = False
+        """Try to join nearby open components (before keeping the largest)."""
+        min_component_share: float = 0.0
+        """With ``keep_largest`` false: remove components with fewer than this share of the faces."""
+        fill_holes: bool = True
+        """Fill boundary loops (holes)."""
+        max_hole_edges: int = 0
+        """Fill only holes with at most this many boundary edges (0: every hole). An open scan's outer
+        border is a hole too: capping it usually cuts through the scan, and the guard then fails the run; set
+        a limit below the border's edge count to keep it open."""
+        refine: bool = True
+        """Refine the patches that fill holes so that their triangles match the surrounding size."""
+        clean_iterations: int = 10
+        """Maximum iterations of MeshFix's degeneracy and self-intersection removal (0: skip it). With
+        ``max_hole_edges`` > 0, MeshFix's own cleaning (which caps every border) is replaced by: delete the
+        self-intersecting faces (found by MeshLab) and a ring around them, refill holes under the limit."""
+
+    def __init__(self, params: Params):
+        self.p = params
+
+    def run(self, mesh: Mesh, ctx: Context) -> Mesh:
+        import pymeshfix
+
+        p = self.p
+        if not p.keep_largest and p.min_component_share > 0:
+            lab = _face_components(mesh)
+            share = np.bincount(lab) / len(lab)
+            mesh = Mesh(mesh.vertices, mesh.faces[share[lab] >= p.min_component_share], mesh.source)
+        tin = pymeshfix.PyTMesh()
+        tin.set_quiet(not (ctx.verbose if ctx else False))
+        tin.load_array(mesh.vertices, mesh.faces.astype(np.int32))
+        if p.join_components:
+            tin.join_closest_components()
+        if p.keep_largest:
+            tin.remove_smallest_components()
+        if p.fill_holes:
+            tin.fill_small_boundaries(nbe=p.max_hole_edges, refine=p.refine)
+        if p.clean_iterations > 0 and not (p.fill_holes and p.max_hole_edges > 0):
+            tin.clean(max_iters=p.clean_iterations, inner_loops=3)
+        v, f = tin.return_arrays()
+        if p.clean_iterations > 0 and p.fill_holes and p.max_hole_edges > 0:
+            # MeshFix's clean() fills every boundary while it removes intersections, capping the outer border
+            # that max_hole_edges keeps open; remove intersections here and refill only holes under the limit.
+            v, f = self._clean_keeping_borders(np.asarray(v), np.asarray(f), ctx)
+        if len(f) == 0:
+            raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
+        return Mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), mesh.source)
+
+    def _clean_keeping_borders(self, v: np.ndarray, f: np.ndarray, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
+        import pymeshfix
+        import pymeshlab
+
+        for _ in range(self.p.clean_iterations):
+            ms = _meshset(Mesh(v, f))
+            ms.compute_selection_by_self_intersections_per_face()
+            if ms.current_mesh().selected_face_number() == 0:
+                break
+            ms.apply_selection_dilatation()
+            ms.meshing_remove_selected_faces()
+            ms.meshing_remove_unreferenced_vertices()
+            ms.meshing_repair_non_manifold_edges(method=0)
+            ms.meshing_repair_non_manifold_vertices()
+            ms.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PercentageValue(50))
+            ms.meshing_remove_unreferenced_vertices()
+            cm = ms.current_mesh()
+            tin = pymeshfix.PyTMesh()
+            tin.set_quiet(not (ctx.verbose if ctx else False))
+            tin.load_array(cm.vertex_matrix(), cm.face_matrix().astype(np.int32))
+            tin.fill_small_boundaries(nbe=self.p.max_hole_edges, refine=self.p.refine)
+            v, f = (np.asarray(a) for a in tin.return_arrays())
+        if mesh_stats(Mesh(v, f))["degenerate_faces"]:
+            tin = pymeshfix.PyTMesh()
+            tin.set_quiet(True)
+            tin.load_array(v, f.astype(np.int32))
+            tin.strong_degeneracy_removal(3)
+            v2, f2 = (np.asarray(a) for a in tin.return_arrays())
+            if mesh_stats(Mesh(v2, f2))["boundary_loops"] <= mesh_stats(Mesh(v, f))["boundary_loops"]:
+                v, f = v2, f2
+        return v, f
