@@ -37,6 +37,46 @@ class Inputs:
     """What a part is called in metric names (``tooth``)."""
 
 
+MIN_INPUT_POINTS = 10
+"""Fewest points (vertices of a mesh) an input may have: the coarse and fine stages need neighbourhoods."""
+
+UNIT_FACTORS = {1000.0: "mm vs m", 10.0: "mm vs cm", 100.0: "cm vs m", 25.4: "mm vs inches",
+                39.37: "inches vs m", 304.8: "mm vs feet", 12.0: "inches vs feet"}
+"""Common ratios between length units, to name the likely cause of a size mismatch."""
+
+
+def scale_geometry(g: Geometry, s: float) -> Geometry:
+    """``g`` with its coordinates multiplied by ``s`` (normals unchanged)."""
+    if s == 1.0:
+        return g
+    if isinstance(g, Mesh):
+        return Mesh(g.vertices * s, g.faces, g.source)
+    return Cloud(g.points * s, g.normals, g.source, dict(g.extra))
+
+
+def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> None:
+    """Checks on the two inputs before any expensive stage: enough points, and sizes that agree to within
+    ``max_size_ratio`` (else one line naming both extents and the likely unit factor)."""
+    for role, g in (("source", src), ("target", tgt)):
+        n = len(points_of(g))
+        if n < MIN_INPUT_POINTS:
+            raise InputError(f"{role} {g.source}: {n} point(s); at least {MIN_INPUT_POINTS} are needed")
+    ds, dt = bbox_diagonal(points_of(src)), bbox_diagonal(points_of(tgt))
+    if max_size_ratio is None or not (ds > 0 and dt > 0):
+        return
+    r = ds / dt
+    if 1 / max_size_ratio <= r <= max_size_ratio:
+        return
+    big, f = ("source", r) if r > 1 else ("target", 1 / r)
+    unit, factor = min(((u, k) for k, u in UNIT_FACTORS.items()), key=lambda uk: abs(np.log(f / uk[1])))
+    if abs(np.log(f / factor)) > np.log(1.3):  # no common unit ratio: suggest the measured one
+        unit, factor = "different units or a different object", float(f"{f:.3g}")
+    fix = (f"data.source_scale={1 / factor:g}" if big == "source" else f"data.target_scale={1 / factor:g}")
+    raise InputError(
+        f"source {src.source} is {ds:.4g} across (bounding-box diagonal) and target {tgt.source} {dt:.4g}: "
+        f"{f:.3g}x apart, likely {unit}; set {fix} (or data.max_size_ratio=null to register them as they are)")
+
+
 @dataclass
 class PoseParams:
     max_angle_deg: float = 180.0
@@ -88,6 +128,23 @@ class Files:
         (translation in input units)."""
         landmarks: Optional[str] = None
         """Optional CSV of picked pairs: target x,y,z then source x,y,z per row (input units)."""
+        source_scale: float = 1.0
+        """Multiply the source's coordinates (and its landmarks) by this on reading: a unit fix, e.g. 0.001 for
+        a source in mm registered to a target in m. ``data.gt`` maps the scaled source into the target."""
+        target_scale: float = 1.0
+        """Multiply the target's coordinates (and its landmarks) by this on reading (see ``source_scale``)."""
+        max_size_ratio: Optional[float] = 10.0
+        """Stop, before any repair or registration, when the bounding-box diagonals of source and target (after
+        scaling) differ by more than this factor: such inputs are almost always in different units, and the
+        message names the likely unit factor. null: no check (a small part registered into a large scene)."""
+
+    def check(self):
+        super().check()
+        for key in ("source_scale", "target_scale"):
+            if not getattr(self, key) > 0:
+                raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
+        if self.max_size_ratio is not None and not self.max_size_ratio > 1:
+            raise ValueError(f"max_size_ratio must be > 1 or null, got {self.max_size_ratio}")
 
     def __init__(self, params: Params):
         self.p = params
@@ -99,10 +156,13 @@ class Files:
                     f"data=files: data.{key} is not set; run e.g. 'scanreg data.source=A.ply data.target=B.ply', "
                     "or the demo: 'scanreg data=synthetic'"
                 )
-        src = read_geometry(expand_path(self.p.source), "source")
-        tgt = read_geometry(expand_path(self.p.target), "target")
+        src = scale_geometry(read_geometry(expand_path(self.p.source), "source"), self.p.source_scale)
+        tgt = scale_geometry(read_geometry(expand_path(self.p.target), "target"), self.p.target_scale)
+        check_pair(src, tgt, self.p.max_size_ratio)
         gt = read_transform(expand_path(self.p.gt), "ground truth data.gt") if self.p.gt else None
         lm = read_landmarks(expand_path(self.p.landmarks)) if self.p.landmarks else None
+        if lm is not None:
+            lm = (lm[0] * self.p.target_scale, lm[1] * self.p.source_scale)
         if self.p.max_angle_deg > 0 or self.p.max_translation > 0:  # a further seeded pose of the source
             P = self.p.pose(808, points_of(src), bbox_diagonal(points_of(tgt)))
             src = transform_geometry(P, src)
