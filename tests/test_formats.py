@@ -1,0 +1,227 @@
+"""Issue 19: what scanners and other tools write. Format variants, header claims against the file's size
+(bounded memory), invalid points dropped and counted, the meaning of text columns, crafted in each test."""
+
+import os
+import re
+import struct
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from pipeline.geometry import Cloud, Mesh
+from pipeline.io import detect_columns, read_geometry, read_input, read_mesh, write_ply
+
+TRI_V = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+
+
+def write(tmp_path, name, data) -> str:
+    p = tmp_path / name
+    p.write_bytes(data if isinstance(data, bytes) else data.encode())
+    return str(p)
+
+
+# ------------------------------------------------------------------------------------------ format variants
+VARIANTS = {
+    "coff.off": "COFF\n3 1 0\n0 0 0 255 0 0 255\n1 0 0 0 255 0 255\n0 1 0 0 0 255 255\n3 0 1 2\n",
+    "counts_on_keyword_line.off": "OFF 3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
+    "noff.off": "NOFF\n3 1 0\n0 0 0 0 0 1\n1 0 0 0 0 1\n0 1 0 0 0 1\n3 0 1 2 255 0 0\n",
+    "continued.obj": "v 0 0 0\nv 1 0 \\\n 0\nv 0 1 0\nf 1 2 \\\n3\n",
+    "texcoord_ascii.ply": "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                          "element face 1\nproperty list uchar int vertex_indices\nproperty list uchar float texcoord\n"
+                          "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2 6 0 0 1.5 0 0 1\n",
+}
+
+
+@pytest.mark.parametrize("name", list(VARIANTS))
+def test_mesh_variants_other_tools_write(tmp_path, name):
+    m = read_mesh(write(tmp_path, name, VARIANTS[name]), "source")
+    assert m.vertices.tolist() == TRI_V and m.faces.tolist() == [[0, 1, 2]]
+
+
+def test_binary_ply_with_texcoord_list(tmp_path):
+    head = (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            b"property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+            b"property list uchar float texcoord\nend_header\n")
+    body = struct.pack("<9f", *np.ravel(TRI_V)) + struct.pack("<B3i", 3, 0, 1, 2) + struct.pack("<B6f", 6, 0, 0, 1.5, 0, 0, 1)
+    m = read_mesh(write(tmp_path, "tc.ply", head + body))
+    assert m.faces.tolist() == [[0, 1, 2]]
+
+
+@pytest.mark.parametrize("text,columns", [
+    ("x y z r g b a\n0 0 0 255 0 0 255\n1 0 0 0 255 0 255\n0 1 0 0 0 255 255\n", "x y z r g b a"),
+    ("//X,Y,Z,R,G,B\n0,0,0,255,0,0\n1,0,0,0,255,0\n0,1,0,0,0,255\n", "x y z r g b"),
+    ("0 0 0 255 0 0 128\n1 0 0 0 255 0 128\n0 1 0 0 0 255 128\n", "x y z r g b a"),  # 7 columns, no header
+    ("0 0 0 1 0 0\n1 0 0 0 1 0\n0 1 0 0 0 1\n", "x y z nx ny nz"),  # unit vectors are normals
+])
+def test_text_cloud_variants(tmp_path, text, columns):
+    c = read_geometry(write(tmp_path, "c.xyz", text))
+    assert isinstance(c, Cloud) and c.points.tolist() == TRI_V and c.extra["columns"] == columns
+
+
+def test_symlink_loop_and_broken_link(tmp_path):
+    os.symlink(tmp_path / "b.ply", tmp_path / "a.ply")
+    os.symlink(tmp_path / "a.ply", tmp_path / "b.ply")
+    with pytest.raises(InputError, match="symbolic link loop"):
+        read_geometry(tmp_path / "a.ply", "source")
+    os.symlink(tmp_path / "nowhere.ply", tmp_path / "broken.ply")
+    with pytest.raises(InputError, match="broken symbolic link"):
+        read_geometry(tmp_path / "broken.ply", "source")
+
+
+@pytest.mark.parametrize("name,data,message", [
+    ("4d.off", "4OFF\n1 0 0\n0 0 0 0\n", "4D or n-dimensional OFF"),
+    ("bad_counts.off", "OFF\n3\n", "OFF counts line"),
+    ("zero.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "OBJ indices start at 1"),
+    ("four.xyz", "0 0 0 7\n1 0 0 8\n0 1 0 9\n", "4 columns; expected x y z"),
+    ("weird.xyz", "0 0 0 3 4 5\n1 0 0 8 9 1000\n0 1 0 1 1 1\n", "neither unit normals nor colours"),
+    ("ragged.xyz", "0 0 0\n1 0 0 1\n0 1 0\n", "not a table of numbers"),
+    ("header_only.xyz", "x y z\n", "contains no points"),
+    ("pcd_no_header.pcd", "hello\n", "not a PCD file"),
+    ("pcd_short.pcd", "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 5\nDATA ascii\n0 0 0\n", "truncated PCD"),
+])
+def test_variant_errors_are_one_line(tmp_path, name, data, message):
+    with pytest.raises(InputError, match=re.escape(message)) as e:
+        read_geometry(write(tmp_path, name, data), "source")
+    assert "\n" not in str(e.value) and name in str(e.value)
+
+
+# ------------------------------------------------------------------------------------------ bounded memory
+MEMORY_PROBE = """
+import resource, sys
+from pipeline.errors import InputError
+from pipeline.io import read_geometry
+try:
+    read_geometry(sys.argv[1], "source")
+    print("read")
+except InputError as e:
+    print(e)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+"""
+
+
+def _bomb_ply_binary():
+    head = (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            b"property float z\nelement face 200000000\nproperty list uchar int vertex_indices\nend_header\n")
+    return head + struct.pack("<9f", *np.ravel(TRI_V)) + struct.pack("<B3i", 3, 0, 1, 2)
+
+
+@pytest.mark.parametrize("name,data", [
+    ("faces_binary.ply", _bomb_ply_binary()),  # the ragged-list path (count 3 then a short tail)
+    ("faces_ascii.ply", _bomb_ply_binary().replace(b"binary_little_endian", b"ascii")[:230]),
+    ("points.pcd", b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1000000000\nHEIGHT 1\n"
+                   b"POINTS 1000000000\nDATA binary\n" + b"\0" * 24),
+    ("compressed.pcd", b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1000000000\n"
+                       b"DATA binary_compressed\n" + struct.pack("<II", 16, 12 * 10 ** 9 % 2 ** 32) + b"\0" * 16),
+    ("off_claims.off", b"OFF\n3 200000000 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"),
+])
+def test_header_claims_are_checked_before_allocating(tmp_path, name, data):
+    """A tiny file whose header claims 2e8 faces (or 1e9 points) fails in one line with a peak memory far
+    under 1 GB (the interpreter with NumPy and SciPy is about 100 MB)."""
+    assert len(data) < 300
+    p = write(tmp_path, name, data)
+    r = subprocess.run([sys.executable, "-c", MEMORY_PROBE, p], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    message, peak = r.stdout.strip().splitlines()
+    assert re.search("truncated|do not match", message) and name in message, message
+    assert int(peak) < 1e9, f"peak memory {int(peak) / 1e6:.0f} MB"
+
+
+# ------------------------------------------------------------------------------------------ invalid points
+def _organised_pcd(tmp_path, nan_share=0.25, seed=0, pose=None):
+    """A depth-camera-like organised cloud (HEIGHT > 1) of a wavy surface, NaN where a pixel has no depth."""
+    h, w = 60, 80
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    z = 1.0 + 0.08 * np.sin(u / 6.0) * np.cos(v / 5.0) + 0.05 * np.sin((u + v) / 9.0)
+    pts = np.stack([(u - w / 2) / 60 * z, (v - h / 2) / 60 * z, z], -1).reshape(-1, 3)
+    if pose is not None:
+        pts = pts @ pose[:3, :3].T + pose[:3, 3]
+    pts = pts.astype(np.float32)
+    pts[np.random.default_rng(seed).random(len(pts)) < nan_share] = np.nan
+    head = (f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {w}\nHEIGHT {h}\n"
+            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {w * h}\nDATA binary\n").encode()
+    return head + pts.tobytes(), int(np.isnan(pts).any(axis=1).sum())
+
+
+def test_nan_pixels_are_dropped_and_counted(tmp_path, capsys):
+    data, n_nan = _organised_pcd(tmp_path)
+    g, dropped = read_input(write(tmp_path, "org.pcd", data), "source")
+    assert dropped == n_nan > 1000 and g.n_points == 4800 - n_nan and np.isfinite(g.points).all()
+    assert f"dropped {n_nan} point(s) with NaN" in capsys.readouterr().out
+
+
+def test_nan_normals_drop_their_points(tmp_path):
+    rng = np.random.default_rng(1)
+    pts = rng.normal(size=(300, 3))
+    n = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    n[:15] = np.nan
+    lines = "\n".join(" ".join(f"{x:.9g}" for x in row) for row in np.hstack([pts, n]))
+    g, dropped = read_input(write(tmp_path, "n.xyz", lines.replace("nan", "NaN")), "target")
+    assert dropped == 15 and g.n_points == 285 and np.allclose(g.normals, n[15:])
+
+
+def test_mesh_nan_vertices_drop_their_faces(tmp_path):
+    text = ("ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nproperty float y\nproperty float z\n"
+            "element face 3\nproperty list uchar int vertex_indices\nend_header\n"
+            "0 0 0\n1 0 0\n0 1 0\n1 1 0\nnan 5 5\n3 0 1 2\n3 1 3 2\n3 2 3 4\n")
+    m, dropped = read_input(write(tmp_path, "m.ply", text), "source")
+    assert dropped == 1 and len(m.vertices) == 4 and len(m.faces) == 2 and np.isfinite(m.vertices).all()
+
+
+def test_too_few_valid_points_still_fail(tmp_path):
+    with pytest.raises(InputError, match=r"4 point\(s\) with NaN or infinite coordinates \(of 6\); 2 valid left"):
+        read_geometry(write(tmp_path, "few.xyz", "0 0 0\n1 0 0\nnan 0 0\n0 inf 0\nnan nan nan\n1 nan 1\n"), "source")
+
+
+# ------------------------------------------------------------------------------------------ column meaning
+def test_columns_detected_from_values():
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(50, 3)) * 10
+    unit = xyz / np.linalg.norm(xyz, axis=1, keepdims=True)
+    rgb255 = rng.integers(0, 256, size=(50, 3)).astype(float)
+    rgb1 = rng.random((50, 3))
+    cases = {
+        "x y z": xyz,
+        "x y z nx ny nz": np.hstack([xyz, unit]),
+        "x y z r g b": np.hstack([xyz, rgb255]),
+        "x y z r g b a": np.hstack([xyz, rgb1, np.ones((50, 1))]),
+        "x y z nx ny nz r g b": np.hstack([xyz, unit, rgb255]),
+        "x y z r g b nx ny nz": np.hstack([xyz, rgb1, unit]),
+        "x y z nx ny nz r g b a": np.hstack([xyz, unit, rgb255, np.full((50, 1), 255.0)]),
+    }
+    for expect, arr in cases.items():
+        assert " ".join(detect_columns(arr, "t")) == expect
+
+
+def test_colours_are_read_not_taken_for_normals(tmp_path):
+    """A photogrammetry export x y z r g b: colours, not normals; they are carried into the written PLY."""
+    rng = np.random.default_rng(2)
+    xyz = rng.normal(size=(40, 3))
+    rgb = rng.integers(0, 256, size=(40, 3))
+    np.savetxt(tmp_path / "photo.xyz", np.hstack([xyz, rgb]), fmt="%.9g")
+    c = read_geometry(tmp_path / "photo.xyz")
+    assert c.normals is None and np.array_equal(c.extra["colors"], rgb)
+    write_ply(tmp_path / "out.ply", c)
+    back = read_geometry(tmp_path / "out.ply")
+    assert np.array_equal(back.extra["colors"], rgb) and np.allclose(back.points, xyz)
+
+
+def test_columns_override(tmp_path):
+    rng = np.random.default_rng(3)
+    arr = np.hstack([rng.normal(size=(20, 3)), rng.random((20, 1)) * 1000, rng.random((20, 3))])
+    p = tmp_path / "scan.txt"
+    np.savetxt(p, arr)
+    with pytest.raises(InputError, match="7 columns|neither unit normals nor colours"):
+        read_geometry(p)
+    c = read_geometry(p, columns="x y z - r g b")
+    assert np.allclose(c.points, arr[:, :3]) and c.extra["colors"].shape == (20, 3)
+    c = read_geometry(p, columns="x,y,z,-,-,-,-")
+    assert c.normals is None and "colors" not in c.extra
+    with pytest.raises(InputError, match="names 3 column"):
+        read_geometry(p, columns="x y z")
+    with pytest.raises(InputError, match="unknown column 'q'"):
+        read_geometry(p, columns="x y z q r g b")
+    np.save(tmp_path / "scan.npy", arr[:, [0, 1, 2, 4, 5, 6]])
+    assert read_geometry(tmp_path / "scan.npy").extra["columns"] == "x y z r g b"
