@@ -142,8 +142,8 @@ def _drop_invalid_mesh(m: Mesh, label: str) -> tuple[Mesh, int]:
     keep = ~bad[checked.faces].any(axis=1)
     n_bad = int(bad.sum())
     if not keep.any():
-        raise InputError(f"{label}: no face left: every face uses one of the {n_bad} point(s) with NaN or infinite "
-                         "coordinates")
+        raise InputError(f"{label}: {n_bad} point(s) with NaN or infinite coordinates, and every face uses one: "
+                         "no face left")
     out = submesh(Mesh(np.where(bad[:, None], 0.0, v).astype(np.float64), checked.faces, label), keep)
     _warn(f"{label}: dropped {n_bad} of {len(v)} vertices with NaN or infinite coordinates and the "
           f"{int((~keep).sum())} face(s) that use them")
@@ -166,7 +166,7 @@ def _drop_invalid_cloud(c: Cloud, label: str) -> tuple[Cloud, int]:
         parts = parts[:1] if (~good_p).any() else []
         parts.append(f"{int((~good_n & good_p).sum())} point(s) with NaN or infinite normals")
     what = " and ".join(parts)
-    if good.sum() < MIN_VALID_POINTS:
+    if n_bad and good.sum() < MIN_VALID_POINTS:
         raise InputError(f"{label}: {what} (of {n}); {int(good.sum())} valid left, at least {MIN_VALID_POINTS} "
                          "are needed")
     extra = dict(c.extra)

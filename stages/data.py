@@ -14,7 +14,9 @@ from pipeline.errors import ConfigError, InputError
 from pipeline.geometry import (
     Cloud, Geometry, Mesh, apply_T, bbox_diagonal, invert_T, points_of, random_pose, transform_geometry,
 )
-from pipeline.io import read_geometry, read_landmarks, read_mesh, read_stanford_conf, read_transform, resolve_path
+from pipeline.io import (
+    read_geometry, read_input, read_landmarks, read_mesh, read_stanford_conf, read_transform, resolve_path,
+)
 from pipeline.registry import DATA
 from stages.sampler import barycentric_sample, triangle_areas_normals
 
@@ -88,6 +90,11 @@ class Files:
         (translation in input units)."""
         landmarks: Optional[str] = None
         """Optional CSV of picked pairs: target x,y,z then source x,y,z per row (input units)."""
+        columns: Optional[str] = None
+        """What the columns of a text (.xyz .txt .pts .csv) or .npy cloud are, e.g. 'x y z nx ny nz' or
+        'x y z r g b a' (names x y z nx ny nz r g b a; - ignores a column). Unset: a header line's names, or
+        detected from the values (unit vectors are normals, 0..1 or integer 0..255 values are colours). Applies to
+        the source and the target when they are such files."""
 
     def __init__(self, params: Params):
         self.p = params
@@ -99,8 +106,9 @@ class Files:
                     f"data=files: data.{key} is not set; run e.g. 'scanreg data.source=A.ply data.target=B.ply', "
                     "or the demo: 'scanreg data=synthetic'"
                 )
-        src = read_geometry(expand_path(self.p.source), "source")
-        tgt = read_geometry(expand_path(self.p.target), "target")
+        src, n_src_bad = read_input(expand_path(self.p.source), "source", self.p.columns)
+        tgt, n_tgt_bad = read_input(expand_path(self.p.target), "target", self.p.columns)
+        info = {"n_source_invalid_points": n_src_bad, "n_target_invalid_points": n_tgt_bad}
         gt = read_transform(expand_path(self.p.gt), "ground truth data.gt") if self.p.gt else None
         lm = read_landmarks(expand_path(self.p.landmarks)) if self.p.landmarks else None
         if self.p.max_angle_deg > 0 or self.p.max_translation > 0:  # a further seeded pose of the source
@@ -108,7 +116,7 @@ class Files:
             src = transform_geometry(P, src)
             gt = None if gt is None else gt @ invert_T(P)
             lm = None if lm is None else (lm[0], apply_T(P, lm[1]))
-        return Inputs(src, tgt, gt, lm)
+        return Inputs(src, tgt, gt, lm, info)
 
 
 @DATA.register("synthetic")

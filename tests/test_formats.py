@@ -225,3 +225,97 @@ def test_columns_override(tmp_path):
         read_geometry(p, columns="x y z q r g b")
     np.save(tmp_path / "scan.npy", arr[:, [0, 1, 2, 4, 5, 6]])
     assert read_geometry(tmp_path / "scan.npy").extra["columns"] == "x y z r g b"
+
+
+# ------------------------------------------------------------------------------------------ degenerate geometry
+@pytest.mark.parametrize("name,data,what", [
+    ("polygon.off", "OFF\n5 1 0\n0 0 0\n2 0 0\n3 1 0\n1 2 0\n-1 1 0\n5 0 1 2 3 4\n", "is planar"),
+    ("line.ply", "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                 "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 1 1\n2 2 2\n3 0 1 2\n",
+     "is collinear"),
+    ("plane.xyz", "\n".join(f"{i % 7} {i // 7} {0.5 * (i % 7) - 0.25 * (i // 7)}" for i in range(49)), "is planar"),
+    ("one_point.xyz", "1 2 3\n" * 20, "all points coincide"),
+    ("few.npy", None, "4 point(s) (3 invalid point(s) dropped); at least 10"),
+])
+def test_degenerate_inputs_are_input_errors(tmp_path, name, data, what):
+    from pipeline.checks import check_geometry
+
+    if data is None:
+        arr = np.random.default_rng(0).normal(size=(7, 3))
+        arr[:3, 0] = np.nan
+        np.save(tmp_path / name, arr)
+        p = str(tmp_path / name)
+    else:
+        p = write(tmp_path, name, data)
+    g, bad = read_input(p, "source")
+    with pytest.raises(InputError, match=re.escape(what)) as e:
+        check_geometry(g, g.source, 10, bad)
+    assert str(e.value).startswith(f"source {p}: ")
+    if what.startswith("is "):
+        assert "rigid registration is not determined" in str(e.value)
+
+
+def test_bumpy_but_thin_input_passes():
+    """A wavy sheet 1 % as thick as it is wide is not flat."""
+    from pipeline.checks import check_geometry
+
+    u, v = np.mgrid[0:40, 0:40] / 40.0
+    pts = np.stack([u, v, 0.01 * np.sin(7 * u) * np.cos(5 * v)], -1).reshape(-1, 3)
+    check_geometry(Cloud(pts), "t", 10)
+
+
+def test_point_to_plane_singular_system_is_a_stage_error():
+    """Point-to-plane on a plane: the 6x6 system is singular (sliding in the plane, turning about its normal);
+    a clean StageError, not LinAlgError."""
+    from pipeline.errors import StageError
+    from stages.icp import PointToPlane
+
+    u, v = np.mgrid[0:10, 0:10].reshape(2, -1).astype(float)
+    pts = np.stack([u, v, np.zeros_like(u)], 1)
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    icp = PointToPlane.__new__(PointToPlane)
+    with pytest.raises(StageError, match="singular"):
+        icp.step(pts + [0, 0, 0.1], pts, nrm, np.ones(len(pts), bool))
+    varied = np.random.default_rng(0).normal(size=pts.shape)  # normals in every direction: determined
+    varied /= np.linalg.norm(varied, axis=1, keepdims=True)
+    T = icp.step(pts + [0, 0, 0.1], pts, varied, np.ones(len(pts), bool))
+    assert np.isfinite(T).all()
+
+
+@pytest.mark.slow
+def test_flat_mesh_stops_before_the_coarse_stage_through_the_cli(tmp_path):
+    from conftest import run_cli
+
+    write(tmp_path, "polygon.off", VARIANTS["coff.off"])
+    r = run_cli(["data.source=polygon.off", "data.target=pkg:pymeshlab/tests/sample_meshes/bunny.obj",
+                 "tracking=none", f"hydra.run.dir={tmp_path / 'out'}"], tmp_path)
+    assert r.returncode != 0 and "Traceback" not in r.stderr + r.stdout
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert lines == [f"error: source polygon.off: is planar: rigid registration is not determined"
+                     + lines[0].split("not determined", 1)[1]], r.stderr
+    assert "internal error" not in r.stderr
+
+
+@pytest.mark.slow
+def test_depth_camera_clouds_with_nan_pixels_register(tmp_path):
+    """Two organised PCD clouds with NaN for a quarter of their pixels (different ones) register through the
+    CLI, and result.json counts the dropped points."""
+    import json
+
+    from conftest import run_cli
+    from pipeline.geometry import random_pose
+
+    T = random_pose(np.random.default_rng(5), 30.0, 0.05)
+    src, n_src = _organised_pcd(tmp_path, seed=1)
+    tgt, n_tgt = _organised_pcd(tmp_path, seed=2, pose=T)
+    write(tmp_path, "s.pcd", src)
+    write(tmp_path, "t.pcd", tgt)
+    np.savetxt(tmp_path / "gt.txt", T)
+    out = tmp_path / "out"
+    r = run_cli(["data.source=s.pcd", "data.target=t.pcd", "data.gt=gt.txt", "tracking=none",
+                 f"hydra.run.dir={out}"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    res = json.loads((out / "result.json").read_text())
+    assert res["n_source_invalid_points"] == n_src and res["n_target_invalid_points"] == n_tgt
+    assert f"dropped {n_src} point(s) with NaN" in r.stdout
+    assert res["rotation_error_deg"] < 1.0 and res["translation_error_rel"] < 0.01, res
