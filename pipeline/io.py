@@ -692,31 +692,48 @@ def _read_xyz(p: Path, label: str, columns=None) -> Cloud:
     """A text cloud: one point per line, values separated by spaces, tabs, commas or semicolons; ``#`` and ``//``
     start comments; a first line that is not numbers is a header (its column names are used if known)."""
     data = p.read_bytes()
+    if b"\0" in data[:4096]:
+        raise InputError(f"{label}: binary data, not a text point cloud (.xyz .txt .pts .csv .asc hold x y z per line)")
     lines = data.splitlines()
-    header, start = None, 0
+    header, start = None, len(lines)
     for i, ln in enumerate(lines):
         s = ln.strip()
-        if not s or s.startswith(b"#") and not s.lstrip(b"#").strip()[:1].isalpha():
+        if not s:
             continue
-        words = re.split(rb"[\s,;]+", s.lstrip(b"/#").strip())
-        if s.startswith((b"//", b"#")) or not all(_NUMBER.match(w) for w in words if w):
-            header, start = [w.decode("ascii", "replace") for w in words if w], i + 1
-        else:
+        comment = s.startswith((b"#", b"//"))
+        words = [w for w in re.split(rb"[\s,;]+", s.lstrip(b"/#").strip()) if w]
+        if not comment and all(_NUMBER.match(w) for w in words):
             start = i
-        break
-    body = [ln for ln in lines[start:] if ln.strip() and not ln.lstrip().startswith((b"#", b"//"))]
-    if not body:
+            break
+        names = [w.decode("ascii", "replace") for w in words]
+        if comment and not {"x", "y", "z"} <= {n.lower() for n in names}:
+            continue  # a comment, not a list of column names
+        if header is not None and not comment:
+            start = i  # a second line of text: reported below as a bad row
+            break
+        header = names
+    keep = [i for i in range(start, len(lines)) if lines[i].strip() and not lines[i].lstrip().startswith((b"#", b"//"))]
+    if not keep:
         raise InputError(f"{label}: contains no points")
+    body = [lines[i] for i in keep]
     delim = b"," if b"," in body[0] else (b";" if b";" in body[0] else None)
     text = [(ln if delim is None else ln.replace(delim, b" ")).decode("ascii", "replace") for ln in body]
     try:
         arr = np.loadtxt(text, dtype=np.float64, ndmin=2)
-    except ValueError as e:
-        raise InputError(f"{label}: not a table of numbers ({_one_line(e)})") from None
+    except ValueError:
+        n0 = len(text[0].split())
+        for i, t in zip(keep, text):  # the first offending line, numbered as in the file
+            w = t.split()
+            if len(w) != n0 or not all(_NUMBER.match(x.encode()) for x in w):
+                raise InputError(f"{label}: line {i + 1}: '{t.strip()[:60]}' is not a row of {n0} numbers like "
+                                 "the first") from None
+        raise
     if columns:
         cols = _parse_columns(columns, arr.shape[1], f"{label}: data.columns")
-    elif header and all(h.lower() in COLUMN_NAMES for h in header) and len(header) == arr.shape[1]:
-        cols = _parse_columns(header, arr.shape[1], f"{label}: header line")
+    elif header and {"x", "y", "z"} <= {h.lower() for h in header} and len(header) == arr.shape[1]:
+        # named columns; names other than x y z nx ny nz r g b a (intensity, a scalar field...) are ignored
+        cols = _parse_columns([COLUMN_NAMES.get(h.lower(), "-") for h in header], arr.shape[1],
+                              f"{label}: header line")
     else:
         cols = detect_columns(arr, label)
     return _cloud_from_columns(arr, cols, label)

@@ -55,6 +55,8 @@ def test_binary_ply_with_texcoord_list(tmp_path):
     ("//X,Y,Z,R,G,B\n0,0,0,255,0,0\n1,0,0,0,255,0\n0,1,0,0,0,255\n", "x y z r g b"),
     ("0 0 0 255 0 0 128\n1 0 0 0 255 0 128\n0 1 0 0 0 255 128\n", "x y z r g b a"),  # 7 columns, no header
     ("0 0 0 1 0 0\n1 0 0 0 1 0\n0 1 0 0 0 1\n", "x y z nx ny nz"),  # unit vectors are normals
+    ("# exported by a scanner\n# X Y Z Intensity\n0 0 0 17\n1 0 0 18\n0 1 0 19\n", "x y z -"),  # named
+    ("X;Y;Z;Nx;Ny;Nz\n0;0;0;0;0;1\n1;0;0;0;0;1\n0;1;0;0;0;1\n", "x y z nx ny nz"),
 ])
 def test_text_cloud_variants(tmp_path, text, columns):
     c = read_geometry(write(tmp_path, "c.xyz", text))
@@ -77,7 +79,8 @@ def test_symlink_loop_and_broken_link(tmp_path):
     ("zero.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "OBJ indices start at 1"),
     ("four.xyz", "0 0 0 7\n1 0 0 8\n0 1 0 9\n", "4 columns; expected x y z"),
     ("weird.xyz", "0 0 0 3 4 5\n1 0 0 8 9 1000\n0 1 0 1 1 1\n", "neither unit normals nor colours"),
-    ("ragged.xyz", "0 0 0\n1 0 0 1\n0 1 0\n", "not a table of numbers"),
+    ("ragged.xyz", "# c\n0 0 0\n1 0 0 1\n0 1 0\n", "line 3: '1 0 0 1' is not a row of 3 numbers"),
+    ("binary.pts", b"[Expe/PointSet/Binary/0.1]\n\0\1\2", "binary data, not a text point cloud"),
     ("header_only.xyz", "x y z\n", "contains no points"),
     ("pcd_no_header.pcd", "hello\n", "not a PCD file"),
     ("pcd_short.pcd", "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 5\nDATA ascii\n0 0 0\n", "truncated PCD"),
