@@ -94,7 +94,11 @@ class Files:
         """What the columns of a text (.xyz .txt .pts .csv) or .npy cloud are, e.g. 'x y z nx ny nz' or
         'x y z r g b a' (names x y z nx ny nz r g b a; - ignores a column). Unset: a header line's names, or
         detected from the values (unit vectors are normals, 0..1 or integer 0..255 values are colours). Applies to
-        the source and the target when they are such files."""
+        the source and the target when they are such files (see source_columns, target_columns)."""
+        source_columns: Optional[str] = None
+        """The columns of the source alone (overrides ``columns`` for it)."""
+        target_columns: Optional[str] = None
+        """The columns of the target alone (overrides ``columns`` for it)."""
 
     def __init__(self, params: Params):
         self.p = params
@@ -106,8 +110,8 @@ class Files:
                     f"data=files: data.{key} is not set; run e.g. 'scanreg data.source=A.ply data.target=B.ply', "
                     "or the demo: 'scanreg data=synthetic'"
                 )
-        src, n_src_bad = read_input(expand_path(self.p.source), "source", self.p.columns)
-        tgt, n_tgt_bad = read_input(expand_path(self.p.target), "target", self.p.columns)
+        src, n_src_bad = read_input(expand_path(self.p.source), "source", self.p.source_columns or self.p.columns)
+        tgt, n_tgt_bad = read_input(expand_path(self.p.target), "target", self.p.target_columns or self.p.columns)
         info = {"n_source_invalid_points": n_src_bad, "n_target_invalid_points": n_tgt_bad}
         gt = read_transform(expand_path(self.p.gt), "ground truth data.gt") if self.p.gt else None
         lm = read_landmarks(expand_path(self.p.landmarks)) if self.p.landmarks else None

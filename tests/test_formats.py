@@ -322,3 +322,30 @@ def test_depth_camera_clouds_with_nan_pixels_register(tmp_path):
     assert res["n_source_invalid_points"] == n_src and res["n_target_invalid_points"] == n_tgt
     assert f"dropped {n_src} point(s) with NaN" in r.stdout
     assert res["rotation_error_deg"] < 1.0 and res["translation_error_rel"] < 0.01, res
+
+
+@pytest.mark.slow
+def test_colours_of_a_text_cloud_colour_the_aligned_output(tmp_path):
+    """x y z r g b (a photogrammetry export) registers as points with colours, and aligned_source.ply carries
+    them; data.columns overrides the detection."""
+    from conftest import run_cli
+    from pipeline.geometry import apply_T, random_pose
+    from stages.sampler import barycentric_sample
+
+    mesh = read_mesh("pkg:pymeshlab/tests/sample_meshes/bunny.obj")
+    rng = np.random.default_rng(0)
+    src, _, _ = barycentric_sample(mesh, 4000, rng)
+    tgt, _, _ = barycentric_sample(mesh, 4000, rng)
+    T = random_pose(rng, 40.0, 0.02)
+    rgb = rng.integers(0, 256, size=(len(src), 3))
+    np.savetxt(tmp_path / "s.xyz", np.hstack([src, rgb]), fmt="%.9g")
+    np.save(tmp_path / "t.npy", apply_T(T, tgt))
+    np.savetxt(tmp_path / "gt.txt", T)
+    for args in ([], ["data.source_columns='x y z r g b'"]):
+        out = tmp_path / f"out{len(args)}"
+        r = run_cli(["data.source=s.xyz", "data.target=t.npy", "data.gt=gt.txt", "tracking=none",
+                     f"hydra.run.dir={out}", *args], tmp_path)
+        assert r.returncode == 0, r.stderr
+        aligned = read_geometry(out / "aligned_source.ply")
+        assert np.array_equal(aligned.extra["colors"], rgb) and aligned.normals is None
+        assert np.allclose(aligned.points, apply_T(T, src), atol=5e-3 * np.ptp(src, axis=0).max())
