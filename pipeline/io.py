@@ -1,13 +1,16 @@
 """Reading and writing meshes, point clouds, transforms, Stanford ``.conf`` poses and landmark pairs.
 
 Every reader validates what it reads and raises :class:`InputError` with one line naming the file and the
-problem (missing, a directory, empty, truncated, wrong counts, indices out of range, NaN/inf coordinates).
+problem (missing, a link loop, a directory, empty, truncated, wrong counts, indices out of range). Header counts
+are checked against the file's size before anything is allocated, and any parser's or library's exception
+becomes such a line. Points with NaN/inf coordinates or normals are dropped and counted (:func:`read_input`).
 
 Formats:
-- meshes: PLY (ASCII and binary; ``face`` lists of any size are fan-triangulated; the Stanford scanner's
-  ``range_grid`` element is triangulated as vcglib/MeshLab do), STL (ASCII and binary), OBJ, OFF;
-- point clouds: PLY without faces, PCD (via Open3D), XYZ (text, 3 or 6 columns: with normals), NPY ((N, 3) or
-  (N, 6));
+- meshes: PLY (ASCII and binary; ``face`` lists of any size are fan-triangulated, other list properties read
+  and ignored; the Stanford scanner's ``range_grid`` element is triangulated as vcglib/MeshLab do), STL (ASCII
+  and binary), OBJ (with ``\\`` line continuation), OFF (COFF, NOFF, CNOFF, STOFF; counts on the keyword line);
+- point clouds: PLY without faces, PCD (via Open3D), text (.xyz .txt .pts .csv .asc) and NPY with columns
+  x y z [nx ny nz] [r g b [a]], named by a header line or ``columns``, or detected (:func:`detect_columns`);
 - ``pkg:DIST/REL/PATH`` names a file shipped inside an installed Python package (e.g.
   ``pkg:pymeshfix/examples/StanfordBunny.ply``).
 """
