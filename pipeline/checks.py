@@ -43,8 +43,9 @@ def check_geometry(g, label: str, min_points: int, n_invalid: int = 0) -> None:
         if s[k] < FLAT_TOLERANCE * s[0]:
             off = "line" if k == 1 else "plane"
             raise InputError(
-                f"{label}: is {what}: rigid registration is not determined (spread off its best-fit {off} "
-                f"{s[k]:.3g}, {s[k] / s[0]:.2g} of its extent {s[0]:.3g}; at least {FLAT_TOLERANCE:g} is needed)"
+                f"{label}: is {what}: rigid registration is not determined (its spread off the best-fit {off} is "
+                f"{100 * s[k] / s[0]:.2g} % of its spread along its main axis; at least {100 * FLAT_TOLERANCE:g} % "
+                "is needed)"
             )
 
 

@@ -774,6 +774,8 @@ def _pcd_header(p: Path, label: str) -> dict:
     if "FIELDS" not in fields:
         raise InputError(f"{label}: not a PCD file (no FIELDS/DATA header)")
     names = fields["FIELDS"]
+    if not {"x", "y", "z"} <= set(names):
+        raise InputError(f"{label}: PCD has no x y z fields (FIELDS {' '.join(names)[:80]}): not a point cloud")
     try:
         counts = [int(c) for c in fields.get("COUNT", ["1"] * len(names))]
         sizes = [int(c) for c in fields.get("SIZE", ["4"] * len(names))]

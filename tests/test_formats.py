@@ -83,6 +83,7 @@ def test_symlink_loop_and_broken_link(tmp_path):
     ("binary.pts", b"[Expe/PointSet/Binary/0.1]\n\0\1\2", "binary data, not a text point cloud"),
     ("header_only.xyz", "x y z\n", "contains no points"),
     ("pcd_no_header.pcd", "hello\n", "not a PCD file"),
+    ("image.pcd", "FIELDS rgba\nSIZE 4\nTYPE U\nCOUNT 1\nPOINTS 1\nDATA ascii\n7\n", "PCD has no x y z fields"),
     ("pcd_short.pcd", "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 5\nDATA ascii\n0 0 0\n", "truncated PCD"),
 ])
 def test_variant_errors_are_one_line(tmp_path, name, data, message):
