@@ -255,8 +255,7 @@ def _read_ply(p: Path, label: str) -> Geometry:
         data = f.read()
     _check_ply_claims(fmt, elements, len(data), label)
     if fmt == "ascii":
-        values = _AsciiTokens(data, label)
-        parsed = {name: _read_ply_element_ascii(values, name, n, props, label) for name, n, props in elements}
+        parsed = _read_ply_ascii(data, elements, label)
     else:
         endian = "<" if fmt == "binary_little_endian" else ">"
         parsed, pos = {}, 0
@@ -325,6 +324,60 @@ class _AsciiTokens:
         out = self.tokens[self.pos : self.pos + n]
         self.pos += n
         return out
+
+
+def _read_ply_ascii(data: bytes, elements, label: str) -> dict:
+    """ASCII PLY data as one stream of values; when that does not match the header (values left over, or a
+    list count that is not an integer), row by row, one line per element, values past the header's properties
+    ignored with a warning (VCGLIB writes per-face colour lists that its header declares as scalars)."""
+    error, parsed = None, None
+    try:
+        tok = _AsciiTokens(data, label)
+        parsed = {name: _read_ply_element_ascii(tok, name, n, props, label) for name, n, props in elements}
+        if tok.pos == len(tok.tokens):
+            return parsed
+    except (InputError, ValueError) as e:
+        error = e
+    try:
+        parsed, extra_rows = _read_ply_ascii_lines(data, elements, label)
+    except (InputError, ValueError):
+        if parsed is not None:  # the stream was fine but for values after the last element
+            _warn(f"{label}: {len(tok.tokens) - tok.pos} value(s) after the PLY's last element ignored")
+            return parsed
+        if isinstance(error, InputError):
+            raise error from None
+        raise InputError(f"{label}: PLY data do not match the header ({_one_line(error)})") from None
+    if extra_rows:
+        _warn(f"{label}: {extra_rows} PLY row(s) hold values past the header's properties; ignored")
+    return parsed
+
+
+def _read_ply_ascii_lines(data: bytes, elements, label: str) -> tuple[dict, int]:
+    lines = [ln for ln in data.split(b"\n") if ln.strip()]
+    need = sum(n for _, n, _ in elements)
+    if len(lines) < need:
+        raise InputError(f"{label}: truncated PLY data ({need} rows announced, {len(lines)} lines)")
+    parsed, i, extra_rows = {}, 0, 0
+    for name, n, props in elements:
+        rows = lines[i : i + n]
+        if not any(p[2] is not None for p in props):
+            k = len(props)
+            words = [r.split() for r in rows]
+            if any(len(w) < k for w in words):
+                raise InputError(f"{label}: a PLY '{name}' row has fewer than {k} values")
+            extra_rows += sum(len(w) > k for w in words)
+            vals = np.array([w[:k] for w in words], dtype=np.float64).reshape(n, k)
+            parsed[name] = {pname: vals[:, j] for j, (pname, _, _) in enumerate(props)}
+        else:
+            out = {pname: [] for pname, _, _ in props}
+            for r in rows:
+                tok = _AsciiTokens(r, label)
+                for key, v in _read_ply_element_ascii(tok, name, 1, props, label).items():
+                    out[key].append(v[0])
+                extra_rows += tok.pos < len(tok.tokens)
+            parsed[name] = out
+        i += n
+    return parsed, extra_rows
 
 
 def _read_ply_element_ascii(tok: _AsciiTokens, name, n, props, label):
@@ -559,7 +612,8 @@ def _read_off(p: Path, label: str) -> Mesh:
     text = p.read_text(errors="replace")
     lines = [ln.split("#")[0].strip() for ln in text.splitlines()]
     lines = [ln for ln in lines if ln]
-    first = lines[0].split() if lines else []
+    glued = re.match(r"^((ST)?C?N?4?n?OFF)(?=\d|\s|$)(.*)$", lines[0]) if lines else None  # 'OFF8 6 12' too
+    first = [glued.group(1), *glued.group(3).split()] if glued else []
     key = _OFF_KEY.match(first[0]) if first else None
     if key is None:
         raise InputError(f"{label}: not an OFF file (first word is not OFF, COFF, NOFF, CNOFF or STOFF)")

@@ -28,6 +28,12 @@ VARIANTS = {
     "coff.off": "COFF\n3 1 0\n0 0 0 255 0 0 255\n1 0 0 0 255 0 255\n0 1 0 0 0 255 255\n3 0 1 2\n",
     "counts_on_keyword_line.off": "OFF 3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
     "noff.off": "NOFF\n3 1 0\n0 0 0 0 0 1\n1 0 0 0 0 1\n0 1 0 0 0 1\n3 0 1 2 255 0 0\n",
+    "glued_counts.off": "\t  OFF3 1 0 # counts glued to the keyword, leading whitespace\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
+    "vcglib_face_colours.ply": "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                               "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+                               "property list uchar float texcoord\nproperty uchar red\nproperty uchar green\n"
+                               "property uchar blue\nproperty uchar alpha\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+                               "3 0 1 2 6 0.6 0.4 0.5 0.4 0.6 0.4 9 1 1 1 1 1 1 1 1 1\n",
     "continued.obj": "v 0 0 0\nv 1 0 \\\n 0\nv 0 1 0\nf 1 2 \\\n3\n",
     "texcoord_ascii.ply": "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
                           "element face 1\nproperty list uchar int vertex_indices\nproperty list uchar float texcoord\n"
