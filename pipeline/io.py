@@ -797,6 +797,18 @@ def _read_xyz(p: Path, label: str, columns=None) -> Cloud:
 
 
 def _read_npy(p: Path, label: str, columns=None) -> Cloud:
+    fmt = np.lib.format
+    with open(p, "rb") as f:
+        try:
+            version = fmt.read_magic(f)
+            read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+            shape, _, dtype = read_header(f)
+        except ValueError as e:
+            raise InputError(f"{label}: not a .npy file ({_one_line(e)})") from None
+        need, body = int(np.prod(shape, dtype=object)) * dtype.itemsize, p.stat().st_size - f.tell()
+    if not dtype.hasobject and need > body:
+        raise InputError(f"{label}: truncated .npy data: the header's shape {shape} needs {need} bytes, but {body} "
+                         "bytes follow the header")
     try:
         arr = np.load(p, allow_pickle=False, mmap_mode="r")
     except ValueError as e:

@@ -126,6 +126,8 @@ def _bomb_ply_binary():
     ("compressed.pcd", b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1000000000\n"
                        b"DATA binary_compressed\n" + struct.pack("<II", 16, 12 * 10 ** 9 % 2 ** 32) + b"\0" * 16),
     ("off_claims.off", b"OFF\n3 200000000 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"),
+    ("points.npy", b"\x93NUMPY\x01\x00v\x00" + b"{'descr': '<f8', 'fortran_order': False, 'shape': (1000000000, 3), }"
+                   .ljust(117) + b"\n" + b"\0" * 96),
 ])
 def test_header_claims_are_checked_before_allocating(tmp_path, name, data):
     """A tiny file whose header claims 2e8 faces (or 1e9 points) fails in one line with a peak memory far
