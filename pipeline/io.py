@@ -52,7 +52,8 @@ def resolve_path(path: str | os.PathLike, what: str = "file") -> Path:
         if e.errno == errno.ELOOP:
             raise InputError(f"{what} {s}: symbolic link loop (too many levels of symbolic links)") from None
         if e.errno == errno.ENOENT and p.is_symlink():
-            raise InputError(f"{what} {s}: broken symbolic link (to '{os.readlink(p)}', which does not exist)") from None
+            raise InputError(f"{what} {s}: broken symbolic link (to '{os.readlink(p)}', which does not exist)") \
+                from None
         if e.errno == errno.ENOENT:
             raise InputError(f"{what} {s}: no such file") from None
         raise InputError(f"{what} {s}: cannot read ({e.strerror or e})") from None
@@ -899,7 +900,8 @@ def _read_pcd(p: Path, label: str) -> Cloud:
 def write_ply(path: str | os.PathLike, g: Geometry, colors: np.ndarray | None = None,
               scalars: dict[str, np.ndarray] | None = None) -> None:
     """Write a mesh or cloud as binary little-endian PLY (float64 coordinates; normals, uchar RGB (given, or a
-    cloud's own ``extra["colors"]``) and float per-vertex scalars if given: MeshLab shows ``quality`` and CloudCompare every scalar as a scalar field)."""
+    cloud's own ``extra["colors"]``) and float per-vertex scalars if given: MeshLab shows ``quality`` and
+    CloudCompare every scalar as a scalar field)."""
     pts = g.vertices if isinstance(g, Mesh) else g.points
     normals = None if isinstance(g, Mesh) else g.normals
     if colors is None and isinstance(g, Cloud):  # colours read with the cloud (text, PLY, PCD) go along

@@ -81,7 +81,8 @@ class Files:
         max_translation: float = 0.0
         """Largest translation of that pose, as a share of the target's bounding-box diagonal."""
         source: Optional[str] = None
-        """Path of the source (the scan to move): mesh (.ply .stl .obj .off) or cloud (.ply .pcd .xyz .txt .pts .csv .asc .npy).
+        """Path of the source (the scan to move): mesh (.ply .stl .obj .off) or cloud (.ply .pcd .xyz .txt .pts .csv
+        .asc .npy).
         ``pkg:PACKAGE/PATH`` names a file inside an installed package, ``shared:PATH`` one under ../shared/data."""
         target: Optional[str] = None
         """Path of the target (the fixed scan), same formats."""

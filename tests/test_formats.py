@@ -28,14 +28,16 @@ VARIANTS = {
     "coff.off": "COFF\n3 1 0\n0 0 0 255 0 0 255\n1 0 0 0 255 0 255\n0 1 0 0 0 255 255\n3 0 1 2\n",
     "counts_on_keyword_line.off": "OFF 3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
     "noff.off": "NOFF\n3 1 0\n0 0 0 0 0 1\n1 0 0 0 0 1\n0 1 0 0 0 1\n3 0 1 2 255 0 0\n",
-    "glued_counts.off": "\t  OFF3 1 0 # counts glued to the keyword, leading whitespace\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
+    "glued_counts.off": "\t  OFF3 1 0 # counts glued to the keyword, leading whitespace\n"
+                        "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
     "vcglib_face_colours.ply": "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
                                "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
                                "property list uchar float texcoord\nproperty uchar red\nproperty uchar green\n"
                                "property uchar blue\nproperty uchar alpha\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
                                "3 0 1 2 6 0.6 0.4 0.5 0.4 0.6 0.4 9 1 1 1 1 1 1 1 1 1\n",
     "continued.obj": "v 0 0 0\nv 1 0 \\\n 0\nv 0 1 0\nf 1 2 \\\n3\n",
-    "texcoord_ascii.ply": "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+    "texcoord_ascii.ply": "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                          "property float z\n"
                           "element face 1\nproperty list uchar int vertex_indices\nproperty list uchar float texcoord\n"
                           "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2 6 0 0 1.5 0 0 1\n",
 }
@@ -51,7 +53,8 @@ def test_binary_ply_with_texcoord_list(tmp_path):
     head = (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
             b"property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
             b"property list uchar float texcoord\nend_header\n")
-    body = struct.pack("<9f", *np.ravel(TRI_V)) + struct.pack("<B3i", 3, 0, 1, 2) + struct.pack("<B6f", 6, 0, 0, 1.5, 0, 0, 1)
+    body = (struct.pack("<9f", *np.ravel(TRI_V)) + struct.pack("<B3i", 3, 0, 1, 2)
+            + struct.pack("<B6f", 6, 0, 0, 1.5, 0, 0, 1))
     m = read_mesh(write(tmp_path, "tc.ply", head + body))
     assert m.faces.tolist() == [[0, 1, 2]]
 
@@ -90,7 +93,8 @@ def test_symlink_loop_and_broken_link(tmp_path):
     ("header_only.xyz", "x y z\n", "contains no points"),
     ("pcd_no_header.pcd", "hello\n", "not a PCD file"),
     ("image.pcd", "FIELDS rgba\nSIZE 4\nTYPE U\nCOUNT 1\nPOINTS 1\nDATA ascii\n7\n", "PCD has no x y z fields"),
-    ("pcd_short.pcd", "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 5\nDATA ascii\n0 0 0\n", "truncated PCD"),
+    ("pcd_short.pcd", "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 5\nDATA ascii\n0 0 0\n",
+     "truncated PCD"),
 ])
 def test_variant_errors_are_one_line(tmp_path, name, data, message):
     with pytest.raises(InputError, match=re.escape(message)) as e:
