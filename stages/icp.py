@@ -249,9 +249,9 @@ class PointToPlane(IcpBase):
             moved, q, qn = _compress(ok, moved, q, qn)
         A = np.hstack([cross3(moved, qn), qn])
         b = -np.einsum("ij,ij->i", moved - q, qn)
-        AtA = A.T @ A  # 6x6 normal equations; a flat or symmetric match leaves them singular
-        w = np.linalg.eigvalsh(AtA)
-        if not w[0] > 1e-12 * w[-1]:
+        AtA = A.T @ A  # 6x6 normal equations; a flat or symmetric match leaves them singular. Checked with unit
+        d = np.sqrt(np.diag(AtA))  # diagonal, so that units and far-off coordinates (UTM) do not count as singular
+        if not (d.min() > 1e-12 * d.max() and np.linalg.eigvalsh(AtA / np.outer(d, d))[0] > 1e-14):
             raise StageError("icp=point_to_plane: the matched points do not determine a rigid transform (their "
                              "point-to-plane system is singular: flat, or symmetric about an axis)")
         x = np.linalg.solve(AtA, A.T @ b)

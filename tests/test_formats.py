@@ -292,10 +292,20 @@ def test_point_to_plane_singular_system_is_a_stage_error():
     icp = PointToPlane.__new__(PointToPlane)
     with pytest.raises(StageError, match="singular"):
         icp.step(pts + [0, 0, 0.1], pts, nrm, np.ones(len(pts), bool))
+    R = np.array([[0.8, 0.0, 0.6], [0.0, 1.0, 0.0], [-0.6, 0.0, 0.8]])  # a tilted plane: no zero column
+    with pytest.raises(StageError, match="singular"):
+        icp.step(pts @ R.T + 0.1, pts @ R.T, nrm @ R.T, np.ones(len(pts), bool))
+    sphere = np.random.default_rng(1).normal(size=(200, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)  # turning about its centre changes nothing
+    with pytest.raises(StageError, match="singular"):
+        icp.step(sphere * 1.01, sphere, sphere, np.ones(len(sphere), bool))
     varied = np.random.default_rng(0).normal(size=pts.shape)  # normals in every direction: determined
     varied /= np.linalg.norm(varied, axis=1, keepdims=True)
     T = icp.step(pts + [0, 0, 0.1], pts, varied, np.ones(len(pts), bool))
     assert np.isfinite(T).all()
+    utm = pts + [665187.5, 5648349.9, 241.8]  # geo-referenced coordinates (metres, UTM) are not singular
+    T = icp.step(utm + [0, 0, 0.1], utm, varied, np.ones(len(pts), bool))
+    assert np.isfinite(T).all() and abs(T[2, 3] + 0.1) < 0.05
 
 
 @pytest.mark.slow
