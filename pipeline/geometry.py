@@ -63,8 +63,11 @@ class Cloud:
         return len(self.points)
 
     def subset(self, idx) -> "Cloud":
-        """The points (and normals) at ``idx`` (indices, a mask or a slice), in that order."""
-        return Cloud(self.points[idx], None if self.normals is None else self.normals[idx], self.source)
+        """The points (and normals, and per-point ``extra`` arrays such as colours) at ``idx`` (indices, a mask or
+        a slice), in that order."""
+        n = len(self.points)
+        extra = {k: v[idx] for k, v in self.extra.items() if isinstance(v, np.ndarray) and len(v) == n}
+        return Cloud(self.points[idx], None if self.normals is None else self.normals[idx], self.source, extra)
 
 
 Geometry = Mesh | Cloud

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from scanreg.checks import check_inputs
 from scanreg.config import Context
 from scanreg.errors import InputError, ScanregError
 from scanreg.geometry import Cloud, Mesh, apply_T, bbox_diagonal, transform_geometry
@@ -86,6 +87,7 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
 
     with timer("load"):
         inputs = st["data"].load(ctx)
+    check_inputs(inputs, MIN_POINTS)  # too few points, coincident, collinear or planar: before any expensive stage
     m.update({k: float(v) for k, v in (inputs.info or {}).items() if isinstance(v, (int, float))})
 
     geoms = {"source": inputs.source, "target": inputs.target}

@@ -14,7 +14,7 @@ from scanreg.errors import ConfigError, InputError
 from scanreg.geometry import (
     Cloud, Geometry, Mesh, apply_T, bbox_diagonal, invert_T, points_of, random_pose, transform_geometry,
 )
-from scanreg.io import read_geometry, read_landmarks, read_mesh, read_stanford_conf, read_transform, resolve_path
+from scanreg.io import read_geometry, read_input, read_landmarks, read_mesh, read_stanford_conf, read_transform, resolve_path
 from scanreg.registry import DATA
 from scanreg.geometry import barycentric_sample, triangle_areas_normals
 
@@ -37,9 +37,6 @@ class Inputs:
     """What a part is called in metric names (``tooth``)."""
 
 
-MIN_INPUT_POINTS = 10
-"""Fewest points (vertices of a mesh) an input may have: the coarse and fine stages need neighbourhoods."""
-
 UNIT_FACTORS = {1000.0: "mm vs m", 10.0: "mm vs cm", 100.0: "cm vs m", 25.4: "mm vs inches",
                 39.37: "inches vs m", 304.8: "mm vs feet", 12.0: "inches vs feet"}
 """Common ratios between length units, to name the likely cause of a size mismatch."""
@@ -55,12 +52,8 @@ def scale_geometry(g: Geometry, s: float) -> Geometry:
 
 
 def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> None:
-    """Checks on the two inputs before any expensive stage: enough points, and sizes that agree to within
-    ``max_size_ratio`` (else one line naming both extents and the likely unit factor)."""
-    for role, g in (("source", src), ("target", tgt)):
-        n = len(points_of(g))
-        if n < MIN_INPUT_POINTS:
-            raise InputError(f"{role} {g.source}: {n} point(s); at least {MIN_INPUT_POINTS} are needed")
+    """Before any expensive stage: the two inputs' sizes agree to within ``max_size_ratio``, else one line
+    naming both extents and the likely unit factor (counts and flatness: ``scanreg.checks``)."""
     ds, dt = bbox_diagonal(points_of(src)), bbox_diagonal(points_of(tgt))
     if max_size_ratio is None or not (ds > 0 and dt > 0):
         return
@@ -119,7 +112,8 @@ class Files:
         max_translation: float = 0.0
         """Largest translation of that pose, as a share of the target's bounding-box diagonal."""
         source: Optional[str] = None
-        """Path of the source (the scan to move): mesh (.ply .stl .obj .off) or cloud (.ply .pcd .xyz .npy).
+        """Path of the source (the scan to move): mesh (.ply .stl .obj .off) or cloud (.ply .pcd .xyz .txt .pts .csv
+        .asc .npy).
         ``pkg:PACKAGE/PATH`` names a file inside an installed package, ``shared:PATH`` one under ../shared/data."""
         target: Optional[str] = None
         """Path of the target (the fixed scan), same formats."""
@@ -137,6 +131,15 @@ class Files:
         """Stop, before any repair or registration, when the bounding-box diagonals of source and target (after
         scaling) differ by more than this factor: such inputs are almost always in different units, and the
         message names the likely unit factor. null: no check (a small part registered into a large scene)."""
+        columns: Optional[str] = None
+        """What the columns of a text (.xyz .txt .pts .csv) or .npy cloud are, e.g. 'x y z nx ny nz' or
+        'x y z r g b a' (names x y z nx ny nz r g b a; - ignores a column). Unset: a header line's names, or
+        detected from the values (unit vectors are normals, 0..1 or integer 0..255 values are colours). Applies to
+        the source and the target when they are such files (see source_columns, target_columns)."""
+        source_columns: Optional[str] = None
+        """The columns of the source alone (overrides ``columns`` for it)."""
+        target_columns: Optional[str] = None
+        """The columns of the target alone (overrides ``columns`` for it)."""
 
     def check(self):
         super().check()
@@ -156,8 +159,10 @@ class Files:
                     f"data=files: data.{key} is not set; run e.g. 'scanreg data.source=A.ply data.target=B.ply', "
                     "or the demo: 'scanreg data=synthetic'"
                 )
-        src = scale_geometry(read_geometry(expand_path(self.p.source), "source"), self.p.source_scale)
-        tgt = scale_geometry(read_geometry(expand_path(self.p.target), "target"), self.p.target_scale)
+        src, n_src_bad = read_input(expand_path(self.p.source), "source", self.p.source_columns or self.p.columns)
+        tgt, n_tgt_bad = read_input(expand_path(self.p.target), "target", self.p.target_columns or self.p.columns)
+        info = {"n_source_invalid_points": n_src_bad, "n_target_invalid_points": n_tgt_bad}
+        src, tgt = scale_geometry(src, self.p.source_scale), scale_geometry(tgt, self.p.target_scale)
         check_pair(src, tgt, self.p.max_size_ratio)
         gt = read_transform(expand_path(self.p.gt), "ground truth data.gt") if self.p.gt else None
         lm = read_landmarks(expand_path(self.p.landmarks)) if self.p.landmarks else None
@@ -168,7 +173,7 @@ class Files:
             src = transform_geometry(P, src)
             gt = None if gt is None else gt @ invert_T(P)
             lm = None if lm is None else (lm[0], apply_T(P, lm[1]))
-        return Inputs(src, tgt, gt, lm)
+        return Inputs(src, tgt, gt, lm, info)
 
 
 @DATA.register("synthetic")

@@ -205,7 +205,12 @@ class PointToPlane(IcpBase):
             moved, q, qn = _compress(ok, moved, q, qn)
         A = np.hstack([cross3(moved, qn), qn])
         b = -np.einsum("ij,ij->i", moved - q, qn)
-        x = np.linalg.solve(A.T @ A, A.T @ b)  # 6x6 normal equations
+        AtA = A.T @ A  # 6x6 normal equations; a flat or symmetric match leaves them singular. Checked with unit
+        d = np.sqrt(np.diag(AtA))  # diagonal, so that units and far-off coordinates (UTM) do not count as singular
+        if not (d.min() > 1e-12 * d.max() and np.linalg.eigvalsh(AtA / np.outer(d, d))[0] > 1e-14):
+            raise StageError("icp=point_to_plane: the matched points do not determine a rigid transform (their "
+                             "point-to-plane system is singular: flat, or symmetric about an axis)")
+        x = np.linalg.solve(AtA, A.T @ b)
         return make_T(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:])
 
 

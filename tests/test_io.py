@@ -137,7 +137,7 @@ def test_pkg_meshes_ship_with_packages():
         ("t.stl", b"solid x\nfacet normal 0 0 0\nouter loop\nvertex 0 0 0\nvertex 1 0 0\n", "truncated ASCII STL"),
         ("none.obj", b"# nothing\n", "OBJ has no vertices"),
         ("t.off", b"OFF\n4 4 0\n0 0 0\n", "truncated OFF"),
-        ("cols.xyz", b"1 2\n3 4\n", "expected 3 (x y z) or 6"),
+        ("cols.xyz", b"1 2\n3 4\n", "2 column(s); a point needs at least x y z"),
         ("obj.npy", None, "not a plain numeric"),
         ("x.abc", b"1 2 3\n", "unsupported file type"),
     ],

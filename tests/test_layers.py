@@ -14,7 +14,7 @@ LAYERS = [
     ("runner", {"scanreg.runner", "scanreg.deviation"}),
     ("stages", {"scanreg.stages"}),  # and every module below it
     ("core", {"scanreg.registry", "scanreg.config", "scanreg.errors", "scanreg.geometry", "scanreg.io",
-              "scanreg.metrics", "scanreg.closest", "scanreg.topology", "scanreg.shell", "scanreg.conf"}),
+              "scanreg.metrics", "scanreg.checks", "scanreg.closest", "scanreg.topology", "scanreg.shell", "scanreg.conf"}),
 ]
 
 
