@@ -11,7 +11,7 @@ from scanreg.config import Context, Distances, to_abs
 from scanreg.errors import ConfigError, StageError
 from scanreg.geometry import (Cloud, apply_T, blas_single_thread, horn_quaternion, kabsch_batch, rigid_points_normals,
                                row_norms)
-from scanreg.registry import COARSE
+from scanreg.registry import COARSE, SALIENCE
 from scanreg.stages.descriptor import to_o3d
 
 
@@ -146,14 +146,22 @@ class LoRansac:
         """Weight w of the normal term of the final fit, in squared inlier thresholds: a normal residual of
         1 (about 60 degrees) costs as much as a point residual of ``w`` times ``distance_threshold`` (0: points
         only). Scaled so, the fit does not depend on the input's units."""
-        min_inliers: int = 6
+        min_inliers: int = 10
         """Fewer inliers than this is reported as a failure."""
         seed: int = 0
         """Seed of the sampling; the same seed gives the same transform."""
         distances: Distances = Distances.spacing
         """Unit of ``distance_threshold``: multiples of the sampling spacing, or input units."""
+        fallback_voxel: Optional[float] = 4.0
+        """When the configured keypoints fail (fewer than 3, fewer than 3 descriptor matches, or a best model
+        with fewer than ``min_inliers`` inliers), try again once with uniform keypoints, one per voxel of this
+        edge (in sampling spacings, whatever ``distances`` says): denser and detector-free, they still match
+        where salient points are few or not repeatable (flat indoor scenes). Logged as ``coarse_fallback`` (0:
+        the configured keypoints served, 1: the uniform ones). null: no fallback, fail at once."""
 
         def check(self):
+            if self.fallback_voxel is not None and not self.fallback_voxel > 0:
+                raise ValueError(f"fallback_voxel must be > 0 or null, got {self.fallback_voxel}")
             if not 0 < self.miss_probability < 1:
                 raise ValueError(f"miss_probability must be in (0, 1), got {self.miss_probability}")
             if self.batch < 1 or self.max_iterations < 1:
@@ -169,8 +177,28 @@ class LoRansac:
             return self._run(target, source, ctx)
 
     def _run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
+        try:
+            T, metrics = self._attempt(target, source, ctx, ctx.stages["salience"])
+            metrics["coarse_fallback"] = 0
+            return T, metrics
+        except StageError as first:
+            if self.p.fallback_voxel is None or getattr(ctx.stages["salience"], "name", "") == "uniform":
+                raise
+            uniform = SALIENCE.build({"name": "uniform", "voxel": self.p.fallback_voxel, "distances": "spacing"})
+            if ctx.verbose:
+                print(f"coarse=lo_ransac: {first}; trying uniform keypoints every {self.p.fallback_voxel:g} spacings")
+            try:
+                T, metrics = self._attempt(target, source, ctx, uniform)
+            except StageError as second:
+                raise StageError(f"{first}; the fallback to uniform keypoints failed too: "
+                                 f"{str(second).removeprefix('coarse=lo_ransac: ')}") from None
+            metrics["coarse_fallback"] = 1
+            return T, metrics
+
+    def _attempt(self, target: Cloud, source: Cloud, ctx: Context, salience) -> tuple[np.ndarray, dict]:
+        """Keypoints by ``salience``, descriptors, matches and RANSAC; a :class:`StageError` when any is too few."""
         st = ctx.stages
-        kt, ks = st["salience"].keypoints(target, ctx), st["salience"].keypoints(source, ctx)
+        kt, ks = salience.keypoints(target, ctx), salience.keypoints(source, ctx)
         if len(kt) < 3 or len(ks) < 3:
             raise StageError(f"coarse=lo_ransac: too few keypoints (target {len(kt)}, source {len(ks)}); "
                              "lower the salience radii or use more points")

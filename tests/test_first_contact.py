@@ -1,0 +1,59 @@
+"""First contact (#13): a user's own two files with no overrides either register or stop early with one line
+that says what to change."""
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+from scanreg.geometry import Cloud, barycentric_sample, make_T, random_pose, transform_errors
+from scanreg.io import read_mesh, write_ply, write_transform
+from scanreg.stages.data import check_pair
+
+
+def _bunny_pair(tmp_path, source_factor: float):
+    """The pymeshfix bunny as the target (call its units m), an independent sampling of it under a random pose
+    as the source, written in units ``source_factor`` times smaller (mm: 1000); the truth maps the source, once
+    scaled back, onto the target."""
+    mesh = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    tgt = barycentric_sample(mesh, 20000, np.random.default_rng(0))[0]
+    src_t = barycentric_sample(mesh, 20000, np.random.default_rng(1))[0]
+    T = random_pose(np.random.default_rng(3), 180.0, 10.0)
+    src = (src_t - T[:3, 3]) @ T[:3, :3]
+    write_ply(tmp_path / "target.ply", Cloud(tgt))
+    write_ply(tmp_path / "source_mm.ply", Cloud(src * source_factor))
+    write_transform(tmp_path / "gt.txt", T)
+    return T
+
+
+def test_size_mismatch_names_both_extents_and_the_unit():
+    a = Cloud(np.random.default_rng(0).random((100, 3)) * 150.0, source="scan_mm.ply")
+    b = Cloud(np.random.default_rng(1).random((100, 3)) * 0.15, source="ct_m.ply")
+    with pytest.raises(Exception) as e:
+        check_pair(a, b, 10.0)
+    msg = str(e.value)
+    assert "scan_mm.ply" in msg and "ct_m.ply" in msg and "1e+03x apart" in msg and "mm vs m" in msg
+    assert "data.source_scale=0.001" in msg and "\n" not in msg
+    with pytest.raises(Exception, match=r"data.target_scale=0.001"):
+        check_pair(a, Cloud(a.points * 1000, source="t"), 10.0)
+    with pytest.raises(Exception, match=r"mm vs inches.*data.source_scale=0.03937"):
+        check_pair(Cloud(a.points * 25.4), a, 10.0)
+    check_pair(a, Cloud(a.points * 5), 10.0)   # within the ratio: no error
+    check_pair(a, b, None)                      # check off
+
+
+@pytest.mark.slow
+def test_source_in_mm_target_in_m(tmp_path):
+    T = _bunny_pair(tmp_path, 1000.0)
+    base = ["data.source=source_mm.ply", "data.target=target.ply", "data.gt=gt.txt", "tracking=none"]
+    r = run_cli(base + [f"hydra.run.dir={tmp_path / 'a'}"], tmp_path)
+    assert r.returncode != 0
+    err = [l for l in r.stderr.splitlines() if l.strip()]
+    assert len(err) == 1 and "likely mm vs m" in err[0] and "data.source_scale=0.001" in err[0], r.stderr
+    assert not (tmp_path / "a" / "result.json").exists()
+    r = run_cli(base + ["data.source_scale=0.001", f"hydra.run.dir={tmp_path / 'b'}"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    res = json.loads((tmp_path / "b" / "result.json").read_text())
+    rot, trans = transform_errors(np.array(res["T_target_source"]), T)
+    assert res["success"] == 1 and rot < 0.5, (rot, trans)
