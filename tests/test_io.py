@@ -194,3 +194,40 @@ def test_landmarks(tmp_path):
     (tmp_path / "two.csv").write_text("1,2,3,4,5,6\n1,1,1,2,2,2\n")
     with pytest.raises(InputError, match="at least 3"):
         read_landmarks(tmp_path / "two.csv")
+
+
+def _l_hexagon_area_check(mesh):
+    from scanreg.geometry import triangle_areas_normals
+
+    areas, normals = triangle_areas_normals(mesh)
+    assert len(mesh.faces) == 4
+    assert np.isclose(areas.sum(), 3.0, rtol=1e-12)  # the L covers 3 unit squares; a fan from the reflex corner: 4 - 1
+    assert np.allclose(normals, [0, 0, 1])            # every triangle wound like the polygon: none flipped
+    # no triangle lies outside the L: every centroid inside it (the missing square is [1,2] x [1,2])
+    c = mesh.vertices[mesh.faces].mean(axis=1)
+    assert not ((c[:, 0] > 1) & (c[:, 1] > 1)).any()
+
+
+@pytest.mark.parametrize("start", [0, 1, 3, 4])
+def test_non_convex_polygon_is_ear_clipped_in_ply_and_obj(tmp_path, start):
+    """An L-shaped hexagon (a reflex corner at (1, 1)) triangulates into triangles that cover exactly its area
+    of 3, in PLY and OBJ; a fan from (2, 0) or (1, 2) would cover part of the missing square."""
+    ring = [(0, 0, 0), (2, 0, 0), (2, 1, 0), (1, 1, 0), (1, 2, 0), (0, 2, 0)]
+    ring = ring[start:] + ring[:start]  # start 1, 4: a fan from there would leave the L (0, 3: it would not)
+    ply = tmp_path / "l.ply"
+    ply.write_text("ply\nformat ascii 1.0\nelement vertex 6\nproperty float x\nproperty float y\nproperty float z\n"
+                   "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                   + "".join(f"{x} {y} {z}\n" for x, y, z in ring) + "6 0 1 2 3 4 5\n")
+    obj = tmp_path / "l.obj"
+    obj.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in ring) + "f 1 2 3 4 5 6\n")
+    for path in (ply, obj):
+        _l_hexagon_area_check(read_mesh(path))
+
+
+def test_convex_polygons_keep_the_fan():
+    """Convex quads and pentagons stay fans (same triangles as before), mixed sizes in one list."""
+    from scanreg.io import _triangulate
+
+    pts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 1.5, 0]], float)
+    tris = _triangulate([np.array([0, 1, 2, 4, 3]), np.array([0, 1, 2])], pts, "t")
+    assert {tuple(t) for t in tris} == {(0, 1, 2), (0, 1, 2), (0, 2, 4), (0, 4, 3)} and len(tris) == 4
