@@ -159,7 +159,7 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     run = stage
     if max_hole is not None or p.open_border != "cap":
         run = copy.copy(stage)
-        run.p = replace(p, open_border=mode, max_hole_edges=p.max_hole_edges if max_hole is None else max_hole)
+        run.p = replace(p, open_border=mode, **({} if max_hole is None else {"max_hole_edges": max_hole}))
     if p.open_border == "auto":
         print(f"note: {where}: " + ("an open scan (its outer border is long for its area): the border is kept "
                                     "open" if mode == "open" else "no outer border: every hole is capped")
