@@ -24,6 +24,7 @@ removed on purpose are not damage. The line says which parameter to change.
 from __future__ import annotations
 
 import copy
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -154,6 +155,7 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     where = f"repair={stage.name}: {mesh.source or 'mesh'}"
     if not len(mesh.faces):
         raise StageError(f"{where}: the mesh has no faces to repair (a point cloud? use repair=none)")
+    t0 = time.perf_counter()
     before = audit_mesh(mesh)
     mode, max_hole = _border_plan(p, mesh)
     run = stage
@@ -164,14 +166,18 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
         print(f"note: {where}: " + ("an open scan (its outer border is long for its area): the border is kept "
                                     "open" if mode == "open" else "no outer border: every hole is capped")
               + " (repair.open_border=auto; set cap, open or shell to choose)")
+    t1 = time.perf_counter()
     out = _run_backend(run, mesh, ctx)
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
+    t2 = time.perf_counter()
     after = audit_mesh(out)
     m = {f"{prefix}before_{k}": v for k, v in before.items()}
     m.update({f"{prefix}after_{k}": v for k, v in after.items()})
     m[f"{prefix}open_border_open"] = float(mode in ("open", "shell"))
     m.update(_audit_distances(p, mesh, out, ctx, prefix, m))
+    m[f"{prefix}backend_time_s"] = t2 - t1  # the repair itself (and the shell)
+    m[f"{prefix}audit_time_s"] = (t1 - t0) + (time.perf_counter() - t2)  # the audit's cost, before and after
     problems, hints = [], []
     removed, lost = m[f"{prefix}removed_area_share"], m[f"{prefix}removed_kept_components"]
     if removed > p.max_removed_area:
