@@ -28,7 +28,7 @@ def mesh_stats(mesh: Mesh) -> dict[str, float]:
     nv, nf = len(mesh.vertices), len(f)
     areas, _ = triangle_areas_normals(mesh)
     directed, edge, counts = _edge_table(f)
-    _, dcounts = np.unique(directed, axis=0, return_counts=True)
+    _, dcounts = np.unique(_edge_keys(directed), return_counts=True)
     bnd = directed[counts[edge] == 1]
     used = np.unique(f)
     n_comp = int(_face_components(mesh).max()) + 1 if nf else 0
@@ -88,8 +88,16 @@ def _edge_table(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The faces' directed edges (3M, 2; face k's at rows k, M + k, 2M + k), the undirected edge of each, and
     the number of faces on each undirected edge."""
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    _, edge, counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
+    _, edge, counts = np.unique(_edge_keys(np.sort(directed, axis=1)), return_inverse=True, return_counts=True)
     return directed, edge.ravel(), counts
+
+
+def _edge_keys(e: np.ndarray) -> np.ndarray:
+    """One int64 per vertex pair (a, b), ordered as the pairs are lexicographically (a 1-D ``np.unique`` is
+    several times faster than ``np.unique(axis=0)`` on the pairs)."""
+    e = np.asarray(e, dtype=np.int64)
+    n = int(e.max()) + 1 if e.size else 1
+    return e[:, 0] * n + e[:, 1]
 
 
 def _loop_sizes(bnd: np.ndarray) -> np.ndarray:
@@ -123,3 +131,62 @@ def _face_components(mesh: Mesh) -> np.ndarray:
     adj = coo_matrix((np.ones(3 * nf), (np.repeat(np.arange(nf), 3), f.ravel())), shape=(nf, nv)).tocsr()
     return connected_components(adj @ adj.T, directed=False)[1]
 
+
+
+def component_areas(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The connected component of each face (:func:`_face_components`) and each component's area (input units
+    squared)."""
+    if not len(mesh.faces):
+        return np.zeros(0, np.int64), np.zeros(0)
+    lab = _face_components(mesh)
+    areas, _ = triangle_areas_normals(mesh)
+    return lab, np.bincount(lab, areas)
+
+
+def large_components(mesh: Mesh, min_share: float) -> np.ndarray:
+    """Mask of the faces on components whose area is at least ``min_share`` of the largest component's area
+    (relative to the largest part, never to the bounding box: a speck far away does not make the model small).
+    ``min_share`` 0 keeps every face, 1 the largest component only (and any of equal area)."""
+    lab, ca = component_areas(mesh)
+    if not len(lab):
+        return np.zeros(0, bool)
+    return ca[lab] >= min_share * ca.max()
+
+
+def border_loops(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The boundary loops (connected chains of boundary edges) as ``(edges, ratio, component)``: each loop's
+    number of edges, its length divided by the square root of the area of the component it bounds
+    (dimensionless; see :func:`open_scan_borders`), and that component's label (:func:`_face_components`)."""
+    bnd, bf = boundary_edges(mesh, with_faces=True)
+    if not len(bnd):
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64)
+    v = mesh.vertices
+    bv, binv = np.unique(bnd, return_inverse=True)
+    binv = binv.reshape(-1, 2)
+    g = coo_matrix((np.ones(len(bnd)), (binv[:, 0], binv[:, 1])), shape=(len(bv), len(bv)))
+    loop = connected_components(g, directed=False)[1][binv[:, 0]]
+    length = np.bincount(loop, np.linalg.norm(v[bnd[:, 0]] - v[bnd[:, 1]], axis=1))
+    lab, ca = component_areas(mesh)
+    comp = np.zeros(len(length), np.int64)
+    comp[loop] = lab[bf]
+    return np.bincount(loop), length / np.sqrt(np.maximum(ca[comp], 1e-300)), comp
+
+
+def open_scan_borders(mesh: Mesh, min_ratio: float) -> np.ndarray:
+    """Mask of the boundary loops (in :func:`border_loops` order) that are the outer border of a one-sided
+    scan rather than a hole. The rule: in each connected component, the longest loop (by length) is an outer
+    border when its length is at least ``min_ratio`` times the square root of the component's area; every
+    other loop is a hole.
+
+    The ratio does not depend on size or resolution. A flat disc's rim has 2 sqrt(pi) = 3.5, a hemisphere's
+    sqrt(2 pi) = 2.5; a round hole of radius r in a sphere of radius R has sqrt(pi) r / R < 1.8 (under 0.9 for
+    r = R / 2). Measured: the outer borders of the 10 raw Stanford range scans 8.5-10.9 (their other loops
+    under 1.7), meshlab_defects' open scans 4.6-6.0; the largest of the 70 holes of pymeshfix's closed
+    StanfordBunny 0.47."""
+    _, ratio, comp = border_loops(mesh)
+    out = np.zeros(len(ratio), bool)
+    for c in np.unique(comp):
+        idx = np.flatnonzero(comp == c)
+        best = idx[np.argmax(ratio[idx])]
+        out[best] = ratio[best] >= min_ratio
+    return out

@@ -198,8 +198,8 @@ def test_readme_starts_with_the_two_commands():
 @pytest.mark.slow
 def test_repair_guard_fails_the_run_with_its_audit(tmp_path, mlflow_uri):
     mesh = shared("meshlab_defects/many_small_holes.ply")
-    r = run_cli([f"data.source={mesh}", f"data.target={mesh}", "repair=meshfix", "tracking.experiment=guard",
-                 f"hydra.run.dir={tmp_path / 'g'}"], tmp_path, mlflow_uri)
+    r = run_cli([f"data.source={mesh}", f"data.target={mesh}", "repair=meshfix", "repair.open_border=cap",
+                 "tracking.experiment=guard", f"hydra.run.dir={tmp_path / 'g'}"], tmp_path, mlflow_uri)
     assert r.returncode == 1
     last = r.stderr.strip().splitlines()[-1]
     assert last.startswith("error: repair=meshfix:") and "of the surface" in last and "repair.open_border=shell" in last
@@ -207,12 +207,13 @@ def test_repair_guard_fails_the_run_with_its_audit(tmp_path, mlflow_uri):
     row = runs(mlflow_uri, "guard").iloc[0]
     assert row["status"] == "FAILED" and row["metrics.repair_guard_ok"] == 0
     assert row["metrics.repair_before_boundary_loops"] == 32
-    # the same with the border kept open registers the scan to itself
-    r = run_cli([f"data.source={mesh}", f"data.target={mesh}", "repair=meshfix", "repair.max_hole_edges=100",
-                 "repair.max_hausdorff=0.05", "tracking=none", f"hydra.run.dir={tmp_path / 'ok'}"], tmp_path)
+    # the default (open_border=auto) sees an open scan, keeps its border open and registers the scan to itself
+    r = run_cli([f"data.source={mesh}", f"data.target={mesh}", "repair=meshfix", "tracking=none",
+                 f"hydra.run.dir={tmp_path / 'ok'}"], tmp_path)
     assert r.returncode == 0, r.stderr
     res = json.loads((tmp_path / "ok" / "result.json").read_text())
     assert res["repair_after_boundary_loops"] == 1 and res["repair_after_self_intersecting_faces"] == 0
+    assert res["repair_open_border_open"] == 1 and res["repair_guard_ok"] == 1
 
 
 @pytest.mark.slow

@@ -60,15 +60,18 @@ def test_closed_models_become_single_watertight_manifolds(backend, mesh):
 @pytest.mark.parametrize("backend", ["meshfix", "meshlab"])
 @pytest.mark.parametrize("mesh", ["meshlab_defects/many_small_holes.ply", "meshlab_defects/non_manif_hole.ply"])
 def test_guard_stops_repairs_that_destroy_open_scans(backend, mesh):
-    """Filling every hole caps these open scans' borders; the caps cut through the scans and removing the
-    intersections eats a third or more of the surface. The guard must fail such a run, with the audit."""
+    """Filling every hole (open_border=cap; the default, auto, keeps these borders open) caps these open scans'
+    borders; the caps cut through the scans and removing the intersections eats a third or more of the surface.
+    The guard must fail such a run, with the audit, and say which parameter to change."""
     m = load(mesh)
     with pytest.raises(StageError, match=r"removed \d+\.\d% of the surface") as e:
-        repair_with_audit(stage(backend), m, CTX, "r_")
-    assert "\n" not in str(e.value) and "repair.open_border=shell" in str(e.value)
+        repair_with_audit(stage(backend, open_border="cap"), m, CTX, "r_")
+    assert "\n" not in str(e.value) and "repair.open_border=open" in str(e.value)
+    assert str(e.value).startswith(f"repair={backend}: {mesh}: ")
     assert e.value.metrics["r_removed_area_share"] > 0.3 and e.value.metrics["r_guard_ok"] == 0
+    assert e.value.metrics["r_open_border_open"] == 0
     # check_only audits the same repair but hands the unchanged mesh on
-    out, metrics = repair_with_audit(stage(backend, check_only=True), m, CTX, "r_")
+    out, metrics = repair_with_audit(stage(backend, open_border="cap", check_only=True), m, CTX, "r_")
     assert out is m and metrics["r_guard_ok"] == 0
 
 
@@ -162,7 +165,8 @@ def test_open_scans_become_watertight_shells(backend, mesh):
     assert a["guard_ok"] == 1 and a["removed_area_share"] < (0.1 if small else 0.01)
     # the small meshes' median edge is 1.3 % (many_small_holes) and 3.8 % (non_manif_hole) of the diagonal: the
     # few border slivers the repair drops move the surface by about an edge, which the guard allows there
-    assert a["hausdorff_max_rel"] < a["hausdorff_limit_rel"] <= (0.08 if small else 0.01)
+    assert a["hausdorff_max_rel"] < a["hausdorff_limit_rel"] and a["hausdorff_max_rel"] < (0.08 if small else 0.01)
+    assert a["displacement_q_edges"] <= 2.0 and a["open_border_open"] == 1
     assert a["hausdorff_added_max_rel"] < 0.05  # the back lies just behind the surface
     assert out.closure_faces > 0
     scanned = out.scanned()

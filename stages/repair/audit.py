@@ -2,33 +2,39 @@
 :class:`AuditedRepair`, whose :meth:`~AuditedRepair.repair` runs the backend, audits the mesh before and after
 and applies the guard.
 
-Mesh repair backends, and the audit that reports what a repair changed and guards against destroyed models.
+Before the backend runs, the repair decides two things from the input alone:
+- which parts are kept: the connected components whose area is at least ``min_component_share`` of the largest
+  part's; the others (specks, scanner debris) are removed on purpose and reported as ``removed_components``;
+- what becomes of an open scan's outer border (``open_border``; ``auto`` tells a one-sided scan from a closed
+  model with holes by :func:`~scanreg.topology.open_scan_borders`).
 
-Every backend's ``Params`` include the guard (:class:`GuardParams`). After a repair the audit compares the input
-and the output:
+The audit then compares the input and the output:
 - topology and size before and after (:func:`audit_mesh`);
-- the one-sided Hausdorff distances input -> output (how far the input surface is from the repaired one, large
-  where parts were removed) and output -> input (large where holes were filled);
-- the share of the input surface that is no longer there.
+- the distances from the kept input parts to the output (large where surface was removed or moved) and the
+  other way (large where holes were filled);
+- the share of the kept input surface that is no longer there.
 
-The run fails with one clear line when the repair removed more than ``max_removed_area`` of the surface, or
-moved it by more than ``max_hausdorff`` of the diagonal. This is MeshFix's known failure of reducing a dental
-bridge to one tooth, or of eating an open scan whose outer border was capped. Open scans are made watertight
-without that loss by ``open_border=shell`` (:func:`close_as_shell`).
+The guard measures damage to what was to be kept: the run fails with one clear line when the repair removed
+more than ``max_removed_area`` of the kept parts' surface, or when the ``displacement_quantile`` quantile of
+the distance from the kept input surface to the output exceeds ``max_displacement_edges`` median edge lengths
+(the scan's own resolution: a sliver trimmed at a ragged border moves the surface by about one edge). Parts
+removed on purpose are not damage. The line says which parameter to change.
 """
 
 from __future__ import annotations
 
 import copy
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from scanreg.config import Context
-from scanreg.errors import StageError
-from scanreg.geometry import Mesh, bbox_diagonal, row_norms
+from scanreg.errors import ScanregError, StageError
+from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.shell import close_as_shell
-from scanreg.topology import audit_mesh, boundary_loop_sizes, surface_distances
+from scanreg.topology import (audit_mesh, border_loops, component_areas, large_components, open_scan_borders,
+                              surface_distances)
 
 
 @dataclass
@@ -39,28 +45,50 @@ class GuardParams:
     check_only: bool = False
     """Audit what the repair would do (the before/after table and the guard) but go on with the unrepaired
     mesh; a guard violation is then reported, not fatal."""
+    min_component_share: float = 0.01
+    """Parts (connected components) whose area is below this share of the largest part's area are removed on
+    purpose, as specks and scanner debris, and reported (``removed_components``); every other part is repaired
+    and kept (a head with separate eyes, a chair's legs). Dimensionless, relative to the largest part, never
+    to the bounding box. 1: the largest part only; 0: every part."""
     max_removed_area: float = 0.10
-    """Fail when more than this share of the input surface is gone after the repair (see
-    ``removed_tolerance``)."""
-    max_hausdorff: float = 0.01
-    """Fail when a point of the input surface lies farther than this share of the bounding-box diagonal
-    from the repaired surface (one-sided Hausdorff distance, input -> output)."""
+    """Fail when more than this share of the kept parts' input surface (area share, 0-1) is gone after the
+    repair (see ``removed_tolerance``). Parts removed on purpose (``min_component_share``) do not count."""
+    max_displacement_edges: float = 2.0
+    """Fail when the ``displacement_quantile`` quantile of the distance from the kept input surface to the
+    repaired surface exceeds this many median edge lengths of the input (the scan's own resolution). Slivers
+    trimmed at a ragged scan border move a little surface by about one edge; a capped border eaten by
+    intersection removal moves a lot of it by tens of edges."""
+    displacement_quantile: float = 0.99
+    """The quantile (0-1) of the input -> output distances that ``max_displacement_edges`` limits."""
+    max_hausdorff: float = 0.05
+    """Fail when any point of the kept input surface lies farther than this share of the kept parts'
+    bounding-box diagonal from the repaired surface (one-sided Hausdorff distance, input -> output): a
+    backstop for a region cut away whole (see ``max_hausdorff_edges``)."""
     max_hausdorff_edges: float = 2.0
     """The Hausdorff limit is at least this many median edge lengths of the input: on a coarse mesh one
-    triangle can span more than ``max_hausdorff`` of the diagonal, and dropping a sliver at a ragged border
-    must not fail the run (0: the diagonal share alone)."""
+    triangle can span more than ``max_hausdorff`` of the diagonal (0: the diagonal share alone)."""
     removed_tolerance: float = 0.002
-    """An input surface point counts as removed when it lies farther than this share of the bounding-box
-    diagonal from the repaired surface."""
+    """A kept input surface point counts as removed when it lies farther than this share of the kept parts'
+    bounding-box diagonal from the repaired surface (a part counts as removed when most of its vertices
+    do)."""
     audit_samples: int = 20000
-    """Points sampled on each surface to measure the Hausdorff distances and the removed share."""
-    open_border: str = "cap"
-    """What becomes of an open scan's outer border, the longest boundary loop (with ``max_hole_edges`` set:
-    every loop longer than that). ``cap``: filled like any hole (MeshFix's way; right for closed models with
-    holes, but on an open scan the cap cuts through the surface and the guard fails the run). ``open``: left
-    open. ``shell``: the scan is closed as a thin shell, its surface plus an offset copy ``shell_thickness``
-    behind it, joined along the border: watertight without changing or removing any scanned surface; samplers
-    and the evaluation use the scanned side only."""
+    """Points sampled on each surface to measure the distances and the removed share (count)."""
+    open_border: str = "auto"
+    """What becomes of an open scan's outer border. ``auto``: a mesh with an outer border (a boundary loop at
+    least ``open_border_ratio`` times as long as the square root of its part's area,
+    :func:`~scanreg.topology.open_scan_borders`) is a one-sided scan and keeps that border open, as ``open``;
+    a closed model with holes is capped, as ``cap``. The choice is reported (``open_border_open`` 0/1).
+    ``cap``: every hole filled, the outer border too (MeshFix's way; right for closed models with holes, but
+    on an open scan the cap cuts through the surface and the guard fails the run). ``open``: the outer border
+    (the detected loops, or with none detected every loop over half the longest one's edges) is left open
+    and the smaller holes are filled. ``shell``: as ``open``, then the scan is closed as a thin shell, its
+    surface plus an offset copy ``shell_thickness`` behind it, joined along the border: watertight without
+    changing any scanned surface; samplers and the evaluation use the scanned side only (3-5x the time of
+    ``open``)."""
+    open_border_ratio: float = 2.0
+    """``open_border=auto``: a boundary loop at least this many times as long as the square root of its
+    part's area is an outer border (dimensionless; a disc's rim 3.5, a hemisphere's 2.5, a hole of half the
+    radius in a sphere 0.9; raw Stanford scans 8.5-10.9, the holes of closed models under 0.5)."""
     shell_thickness: float = 0.001
     """``open_border=shell``: distance of the back side behind the surface, as a share of the bounding-box
     diagonal (less where the space behind the surface is narrower, see :func:`close_as_shell`)."""
@@ -68,65 +96,163 @@ class GuardParams:
     def check(self):
         if self.apply_to not in ("source", "target", "both"):
             raise ValueError(f"apply_to must be source, target or both, got '{self.apply_to}'")
-        if self.open_border not in ("cap", "open", "shell"):
-            raise ValueError(f"open_border must be cap, open or shell, got '{self.open_border}'")
+        if self.open_border not in ("auto", "cap", "open", "shell"):
+            raise ValueError(f"open_border must be auto, cap, open or shell, got '{self.open_border}'")
         if not self.shell_thickness > 0:
             raise ValueError(f"shell_thickness must be > 0, got {self.shell_thickness}")
+        if not 0 <= self.min_component_share <= 1:
+            raise ValueError(f"min_component_share must be in [0, 1], got {self.min_component_share}")
+        if not 0 < self.displacement_quantile <= 1:
+            raise ValueError(f"displacement_quantile must be in (0, 1], got {self.displacement_quantile}")
 
+
+def _median_edge(mesh: Mesh) -> float:
+    v, f = mesh.vertices, mesh.faces
+    return float(np.median(row_norms(v[f[:, [1, 2, 0]]] - v[f]))) if len(f) else 0.0
+
+
+def _border_plan(p: GuardParams, mesh: Mesh) -> tuple[str, int | None]:
+    """The border mode to apply (``cap``, ``open`` or ``shell``) and the hole size limit (edges) that keeps
+    the outer border open (None: the backend's own ``max_hole_edges``)."""
+    fills = getattr(p, "fill_holes", getattr(p, "close_holes", False))
+    mode = p.open_border
+    edges = border_loops(mesh)[0]
+    outer = open_scan_borders(mesh, p.open_border_ratio) if len(edges) else np.zeros(0, bool)
+    if mode == "auto":
+        mode = "open" if outer.any() else "cap"
+    if mode == "cap" or not fills or not len(edges) or p.max_hole_edges:
+        return mode, None
+    if outer.any():
+        # every hole filled, the outer borders not: the limit is half the shortest outer border (the border
+        # changes while intersections near it are cut out and refilled), more if a hole is larger
+        shortest = int(edges[outer].min())
+        holes = edges[~outer]
+        return mode, max(shortest // 2, int(holes.max()) if len(holes) and holes.max() < shortest else 0, 1)
+    return mode, max(int(edges.max()) // 2, 1)  # keep loops over half the longest open
+
+
+def _run_backend(stage, mesh: Mesh, ctx: Context) -> Mesh:
+    """The backend's ``run``; any failure, and an empty result, as one line naming the backend and file."""
+    where = f"repair={stage.name}: {mesh.source or 'mesh'}"
+    try:
+        out = stage.run(mesh, ctx)
+    except ScanregError:
+        raise
+    except Exception as e:  # a library's exception (PyMeshLabException, ...) becomes one line
+        first = (str(e).strip().splitlines() or [""])[0][:200]
+        raise StageError(f"{where}: the backend failed ({type(e).__name__}: {first}); try the other backend "
+                         "(repair=meshfix / repair=meshlab) or repair=none") from e
+    if not len(out.faces):
+        raise StageError(f"{where}: the repair left no face; try the other backend (repair=meshfix / "
+                         "repair=meshlab) or repair=none")
+    return out
 
 
 def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mesh, dict[str, float]]:
     """Run ``stage`` on ``mesh``, audit before/after under ``prefix`` (``repair_``/``target_repair_``), apply
     the guard. Returns the mesh to go on with and the metrics."""
     p: GuardParams = stage.p
+    where = f"repair={stage.name}: {mesh.source or 'mesh'}"
+    if not len(mesh.faces):
+        raise StageError(f"{where}: the mesh has no faces to repair (a point cloud? use repair=none)")
+    t0 = time.perf_counter()
     before = audit_mesh(mesh)
-    if p.open_border != "cap" and getattr(p, "fill_holes", getattr(p, "close_holes", False)):
-        sizes = boundary_loop_sizes(mesh)
-        if len(sizes) and not p.max_hole_edges:  # keep loops over half the longest (the outer border) open
-            stage = copy.copy(stage)
-            stage.p = replace(p, max_hole_edges=int(sizes.max()) // 2)
-    out = stage.run(mesh, ctx)
-    if p.open_border == "shell":
+    mode, max_hole = _border_plan(p, mesh)
+    run = stage
+    if max_hole is not None or p.open_border != "cap":
+        run = copy.copy(stage)
+        run.p = replace(p, open_border=mode, **({} if max_hole is None else {"max_hole_edges": max_hole}))
+    if p.open_border == "auto":
+        print(f"note: {where}: " + ("an open scan (its outer border is long for its area): the border is kept "
+                                    "open" if mode == "open" else "no outer border: every hole is capped")
+              + " (repair.open_border=auto; set cap, open or shell to choose)")
+    t1 = time.perf_counter()
+    out = _run_backend(run, mesh, ctx)
+    if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
+    t2 = time.perf_counter()
     after = audit_mesh(out)
     m = {f"{prefix}before_{k}": v for k, v in before.items()}
     m.update({f"{prefix}after_{k}": v for k, v in after.items()})
-    diag = bbox_diagonal(mesh.vertices)
-    d_in = surface_distances(mesh, out, p.audit_samples, ctx.seed)
-    d_out = surface_distances(out, mesh, p.audit_samples, ctx.seed + 1)
-    removed = float((d_in > p.removed_tolerance * diag).mean())
-    m.update({
-        f"{prefix}hausdorff_max": float(d_in.max()),
-        f"{prefix}hausdorff_mean": float(d_in.mean()),
-        f"{prefix}hausdorff_max_rel": float(d_in.max() / diag),
-        f"{prefix}hausdorff_mean_rel": float(d_in.mean() / diag),
-        f"{prefix}hausdorff_added_max": float(d_out.max()),
-        f"{prefix}hausdorff_added_max_rel": float(d_out.max() / diag),
-        f"{prefix}removed_area_share": removed,
-    })
-    problems = []
+    m[f"{prefix}open_border_open"] = float(mode in ("open", "shell"))
+    m.update(_audit_distances(p, mesh, out, ctx, prefix, m))
+    m[f"{prefix}backend_time_s"] = t2 - t1  # the repair itself (and the shell)
+    m[f"{prefix}audit_time_s"] = (t1 - t0) + (time.perf_counter() - t2)  # the audit's cost, before and after
+    problems, hints = [], []
+    removed, lost = m[f"{prefix}removed_area_share"], m[f"{prefix}removed_kept_components"]
     if removed > p.max_removed_area:
-        problems.append(f"removed {removed:.1%} of the surface (limit repair.max_removed_area={p.max_removed_area:g})")
-    v, f = mesh.vertices, mesh.faces
-    edge = float(np.median(row_norms(v[f[:, [1, 2, 0]]] - v[f]))) if len(f) else 0.0
-    limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
-    m[f"{prefix}hausdorff_limit_rel"] = float(limit / diag)
-    if d_in.max() > limit:
-        problems.append(f"moved it by up to {d_in.max() / diag:.2%} of the diagonal (limit "
-                        f"{limit / diag:.2%}: repair.max_hausdorff={p.max_hausdorff:g}, or "
+        problems.append(f"removed {removed:.1%} of the surface it was to keep (limit "
+                        f"repair.max_removed_area={p.max_removed_area:g})")
+    if lost:
+        hints.append(f"{int(lost)} part(s) above repair.min_component_share={p.min_component_share:g} of the "
+                     "largest part's area are gone: raise it to drop such parts on purpose, or try the other "
+                     "backend")
+    q_edges, q_limit = m[f"{prefix}displacement_q_edges"], p.max_displacement_edges
+    if q_edges > q_limit:
+        problems.append(f"moved {1 - p.displacement_quantile:.0%} of it by {q_edges:.1f} median edges or more "
+                        f"(limit repair.max_displacement_edges={q_limit:g})")
+    if m[f"{prefix}hausdorff_max_rel"] > m[f"{prefix}hausdorff_limit_rel"]:
+        problems.append(f"moved it by up to {m[f'{prefix}hausdorff_max_rel']:.2%} of the diagonal (limit "
+                        f"{m[f'{prefix}hausdorff_limit_rel']:.2%}: repair.max_hausdorff={p.max_hausdorff:g}, or "
                         f"repair.max_hausdorff_edges={p.max_hausdorff_edges:g} median edges if more)")
     m[f"{prefix}guard_ok"] = float(not problems)
     if problems:
-        msg = (f"repair={stage.name}: {mesh.source}: the repair {' and '.join(problems)}; it would destroy part "
-               "of the model. An open scan's outer border capped by hole filling does this: close the scan as a "
-               "thin shell with repair.open_border=shell, keep the border open with repair.open_border=open, or "
-               "inspect with repair.check_only=true")
+        if mode == "cap" and len(border_loops(mesh)[0]):
+            hints.append("if this is an open scan whose outer border was capped, keep it open with "
+                         "repair.open_border=open (or close it as a thin shell with repair.open_border=shell)")
+        hints.append("inspect with repair.check_only=true, or skip the repair with repair=none")
+        msg = f"{where}: the repair {' and '.join(problems)}; it would destroy part of the model. " \
+              + "; ".join(hints)
         if not p.check_only:
             raise StageError(msg, metrics=m)
         print(f"warning: {msg}")
     return (mesh if p.check_only else out), m
 
 
+def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ctx: Context, prefix: str,
+                     m: dict) -> dict[str, float]:
+    """The input's parts sorted into removed on purpose, kept, and lost; the distances between the kept input
+    surface and the output (see the module docstring)."""
+    lab, ca = component_areas(mesh)
+    keep = large_components(mesh, p.min_component_share)
+    kept_in = submesh(mesh, keep)
+    diag = bbox_diagonal(kept_in.vertices)
+    edge = _median_edge(kept_in)
+    tol = p.removed_tolerance * diag
+    # a part is gone when most of its vertices are farther than the tolerance from the output
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(out.vertices.astype(np.float32)),
+                        o3d.core.Tensor(out.faces.astype(np.uint32)))
+    used = np.unique(mesh.faces)
+    dv = np.full(len(mesh.vertices), np.inf)
+    dv[used] = scene.compute_distance(o3d.core.Tensor(mesh.vertices[used].astype(np.float32))).numpy()
+    vcomp = np.zeros(len(mesh.vertices), np.int64)
+    vcomp[mesh.faces.ravel()] = np.repeat(lab, 3)
+    far = np.bincount(vcomp[used], dv[used] > tol, minlength=len(ca)) / np.bincount(vcomp[used], minlength=len(ca))
+    gone = far > 0.5
+    large = ca >= p.min_component_share * ca.max()
+    d_in = surface_distances(kept_in, out, p.audit_samples, ctx.seed)
+    d_out = surface_distances(out, mesh, p.audit_samples, ctx.seed + 1)
+    limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
+    return {
+        f"{prefix}components_kept": float((~gone).sum()),
+        f"{prefix}removed_components": float((gone & ~large).sum()),
+        f"{prefix}removed_components_area_share": float(ca[gone & ~large].sum() / ca.sum()),
+        f"{prefix}removed_kept_components": float((gone & large).sum()),
+        f"{prefix}median_edge": edge,
+        f"{prefix}hausdorff_max": float(d_in.max()),
+        f"{prefix}hausdorff_mean": float(d_in.mean()),
+        f"{prefix}hausdorff_max_rel": float(d_in.max() / diag),
+        f"{prefix}hausdorff_mean_rel": float(d_in.mean() / diag),
+        f"{prefix}hausdorff_max_edges": float(d_in.max() / edge),
+        f"{prefix}hausdorff_limit_rel": float(limit / diag),
+        f"{prefix}displacement_q_edges": float(np.quantile(d_in, p.displacement_quantile) / edge),
+        f"{prefix}hausdorff_added_max": float(d_out.max()),
+        f"{prefix}hausdorff_added_max_rel": float(d_out.max() / diag),
+        f"{prefix}removed_area_share": float((d_in > tol).mean()),
+    }
 
 
 class AuditedRepair:

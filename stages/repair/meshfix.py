@@ -8,25 +8,26 @@ import numpy as np
 
 from scanreg.config import Context
 from scanreg.errors import StageError
-from scanreg.geometry import Mesh
+from scanreg.geometry import Mesh, submesh
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
-from scanreg.topology import _face_components, _meshset, mesh_stats
+from scanreg.topology import _face_components, _meshset, large_components, mesh_stats
 
 
 @REPAIR.register("meshfix")
 class MeshFix(AuditedRepair):
-    """MeshFix (Attene 2010) through pymeshfix. It keeps the largest component (or joins components), fixes
+    """MeshFix (Attene 2010) through pymeshfix. It removes the parts below ``min_component_share`` of the
+    largest part's area and repairs every other part on its own (MeshFix itself keeps one component, and its
+    intersection removal between touching parts, a head and its eyes, can eat them whole): it fixes
     connectivity and orientation, removes degenerate and self-intersecting triangles, and fills holes."""
 
     @dataclass
     class Params(GuardParams):
-        keep_largest: bool = True
-        """Remove all but the largest connected component before repairing."""
+        keep_largest: bool = False
+        """Keep the largest part only (as ``min_component_share=1``; MeshFix's own behaviour)."""
         join_components: bool = False
-        """Try to join nearby open components (before keeping the largest)."""
-        min_component_share: float = 0.0
-        """With ``keep_largest`` false: remove components with fewer than this share of the faces."""
+        """Try to join nearby open components (MeshFix's ``join_closest_components``; all parts are then
+        repaired as one mesh, and MeshFix keeps the largest)."""
         fill_holes: bool = True
         """Fill boundary loops (holes)."""
         max_hole_edges: int = 0
@@ -44,20 +45,36 @@ class MeshFix(AuditedRepair):
         self.p = params
 
     def run(self, mesh: Mesh, ctx: Context) -> Mesh:
+        p = self.p
+        keep = large_components(mesh, 1.0 if p.keep_largest else p.min_component_share)
+        if not keep.all():
+            mesh = submesh(mesh, keep)
+        if not p.join_components:
+            lab = _face_components(mesh)
+            if lab.max() > 0:  # several parts: each repaired on its own, the results side by side
+                parts = [self._run_one(submesh(mesh, lab == k), ctx) for k in range(lab.max() + 1)]
+                parts = [q for q in parts if len(q.faces)]
+                if not parts:
+                    raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
+                off = np.cumsum([0] + [len(q.vertices) for q in parts])
+                return Mesh(np.vstack([q.vertices for q in parts]),
+                            np.vstack([q.faces + o for q, o in zip(parts, off)]), mesh.source)
+        out = self._run_one(mesh, ctx)
+        if len(out.faces) == 0:
+            raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
+        return out
+
+    def _run_one(self, mesh: Mesh, ctx: Context) -> Mesh:
+        """MeshFix on one part (or on every part with ``join_components``); may return no face."""
         import pymeshfix
 
         p = self.p
-        if not p.keep_largest and p.min_component_share > 0:
-            lab = _face_components(mesh)
-            share = np.bincount(lab) / len(lab)
-            mesh = Mesh(mesh.vertices, mesh.faces[share[lab] >= p.min_component_share], mesh.source)
         tin = pymeshfix.PyTMesh()
         tin.set_quiet(not (ctx.verbose if ctx else False))
         tin.load_array(mesh.vertices, mesh.faces.astype(np.int32))
         if p.join_components:
             tin.join_closest_components()
-        if p.keep_largest:
-            tin.remove_smallest_components()
+        tin.remove_smallest_components()  # one part here (or the joined ones): bits MeshFix splits off
         if p.fill_holes:
             tin.fill_small_boundaries(nbe=p.max_hole_edges, refine=p.refine)
         if p.clean_iterations > 0 and not (p.fill_holes and p.max_hole_edges > 0):
@@ -67,8 +84,6 @@ class MeshFix(AuditedRepair):
             # MeshFix's clean() fills every boundary while it removes intersections, capping the outer border
             # that max_hole_edges keeps open; remove intersections here and refill only holes under the limit.
             v, f = self._clean_keeping_borders(np.asarray(v), np.asarray(f), ctx)
-        if len(f) == 0:
-            raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
         return Mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), mesh.source)
 
     def _clean_keeping_borders(self, v: np.ndarray, f: np.ndarray, ctx: Context) -> tuple[np.ndarray, np.ndarray]:

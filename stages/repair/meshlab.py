@@ -8,17 +8,17 @@ import numpy as np
 
 from scanreg.config import Context
 from scanreg.errors import StageError
-from scanreg.geometry import Mesh
+from scanreg.geometry import Mesh, submesh
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
-from scanreg.topology import _meshset, mesh_stats
+from scanreg.topology import _meshset, large_components, mesh_stats
 
 
 @REPAIR.register("meshlab")
 class MeshLab(AuditedRepair):
     """A MeshLab (pymeshlab) filter chain covering MeshFix's steps, each switchable. It merges duplicate or
     close vertices, removes duplicate and null faces, repairs non-manifold edges and vertices, removes small
-    components and orients coherently. It then loops, up to ``max_rounds`` times: delete the self-intersecting
+    components (below ``min_component_share`` of the largest part's area) and orients coherently. It then loops, up to ``max_rounds`` times: delete the self-intersecting
     faces and a ring around them, repair again, and close the holes, until the mesh is clean."""
 
     @dataclass
@@ -31,8 +31,6 @@ class MeshLab(AuditedRepair):
         """Remove faces of zero area."""
         repair_non_manifold: bool = True
         """Remove faces on non-manifold edges, split non-manifold vertices."""
-        min_component_diag: float = 0.5
-        """Remove components whose bounding-box diagonal is below this share of the mesh's (0: keep all)."""
         orient: bool = True
         """Orient all faces coherently."""
         remove_self_intersections: bool = True
@@ -66,10 +64,15 @@ class MeshLab(AuditedRepair):
         if p.repair_non_manifold:
             ms.meshing_repair_non_manifold_edges(method=0)
             ms.meshing_repair_non_manifold_vertices()
-        if p.min_component_diag > 0:
-            ms.meshing_remove_connected_component_by_diameter(
-                mincomponentdiag=pymeshlab.PercentageValue(100 * p.min_component_diag))
         ms.meshing_remove_unreferenced_vertices()
+        if p.min_component_share > 0:  # relative to the largest part, not to the bounding box
+            cm = ms.current_mesh()
+            mesh = Mesh(cm.vertex_matrix(), cm.face_matrix())
+            keep = large_components(mesh, p.min_component_share)
+            if not keep.all():
+                small = submesh(mesh, keep)
+                ms.clear()
+                ms.add_mesh(pymeshlab.Mesh(small.vertices, small.faces.astype(np.int32)))
 
     def _close(self, ms, prevent: bool) -> None:
         import pymeshlab

@@ -1,0 +1,175 @@
+"""Issue #13 items 1-2 and #19 item 5: the default repair on the data users bring. Open range scans keep their
+outer border open, closed models with holes are capped, specks are removed and reported without failing the
+guard, closed models of several parts keep every part, and backend failures are one line."""
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from conftest import shared
+from scanreg.config import Context
+from scanreg.errors import StageError
+from scanreg.geometry import Mesh, bbox_diagonal
+from scanreg.io import read_mesh
+from scanreg.registry import REPAIR, make_params
+from scanreg.stages.repair import AuditedRepair, GuardParams, repair_with_audit
+from scanreg.topology import border_loops, mesh_stats, open_scan_borders
+
+CTX = Context(seed=0, run_dir=None)
+BUNNY = "pkg:pymeshfix/examples/StanfordBunny.ply"
+SCANS = ["bun000", "bun045", "bun090", "bun180", "bun270", "bun315", "chin", "ear_back", "top2", "top3"]
+
+
+def stage(name, **kw):
+    cls = REPAIR.get(name)
+    return cls(make_params(cls.Params, kw, f"repair={name}"))
+
+
+def strip(m, prefix="r_"):
+    return {k[len(prefix):]: v for k, v in m.items()}
+
+
+def with_speck(mesh: Mesh) -> Mesh:
+    """``mesh`` plus a small tetrahedron 1.2 diagonals away (a scanner's speck)."""
+    d = bbox_diagonal(mesh.vertices)
+    tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.01 * d
+    tet += mesh.vertices.max(axis=0) + 1.2 * d / np.sqrt(3)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]) + len(mesh.vertices)
+    return Mesh(np.vstack([mesh.vertices, tet]), np.vstack([mesh.faces, faces]), "bunny+speck")
+
+
+def two_spheres() -> Mesh:
+    """Two closed spheres, radius 1 and 0.4 (area share 0.16), 1 apart."""
+    import open3d as o3d
+
+    a = o3d.geometry.TriangleMesh.create_sphere(1.0, 20)
+    b = o3d.geometry.TriangleMesh.create_sphere(0.4, 12).translate((2.4, 0, 0))
+    va, fa = np.asarray(a.vertices), np.asarray(a.triangles)
+    vb, fb = np.asarray(b.vertices), np.asarray(b.triangles)
+    return Mesh(np.vstack([va, vb]), np.vstack([fa, fb + len(va)]).astype(np.int64), "two_spheres")
+
+
+# ---------------------------------------------------------------------------------------------- detection
+
+
+def test_open_scan_detection_rule():
+    """The outer border of a raw range scan is many times sqrt(area) long; the 70 holes of a closed model are
+    not; a flat disc (ratio 3.5) is open, a sphere with a hole of a third of its radius (0.6) is not."""
+    scan = read_mesh(shared("stanford_bunny/bun000.ply"))
+    edges, ratio, _ = border_loops(scan)
+    outer = open_scan_borders(scan, 2.0)
+    assert outer.sum() == 1 and ratio[outer][0] > 8 and edges[outer][0] == edges.max()
+    bunny = read_mesh(BUNNY)
+    assert len(border_loops(bunny)[0]) == 70 and not open_scan_borders(bunny, 2.0).any()
+    assert border_loops(bunny)[1].max() < 0.5
+    import open3d as o3d
+
+    s = o3d.geometry.TriangleMesh.create_sphere(1.0, 40)
+    v, f = np.asarray(s.vertices), np.asarray(s.triangles)
+    cap = (v[f][:, :, 2] > np.cos(np.arcsin(1 / 3))).any(axis=1)  # a hole of radius 1/3
+    holed = Mesh(v, f[~cap])
+    assert not open_scan_borders(holed, 2.0).any() and 0.4 < border_loops(holed)[1][0] < 0.8
+    disc = Mesh(v, f[v[f][:, :, 2].min(axis=1) > 0.8])  # a shallow spherical cap: nearly a disc
+    assert open_scan_borders(disc, 2.0).all() and border_loops(disc)[1][0] > 3.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", SCANS)
+def test_every_raw_stanford_scan_passes_the_default_repair(name):
+    """No overrides: the outer border stays open, every other hole is filled, the guard passes."""
+    m = read_mesh(shared(f"stanford_bunny/{name}.ply"))
+    m.source = name
+    out, metrics = repair_with_audit(stage("meshfix"), m, CTX, "r_")
+    a = strip(metrics)
+    assert a["guard_ok"] == 1 and a["open_border_open"] == 1
+    assert a["removed_area_share"] < 0.05 and a["displacement_q_edges"] < 2.0  # measured: at most 2.5 % (bun090)
+    assert a["after_non_manifold_edges"] == 0 and a["after_boundary_loops"] < a["before_boundary_loops"]
+    assert a["after_components"] == 1
+    assert open_scan_borders(out, 2.0).sum() == 1  # the border is still there
+
+
+def test_closed_model_with_holes_is_capped_by_default():
+    _, metrics = repair_with_audit(stage("meshfix"), read_mesh(BUNNY), CTX, "r_")
+    a = strip(metrics)
+    assert a["open_border_open"] == 0 and a["before_boundary_loops"] == 70
+    assert a["after_watertight"] == 1 and a["after_components"] == 1 and a["guard_ok"] == 1
+
+
+# ---------------------------------------------------------------------------------------------- parts
+
+
+@pytest.mark.parametrize("backend", ["meshfix", pytest.param("meshlab", marks=pytest.mark.slow)])  # meshlab ~40 s
+def test_a_speck_is_removed_and_reported_not_damage(backend):
+    m = with_speck(read_mesh(BUNNY))
+    out, metrics = repair_with_audit(stage(backend), m, CTX, "r_")
+    a = strip(metrics)
+    assert a["guard_ok"] == 1 and a["removed_components"] == 1
+    assert 0 < a["removed_components_area_share"] < 1e-3 and a["removed_kept_components"] == 0
+    assert a["after_components"] == 1 and a["after_watertight"] == 1
+    assert a["hausdorff_max_rel"] < 0.01  # measured on the kept bunny, relative to its own diagonal
+    assert bbox_diagonal(out.vertices) < 0.5 * bbox_diagonal(m.vertices)  # the speck is gone
+
+
+@pytest.mark.parametrize("backend", ["meshfix", "meshlab"])
+def test_a_closed_two_part_model_keeps_both_parts(backend):
+    m = two_spheres()
+    out, metrics = repair_with_audit(stage(backend), m, CTX, "r_")
+    a = strip(metrics)
+    assert a["guard_ok"] == 1 and a["after_components"] == 2 and a["components_kept"] == 2
+    assert a["removed_components"] == 0 and a["after_watertight"] == 1
+    assert mesh_stats(out)["area"] == pytest.approx(mesh_stats(m)["area"], rel=0.01)
+    # the largest part only: the small sphere is dropped on purpose, reported, and not damage
+    out1, m1 = repair_with_audit(stage(backend, min_component_share=1.0), m, CTX, "r_")
+    a1 = strip(m1)
+    assert a1["guard_ok"] == 1 and a1["after_components"] == 1 and a1["removed_components"] == 1
+    assert a1["removed_components_area_share"] == pytest.approx(0.16 / 1.16, rel=0.05)
+
+
+@dataclass
+class _FakeParams(GuardParams):
+    pass
+
+
+class _Fake(AuditedRepair):
+    """A backend that does what it is told: ``result`` maps the input to the output, or raises."""
+
+    name = "fake"
+
+    def __init__(self, result, **kw):
+        self.p = _FakeParams(**kw)
+        self.result = result
+
+    def run(self, mesh, ctx):
+        return self.result(mesh)
+
+
+def test_a_lost_part_fails_the_guard_naming_the_parameter():
+    m = two_spheres()
+    def big_only(mesh):  # drops the small sphere (x > 1.5)
+        return Mesh(mesh.vertices, mesh.faces[mesh.vertices[mesh.faces[:, 0], 0] < 1.5], mesh.source)
+
+    with pytest.raises(StageError) as e:
+        repair_with_audit(_Fake(big_only), m, CTX, "r_")
+    msg = str(e.value)
+    assert msg.startswith("repair=fake: two_spheres: ") and "\n" not in msg
+    assert "repair.min_component_share=0.01" in msg and "removed" in msg
+    assert e.value.metrics["r_removed_kept_components"] == 1 and e.value.metrics["r_guard_ok"] == 0
+    # with the small part below the threshold the same result is a removal on purpose
+    _, metrics = repair_with_audit(_Fake(big_only, min_component_share=0.5), m, CTX, "r_")
+    assert metrics["r_guard_ok"] == 1 and metrics["r_removed_components"] == 1
+
+
+def test_backend_failures_are_one_line_naming_backend_and_file():
+    import pymeshlab
+
+    m = two_spheres()
+
+    def boom(mesh):
+        raise pymeshlab.PyMeshLabException("Failed to apply filter\nCurrent mesh does not have Any Faces")
+
+    with pytest.raises(StageError) as e:
+        repair_with_audit(_Fake(boom), m, CTX, "r_")
+    assert str(e.value).startswith("repair=fake: two_spheres: the backend failed") and "\n" not in str(e.value)
+    with pytest.raises(StageError, match=r"^repair=fake: two_spheres: the repair left no face"):
+        repair_with_audit(_Fake(lambda mesh: Mesh(mesh.vertices, mesh.faces[:0], mesh.source)), m, CTX, "r_")
