@@ -133,9 +133,10 @@ class IcpParams:
     """Keep the start pose when ICP's final pose explains the data worse (fewer source points within
     ``accept_distance``, or as many at a higher RMS over them; see :meth:`IcpBase.accept`); logs
     ``icp_accepted``."""
-    accept_distance: float = 3.0
+    accept_distance: Optional[float] = None
     """The fixed distance of the acceptance test (see ``distances``): the start and the final pose are compared
-    by the share of source points within it and their RMS distance."""
+    by the share of source points within it and their RMS distance. null: ``max_correspondence_distance`` (the
+    final pair limit), or 3 spacings when that is null too."""
     trim: float = 1.0
     """Keep only this share of the pairs, the closest ones, at each iteration (trimmed ICP; 1: keep all).
     Set it to the expected overlap."""
@@ -171,6 +172,8 @@ class IcpParams:
             raise ValueError(f"initial_distance must be > 0, got {self.initial_distance}")
         if not 0 < self.shrink < 1:
             raise ValueError(f"shrink must be in (0, 1), got {self.shrink}")
+        if self.accept_distance is not None and not self.accept_distance > 0:
+            raise ValueError(f"accept_distance must be > 0 or null, got {self.accept_distance}")
         if not 0 <= self.settle < 1:
             raise ValueError(f"settle must be in [0, 1), got {self.settle}")
         if self.kernel not in KERNELS:
@@ -272,7 +275,8 @@ class IcpBase:
     def finish(self, res: IcpResult, cp, source: Cloud, T_init, maxd, start_limit, ctx: Context) -> IcpResult:
         """Final metrics, and the acceptance test against the start pose at ``accept_distance``."""
         m = self.final_metrics(res.final_distances, maxd)
-        acc_d = to_abs(self.p.accept_distance, self.p.distances, ctx.spacing)
+        acc_d = (to_abs(self.p.accept_distance, self.p.distances, ctx.spacing) if self.p.accept_distance is not None
+                 else maxd if maxd is not None else 3.0 * ctx.spacing)
         m0 = self.final_metrics(cp(apply_T(T_init, source.points), acc_d)[1], acc_d)
         m1 = self.final_metrics(cp(apply_T(res.T_target_source, source.points), acc_d)[1], acc_d)
         accepted = self.accept(m0, m1) if self.p.accept else True

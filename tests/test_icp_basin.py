@@ -131,15 +131,16 @@ def test_robust_kernels_hold_a_partial_overlap(variant):
 
 def test_acceptance_keeps_the_start_pose_when_icp_drifts():
     """Started at the truth on a 40 % partial overlap, Besl-McKay with a wide fixed limit (20 spacings) drifts
-    degrees away: fewer source points within 3 spacings afterwards, so the start pose is kept and logged as
-    icp_accepted = 0; with the default schedule ICP stays and is accepted."""
+    degrees away: fewer source points within 3 spacings afterwards (accept_distance), so the start pose is kept
+    and logged as icp_accepted = 0; with the default schedule ICP stays and is accepted (accept_distance null: the
+    final pair limit, 3 spacings)."""
     m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
     a, b = sampled(m, 20000, 1), sampled(m, 20000, 2)
     keep = a.points[:, 1] < np.quantile(a.points[:, 1], 0.4)
     T = random_pose(np.random.default_rng(5), 5, 1.0)
     tgt = Cloud(apply_T(T, a.points[keep]), a.normals[keep] @ T[:3, :3].T)
     c = ctx(estimate_spacing(tgt.points, np.random.default_rng(0)))
-    kw = dict(schedule="fixed", max_correspondence_distance=20.0)
+    kw = dict(schedule="fixed", max_correspondence_distance=20.0, accept_distance=3.0)
     drift = icp_stage("horn", accept=False, **kw).run(tgt, b, T, c)
     assert transform_errors(drift.T_target_source, T)[0] > 2.0 and drift.metrics["icp_accepted"] == 1.0
     kept = icp_stage("horn", **kw).run(tgt, b, T, c)
