@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from scanreg.errors import InputError
-from scanreg.geometry import Cloud, Mesh
+from scanreg.geometry import Cloud, Mesh, apply_T
 from scanreg.io import detect_columns, read_geometry, read_input, read_mesh, write_ply
 
 TRI_V = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
@@ -280,31 +280,31 @@ def test_bumpy_but_thin_input_passes():
     check_geometry(Cloud(pts), "t", 10)
 
 
-def test_point_to_plane_singular_system_is_a_stage_error():
-    """Point-to-plane on a plane: the 6x6 system is singular (sliding in the plane, turning about its normal);
-    a clean StageError, not LinAlgError."""
-    from scanreg.errors import StageError
+def test_point_to_plane_singular_system_takes_the_least_norm_step():
+    """Point-to-plane on a plane: the 6x6 system is singular (sliding in the plane, turning about its normal).
+    No LinAlgError: the least-norm step moves only along what the pairs determine (the plane's normal)."""
     from scanreg.stages.icp import PointToPlane
 
     u, v = np.mgrid[0:10, 0:10].reshape(2, -1).astype(float)
     pts = np.stack([u, v, np.zeros_like(u)], 1)
     nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
     icp = PointToPlane.__new__(PointToPlane)
-    with pytest.raises(StageError, match="singular"):
-        icp.step(pts + [0, 0, 0.1], pts, nrm, np.ones(len(pts), bool))
+    ok = np.ones(len(pts), bool)
+    T = icp.step(pts + [0, 0, 0.1], pts, nrm, ok, None)
+    assert np.allclose(T[:3, 3], [0, 0, -0.1], atol=1e-9) and np.allclose(T[:3, :3], np.eye(3), atol=1e-9)
     R = np.array([[0.8, 0.0, 0.6], [0.0, 1.0, 0.0], [-0.6, 0.0, 0.8]])  # a tilted plane: no zero column
-    with pytest.raises(StageError, match="singular"):
-        icp.step(pts @ R.T + 0.1, pts @ R.T, nrm @ R.T, np.ones(len(pts), bool))
+    T = icp.step(pts @ R.T + 0.1 * R[:, 2], pts @ R.T, nrm @ R.T, ok, None)
+    assert np.isfinite(T).all() and np.allclose(apply_T(T, pts @ R.T + 0.1 * R[:, 2]) @ R[:, 2], 0, atol=1e-6)
     sphere = np.random.default_rng(1).normal(size=(200, 3))
     sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)  # turning about its centre changes nothing
-    with pytest.raises(StageError, match="singular"):
-        icp.step(sphere * 1.01, sphere, sphere, np.ones(len(sphere), bool))
+    T = icp.step(sphere * 1.01, sphere, sphere, np.ones(len(sphere), bool), None)
+    assert np.allclose(T[:3, :3], np.eye(3), atol=1e-9) and np.abs(T[:3, 3]).max() < 0.01  # no wild turn
     varied = np.random.default_rng(0).normal(size=pts.shape)  # normals in every direction: determined
     varied /= np.linalg.norm(varied, axis=1, keepdims=True)
-    T = icp.step(pts + [0, 0, 0.1], pts, varied, np.ones(len(pts), bool))
+    T = icp.step(pts + [0, 0, 0.1], pts, varied, ok, None)
     assert np.isfinite(T).all()
     utm = pts + [665187.5, 5648349.9, 241.8]  # geo-referenced coordinates (metres, UTM) are not singular
-    T = icp.step(utm + [0, 0, 0.1], utm, varied, np.ones(len(pts), bool))
+    T = icp.step(utm + [0, 0, 0.1], utm, varied, ok, None)
     assert np.isfinite(T).all() and abs(T[2, 3] + 0.1) < 0.05
 
 
