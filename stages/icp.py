@@ -397,12 +397,17 @@ class PointToPlane(IcpBase):
     def step(self, moved, q, qn, ok, w):
         if not ok.all():
             moved, q, qn = _compress(ok, moved, q, qn)
-        A = np.hstack([cross3(moved, qn), qn])
+        # linearised about the pairs' centroid c (p -> c + R (p - c) + t): the rotation and translation columns
+        # stay apart however far the data lie from the origin (geo-referenced scans), so that only truly
+        # undetermined directions are singular
+        c = moved.mean(axis=0)
+        A = np.hstack([cross3(moved - c, qn), qn])
         b = -np.einsum("ij,ij->i", moved - q, qn)
         Aw = A if w is None else A * w[:, None]
         H, g = Aw.T @ A, Aw.T @ b  # 6x6 normal equations
         x = least_norm_solve(H, g)
-        return make_T(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:])
+        R = Rotation.from_rotvec(x[:3]).as_matrix()
+        return make_T(R, x[3:] + c - R @ c)
 
 
 @ICP.register("anderson")
