@@ -172,7 +172,7 @@ def border_loops(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.bincount(loop), length / np.sqrt(np.maximum(ca[comp], 1e-300)), comp
 
 
-def open_scan_borders(mesh: Mesh, min_ratio: float) -> np.ndarray:
+def open_scan_borders(mesh: Mesh, min_ratio: float, loops: tuple | None = None) -> np.ndarray:
     """Mask of the boundary loops (in :func:`border_loops` order) that are the outer border of a one-sided
     scan rather than a hole. The rule: in each connected component, the longest loop (by length) is an outer
     border when its length is at least ``min_ratio`` times the square root of the component's area; every
@@ -182,8 +182,8 @@ def open_scan_borders(mesh: Mesh, min_ratio: float) -> np.ndarray:
     sqrt(2 pi) = 2.5; a round hole of radius r in a sphere of radius R has sqrt(pi) r / R < 1.8 (under 0.9 for
     r = R / 2). Measured: the outer borders of the 10 raw Stanford range scans 8.5-10.9 (their other loops
     under 1.7), meshlab_defects' open scans 4.6-6.0; the largest of the 70 holes of pymeshfix's closed
-    StanfordBunny 0.47."""
-    _, ratio, comp = border_loops(mesh)
+    StanfordBunny 0.47. ``loops``: :func:`border_loops` of ``mesh`` when already computed."""
+    _, ratio, comp = loops if loops is not None else border_loops(mesh)
     out = np.zeros(len(ratio), bool)
     for c in np.unique(comp):
         idx = np.flatnonzero(comp == c)

@@ -89,8 +89,10 @@ def test_every_raw_stanford_scan_passes_the_default_repair(name):
     assert open_scan_borders(out, 2.0).sum() == 1  # the border is still there
 
 
-def test_closed_model_with_holes_is_capped_by_default():
+def test_closed_model_with_holes_is_capped_by_default(capsys):
     _, metrics = repair_with_audit(stage("meshfix"), read_mesh(BUNNY), CTX, "r_")
+    note = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("note: repair=meshfix")]
+    assert len(note) == 1 and "every hole is capped" in note[0] and "repair.open_border=auto" in note[0]
     a = strip(metrics)
     assert a["open_border_open"] == 0 and a["before_boundary_loops"] == 70
     assert a["after_watertight"] == 1 and a["after_components"] == 1 and a["guard_ok"] == 1

@@ -33,8 +33,7 @@ from scanreg.config import Context
 from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.shell import close_as_shell
-from scanreg.topology import (audit_mesh, border_loops, component_areas, large_components, open_scan_borders,
-                              surface_distances)
+from scanreg.topology import audit_mesh, border_loops, component_areas, open_scan_borders, surface_distances
 
 
 @dataclass
@@ -116,8 +115,9 @@ def _border_plan(p: GuardParams, mesh: Mesh) -> tuple[str, int | None]:
     the outer border open (None: the backend's own ``max_hole_edges``)."""
     fills = getattr(p, "fill_holes", getattr(p, "close_holes", False))
     mode = p.open_border
-    edges = border_loops(mesh)[0]
-    outer = open_scan_borders(mesh, p.open_border_ratio) if len(edges) else np.zeros(0, bool)
+    loops = border_loops(mesh)
+    edges = loops[0]
+    outer = open_scan_borders(mesh, p.open_border_ratio, loops) if len(edges) else np.zeros(0, bool)
     if mode == "auto":
         mode = "open" if outer.any() else "cap"
     if mode == "cap" or not fills or not len(edges) or p.max_hole_edges:
@@ -214,8 +214,8 @@ def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ctx: Context, prefix
     """The input's parts sorted into removed on purpose, kept, and lost; the distances between the kept input
     surface and the output (see the module docstring)."""
     lab, ca = component_areas(mesh)
-    keep = large_components(mesh, p.min_component_share)
-    kept_in = submesh(mesh, keep)
+    large = ca >= p.min_component_share * ca.max()  # as large_components
+    kept_in = submesh(mesh, large[lab])
     diag = bbox_diagonal(kept_in.vertices)
     edge = _median_edge(kept_in)
     tol = p.removed_tolerance * diag
@@ -232,7 +232,6 @@ def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ctx: Context, prefix
     vcomp[mesh.faces.ravel()] = np.repeat(lab, 3)
     far = np.bincount(vcomp[used], dv[used] > tol, minlength=len(ca)) / np.bincount(vcomp[used], minlength=len(ca))
     gone = far > 0.5
-    large = ca >= p.min_component_share * ca.max()
     d_in = surface_distances(kept_in, out, p.audit_samples, ctx.seed)
     d_out = surface_distances(out, mesh, p.audit_samples, ctx.seed + 1)
     limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
