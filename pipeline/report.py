@@ -144,6 +144,33 @@ def _typed(s: pd.Series) -> pd.Series:
     return num if num.notna().all() else s.astype(str)
 
 
+def canonical(v) -> str:
+    """One exact text per group value, for tables, plot labels and matching alike: the run values are MLflow
+    strings ("1.0", "20000"), the typed ones numbers; both give "1" and "20000" here (never a rounded "2e+04",
+    which could also merge two groups)."""
+    if isinstance(v, (bool, np.bool_)):
+        return str(v)
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        if np.isnan(v):
+            return "nan"
+        if float(v).is_integer() and abs(v) < 1e15:
+            return str(int(v))
+        return repr(float(v))
+    return str(v)
+
+
+def group_labels(df: pd.DataFrame, group_by: list[str]) -> pd.Series:
+    """Each run's group as one canonical label (``canonical`` of the typed value of every key, joined by
+    " / "); the same function labels the summary rows, the plots and the per-value table."""
+    if not group_by:
+        return pd.Series(["all"] * len(df), index=df.index)
+    typed = [_typed(df[column_for(k, df)]) for k in group_by]
+    return pd.Series([" / ".join(canonical(t.loc[i]) for t in typed) for i in df.index], index=df.index,
+                     dtype=object)
+
+
 def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = ()) -> pd.DataFrame:
     """One row per group: runs, failed, success rate, error quantiles, median stage times (and the median of
     each ``extra`` metric)."""
@@ -166,6 +193,7 @@ def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = ()) -> p
             if c in ok and ok[c].notna().any():
                 s = ok[c].dropna()
                 row[f"{m}_{how}"] = float(s.median() if how == "median" else s.quantile(0.9))
+        row["_label"] = " / ".join(canonical(v) for v in key) if group_by else "all"
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -174,18 +202,11 @@ def per_table(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame:
     """Success rate for each value of ``per`` (rows) and each group (columns)."""
     work = df.copy()
     work["_per"] = _typed(work[column_for(per, df)])
-    work["_grp"] = _labels(work, group_by)
+    work["_grp"] = group_labels(work, group_by)
     work["_ok"] = (work["status"] == "FINISHED") & (work.get("metrics.success", 0).fillna(0) > 0.5)
     t = work.pivot_table(index="_per", columns="_grp", values="_ok", aggfunc="mean")
     t.index.name, t.columns.name = per, None
     return t
-
-
-def _labels(df: pd.DataFrame, group_by: list[str]) -> pd.Series:
-    if not group_by:
-        return pd.Series(["all"] * len(df), index=df.index)
-    cols = [column_for(k, df) for k in group_by]
-    return df[cols].astype(str).agg(" / ".join, axis=1)
 
 
 def fmt_value(v) -> str:
@@ -234,18 +255,32 @@ def _slug(s: str) -> str:
 
 def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: Path, x: str | None,
                per_t: pd.DataFrame | None) -> list[Path]:
+    """Success per group, then errors and times against ``x`` (or per group), then success per ``per`` value.
+    Every group of ``table`` appears in every plot: the runs are matched to the rows by the same canonical
+    label (:func:`group_labels`)."""
     plt = _plt()
     paths: list[Path] = []
-    labels = [" / ".join(fmt_value(r[k]) for k in group_by) or "all" for _, r in table.iterrows()]
+    labels = list(table["_label"]) if "_label" in table else ["all"] * len(table)
+    keys = " / ".join(group_by) or "runs"
     ok = df[df["status"] == "FINISHED"].copy()
+    ok["_g"] = group_labels(ok, group_by)
+    missing = sorted(set(ok["_g"]) - set(labels))
+    if missing:  # cannot happen with one labelling function; never drop data without a word
+        raise ValueError(f"runs of group(s) {', '.join(missing)} have no row in the table")
+
+    def ticks(ax, names):
+        many = len(names) > 4 or max((len(n) for n in names), default=0) > 12
+        ax.set_xticks(range(len(names)), names, rotation=45 if many else 0, ha="right" if many else "center",
+                      fontsize=7)
+        ax.set_xlabel(keys)
 
     if "success_rate" in table:  # success per method
-        fig, ax = plt.subplots(figsize=(max(4.0, 0.6 * len(table) + 2), 3.2))
+        fig, ax = plt.subplots(figsize=(max(4.5, 0.6 * len(table) + 2), 3.4))
         ax.bar(range(len(table)), table["success_rate"].fillna(0) * 100, color="tab:blue")
-        ax.set_xticks(range(len(table)), labels, rotation=45 if len(table) > 4 else 0, ha="right" if len(table) > 4 else "center")
+        ticks(ax, labels)
         ax.set_ylabel("success [%]")
         ax.set_ylim(0, 100)
-        ax.set_title("success rate (rotation and translation error within the thresholds)", fontsize=9)
+        ax.set_title("success rate (rotation and translation\nerror within the thresholds)", fontsize=9)
         fig.tight_layout()
         paths.append(out / "success.png")
         fig.savefig(paths[-1], dpi=110)
@@ -254,42 +289,44 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
     if x and "metrics.rotation_error_deg" in ok:
         xc = column_for(x, ok)
         ok["_x"] = pd.to_numeric(ok[xc], errors="coerce")
-        ok["_g"] = _labels(ok, [k for k in group_by if k != x])
+        others = [k for k in group_by if k != x]
+        ok["_g2"] = group_labels(ok, others)
         if ok["_x"].notna().any():
-            fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-            for g, d in ok.groupby("_g"):
+            fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+            for g, d in ok.groupby("_g2", sort=True):
+                pre = f"{g} " if others else ""
                 s = d.groupby("_x")
                 med = s["metrics.rotation_error_deg"].median()
                 p90 = s["metrics.rotation_error_deg"].quantile(0.9)
-                line = axes[0].plot(med.index, med.values, "o-", label=f"{g} median")[0]
-                axes[0].plot(p90.index, p90.values, "--", color=line.get_color(), label=f"{g} p90")
+                line = axes[0].plot(med.index, med.values, "o-", label=f"{pre}median")[0]
+                axes[0].plot(p90.index, p90.values, "--", color=line.get_color(), label=f"{pre}p90")
                 if "metrics.time_total_s" in d:
                     t = s["metrics.time_total_s"].median()
-                    axes[1].plot(t.index, t.values, "o-", color=line.get_color(), label=f"{g} total")
+                    axes[1].plot(t.index, t.values, "o-", color=line.get_color(), label=f"{pre}total")
                     if "metrics.time_coarse_s" in d:
                         tc = s["metrics.time_coarse_s"].median()
-                        axes[1].plot(tc.index, tc.values, ":", color=line.get_color(), label=f"{g} coarse")
+                        axes[1].plot(tc.index, tc.values, ":", color=line.get_color(), label=f"{pre}coarse")
             axes[0].set_yscale("log")
-            axes[0].set_xlabel(x)
             axes[0].set_ylabel("rotation error [deg]")
-            axes[1].set_xlabel(x)
             axes[1].set_ylabel("median time [s]")
+            xs = np.sort(ok["_x"].dropna().unique())
             for ax in axes:
-                if (ok["_x"] > 0).all() and ok["_x"].max() / ok["_x"].min() >= 10:
+                ax.set_xlabel(x)
+                if (xs > 0).all() and xs.max() / xs.min() >= 10:
                     ax.set_xscale("log")
-                ax.legend(fontsize=7)
+                ax.set_xticks(xs, [canonical(v) for v in xs], fontsize=7)
+                ax.minorticks_off()
+                ax.legend(fontsize=7, title=" / ".join(others) or None, title_fontsize=7)
             fig.tight_layout()
             paths.append(out / f"error_time_vs_{_slug(x)}.png")
             fig.savefig(paths[-1], dpi=110)
             plt.close(fig)
     elif "metrics.rotation_error_deg" in ok and len(ok):  # error distribution and stage times per method
-        ok["_g"] = _labels(ok, group_by)
-        names = [n for n in dict.fromkeys(labels) if n in set(ok["_g"])]
-        fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-        data = [ok.loc[ok["_g"] == n, "metrics.rotation_error_deg"].clip(lower=1e-3).values for n in names]
-        axes[0].boxplot(data)
-        axes[0].set_xticks(range(1, len(names) + 1), names, rotation=45 if len(names) > 4 else 0,
-                           ha="right" if len(names) > 4 else "center", fontsize=7)
+        names = list(dict.fromkeys(labels))
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+        data = [ok.loc[ok["_g"] == n, "metrics.rotation_error_deg"].dropna().clip(lower=1e-3).values for n in names]
+        axes[0].boxplot([d if len(d) else [np.nan] for d in data], positions=range(len(names)))
+        ticks(axes[0], names)
         axes[0].set_yscale("log")
         axes[0].set_ylabel("rotation error [deg]")
         bottom = np.zeros(len(names))
@@ -301,8 +338,7 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
             v = np.nan_to_num(v)
             axes[1].bar(range(len(names)), v, bottom=bottom, label=s)
             bottom += v
-        axes[1].set_xticks(range(len(names)), names, rotation=45 if len(names) > 4 else 0,
-                           ha="right" if len(names) > 4 else "center", fontsize=7)
+        ticks(axes[1], names)
         axes[1].set_ylabel("median time per stage [s]")
         axes[1].legend(fontsize=7)
         fig.tight_layout()
@@ -332,7 +368,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     out.mkdir(parents=True, exist_ok=True)
     group_by = list(p.group_by) or varying_keys(df)
     table = summarize(df, group_by, list(p.metrics))
-    table.to_csv(out / "report.csv", index=False)
+    table.drop(columns="_label").to_csv(out / "report.csv", index=False)
     per_t = per_table(df, group_by, p.per) if p.per else None
     if per_t is not None:
         per_t.to_csv(out / "per.csv")
