@@ -1,6 +1,6 @@
 """``scanreg-report``: MLflow runs -> comparison tables (Markdown, CSV) and plots (PNG).
 
-    scanreg-report                                   # latest sweep of experiment 'scanreg', grouped by what varies
+    scanreg-report                                   # the newest sweep (of any experiment), grouped by what varies
     scanreg-report --experiment bunny_benchmark --group-by group.coarse --per data.pair
     scanreg-report --experiment sampling_density --group-by sampler.density --x sampler.density
     scanreg-report --experiment icp_comparison --compare-to icp_comparison_old
@@ -52,7 +52,8 @@ class ReportParams:
     """Write the report when a ``-m`` sweep (or an experiment run as one) ends."""
     out: Optional[str] = None
     """Folder for report.md, report.csv and the PNG plots; null: outputs/reports/<experiment>. Relative paths
-    are taken from the current directory."""
+    are taken from the current directory. The committed reports in experiments/ are rewritten only when asked
+    (``report.out=experiments/NAME``)."""
     group_by: list[str] = field(default_factory=list)
     """Config keys whose values are the compared methods (e.g. ``[group.salience]``); empty: the parameters
     that vary between the runs."""
@@ -91,7 +92,8 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
         if parents.empty:
             raise SystemExit(f"error: experiment '{experiment}' has no sweep"
                              + ("" if parent == "latest" else f" with parent run {parent}")
-                             + " (run 'scanreg -m ...' first, or pass --parent all)")
+                             + " (run 'scanreg -m ...' first, pass --parent all for its single runs, or name "
+                             "another with --experiment NAME; without --experiment: the newest sweep of any)")
         parent_row = parents.iloc[0]
         parent = parent_row["run_id"]
     flt = f"tags.mlflow.parentRunId = '{parent}'" if parent else ""
@@ -105,6 +107,26 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
                     parent_tags={k[5:]: v for k, v in parent_row.items() if k.startswith("tags.")}
                     if parent_row is not None else {})
     return df
+
+
+def latest_sweep_experiment(uri: str | None = None) -> str:
+    """The MLflow experiment holding the newest sweep (parent run) of the store, for a bare ``scanreg-report``."""
+    from pipeline.tracking import MlflowTracking, _quiet_mlflow
+
+    _quiet_mlflow()
+    import mlflow
+
+    tr = MlflowTracking(MlflowTracking.Params(uri=uri))
+    mlflow.set_tracking_uri(tr.uri)
+    client = mlflow.MlflowClient(tr.uri)
+    exps = client.search_experiments()
+    runs = client.search_runs([e.experiment_id for e in exps], filter_string="tags.`scanreg.sweep` = 'parent'",
+                              order_by=["attributes.start_time DESC"], max_results=1) if exps else []
+    if not runs:
+        names = ", ".join(sorted(e.name for e in exps if e.name != "Default")) or "none"
+        raise SystemExit(f"error: no sweep in {tr.uri} (run 'scanreg -m ...' first, or name an experiment with "
+                         f"--experiment NAME --parent all; experiments: {names})")
+    return next(e.name for e in exps if e.experiment_id == runs[0].info.experiment_id)
 
 
 def find_column(key: str, df: pd.DataFrame, bare: bool = True) -> str | None:
@@ -237,6 +259,35 @@ def compare(a: pd.DataFrame, b: pd.DataFrame, group_by: list[str], name_a: str, 
                 s[k] = s[k].astype(str)
         return pick(a, name_a).merge(pick(b, name_b), on=group_by, how="outer")
     return pd.concat([pick(a, name_a), pick(b, name_b)], axis=1)
+
+
+def max_concurrent(df: pd.DataFrame) -> int:
+    """The largest number of runs that were running at the same moment (from their start and end times)."""
+    if "start_time" not in df or "end_time" not in df:
+        return 1
+    t = df[["start_time", "end_time"]].dropna()
+    events = sorted([(s, 1) for s in t["start_time"]] + [(e, -1) for e in t["end_time"]],
+                    key=lambda ev: (ev[0], ev[1]))  # an end before a start at the same instant
+    n = best = 0
+    for _, d in events:
+        n += d
+        best = max(best, n)
+    return max(best, 1)
+
+
+def concurrency_note(df: pd.DataFrame) -> tuple[str, str | None]:
+    """(how the jobs were launched, a warning when stage times come from jobs that ran concurrently)."""
+    ptags = df.attrs.get("parent_tags", {})
+    launcher = ptags.get("scanreg.launcher")
+    par = ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in ptags.items() if k.startswith("scanreg.launcher."))
+    n = max_concurrent(df)
+    how = (f"launcher {launcher}" + (f" ({par})" if par else "") + "; " if launcher else "") + \
+        f"at most {n} run(s) at the same time"
+    warn = None
+    if n > 1:
+        warn = (f"up to {n} jobs ran at once: their stage times include the contention for the cores "
+                "(for timings: launch=serial)")
+    return how, warn
 
 
 # ---------------------------------------------------------------------------------------------------- plots
@@ -380,6 +431,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     command = ptags.get("scanreg.command") or (f"scanreg -m {ptags['scanreg.overrides']}" if "scanreg.overrides" in ptags else None)
     when = pd.to_datetime(df["start_time"]).min()
     n_fail = int((df["status"] != "FINISHED").sum())
+    how, warn = concurrency_note(df)
     lines = [f"# {p.title or 'Experiment ' + exp}", ""]
     if p.notes:
         lines += [" ".join(p.notes.split()), ""]
@@ -389,6 +441,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         f"- commit: {', '.join(commits) or 'unknown'}",
         f"- runs: {len(df)} ({n_fail} failed), started {when:%Y-%m-%d %H:%M} UTC"
         + (f", sweep parent run `{df.attrs['parent']}`" if df.attrs.get("parent") else ""),
+        f"- jobs: {how}",
         f"- tracking store: `{df.attrs.get('uri')}` (experiment `{exp}`)",
         f"- report: `scanreg-report --experiment {exp}" + (f" --group-by {','.join(group_by)}" if group_by else "")
         + (f" --x {p.x}" if p.x else "") + (f" --per {p.per}" if p.per else "") + "`, "
@@ -398,6 +451,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         "`evaluate.success_translation` (1 %) of the target's bounding-box diagonal; a failed run counts as a "
         "failure. Errors are against the ground truth, in degrees and input units; times are medians in seconds.",
         "",
+        *([f"**Warning: {warn}.**", ""] if warn else []),
         f"## Results by {', '.join(group_by) or 'run'}", "",
         "Medians unless marked p90; every column (more errors, fitness, each stage's time) is in report.csv.", "",
         to_markdown(table[[c for c in [*group_by, *MD_COLUMNS, *[f"{m}_median" for m in p.metrics]]
@@ -419,7 +473,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         reasons = df.loc[df["status"] != "FINISHED", "tags.error"] if "tags.error" in df else pd.Series(dtype=str)
         lines += ["## Failed runs", ""] + [f"- {r}" for r in reasons.fillna("(no reason recorded)").value_counts().index] + [""]
     (out / "report.md").write_text("\n".join(lines))
-    return {"table": table, "per": per_t, "paths": [out / "report.md", out / "report.csv", *figs]}
+    return {"table": table, "per": per_t, "paths": [out / "report.md", out / "report.csv", *figs], "warning": warn}
 
 
 def showcase_section(df: pd.DataFrame, sel: dict, out: Path) -> list[str]:
@@ -467,12 +521,15 @@ def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None
     out = Path(p.out or Path("outputs") / "reports" / experiment)
     df = load_runs(experiment, uri, parent_run_id)
     res = write_report(df, p, out)
+    if res["warning"]:
+        print(f"warning: {res['warning']}")
     print(f"report: {res['paths'][0]}")
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="scanreg-report", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--experiment", default="scanreg", help="MLflow experiment name (default: scanreg)")
+    ap.add_argument("--experiment", default=None,
+                    help="MLflow experiment name (default: the experiment of the newest sweep in the store)")
     ap.add_argument("--parent", default="latest",
                     help="parent run id of a sweep; 'latest' (default): the newest sweep; 'all': every run")
     ap.add_argument("--group-by", default=None,
@@ -501,8 +558,12 @@ def main(argv: list[str] | None = None) -> int:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose("config", overrides=[f"experiment={a.config}"])
         base = make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
-        if a.experiment == ap.get_default("experiment"):
+        if a.experiment is None:
             a.experiment = cfg.tracking.experiment
+    if a.experiment is None:
+        if a.parent not in ("latest",):
+            raise SystemExit("error: --parent needs --experiment NAME")
+        a.experiment = latest_sweep_experiment(a.uri)
     df = load_runs(a.experiment, a.uri, None if a.parent == "all" else a.parent)
     other = load_runs(a.compare_to, a.uri, "latest" if a.parent != "all" else None) if a.compare_to else None
     from dataclasses import replace
@@ -513,12 +574,39 @@ def main(argv: list[str] | None = None) -> int:
         metrics=split(a.metrics) if a.metrics else None).items() if v is not None})
     out = Path(p.out or Path("outputs") / "reports" / a.experiment)
     res = write_report(df, p, out, other, plots=not a.no_plots)
-    with pd.option_context("display.width", 200, "display.max_columns", 50):
-        print(f"{len(df)} run(s) of experiment '{a.experiment}'"
-              + (f", sweep {df.attrs['parent']}" if df.attrs.get("parent") else ""))
-        print(res["table"].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
-    print("written: " + ", ".join(str(x) for x in res["paths"]))
+    print(f"{len(df)} run(s) of experiment '{a.experiment}'"
+          + (f", sweep {df.attrs['parent']}" if df.attrs.get("parent") else ""))
+    print(console_table(res["table"], p.group_by or varying_keys(df)))
+    if res["warning"]:
+        print(f"warning: {res['warning']}")
+    print(f"every column: {out / 'report.csv'}; report: {out / 'report.md'}")
     return 0
+
+
+CONSOLE_COLUMNS = [("runs", "runs"), ("failed", "failed"), ("success_rate", "success"),
+                   ("rotation_error_deg_median", "rot_deg"), ("translation_error_median", "transl"),
+                   ("time_coarse_s_median", "coarse_s"), ("time_total_s_median", "total_s")]
+"""The console's short table: (report.csv column, heading)."""
+
+
+def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100) -> str:
+    """The summary as a table of at most ``width`` columns: the group (its canonical label), runs, success,
+    median errors and times; the rest is in report.csv."""
+    cols = [(c, h) for c, h in CONSOLE_COLUMNS if c in table]
+    head = " / ".join(group_by) or "group"
+    rows = [[str(r["_label"]) if "_label" in table else "all", *[fmt_value(r[c]) for c, _ in cols]]
+            for _, r in table.iterrows()]
+    widths = [max(len(h), *(len(x[i]) for x in rows)) if rows else len(h)
+              for i, h in enumerate([head, *[h for _, h in cols]])]
+    room = width - sum(widths[1:]) - 2 * len(cols)
+    widths[0] = max(8, min(widths[0], room))
+    clip = lambda t, w: t if len(t) <= w else t[: w - 1] + "…"
+    lines = ["  ".join([clip(head, widths[0]).ljust(widths[0]),
+                        *[h.rjust(w) for (_, h), w in zip(cols, widths[1:])]])]
+    for x in rows:
+        lines.append("  ".join([clip(x[0], widths[0]).ljust(widths[0]),
+                                *[v.rjust(w) for v, w in zip(x[1:], widths[1:])]]))
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
