@@ -42,7 +42,8 @@ def resolve_path(path: str | os.PathLike, what: str = "file") -> Path:
     else:
         p = Path(os.path.expanduser(s))
     if not p.exists():
-        raise InputError(f"{what} {s}: no such file")
+        full = p.absolute()
+        raise InputError(f"{what} {s}: no such file" + ("" if str(full) == s else f" ({full})"))
     if p.is_dir():
         raise InputError(f"{what} {s}: is a directory, expected a file")
     if p.stat().st_size == 0:

@@ -92,13 +92,17 @@ class Files:
     def __init__(self, params: Params):
         self.p = params
 
-    def load(self, ctx: Context) -> Inputs:
+    def require(self) -> None:
+        """Both files named (checked before a run starts)."""
         for key in ("source", "target"):
             if not getattr(self.p, key):
                 raise ConfigError(
                     f"data=files: data.{key} is not set; run e.g. 'scanreg data.source=A.ply data.target=B.ply', "
                     "or the demo: 'scanreg data=synthetic'"
                 )
+
+    def load(self, ctx: Context) -> Inputs:
+        self.require()
         src = read_geometry(expand_path(self.p.source), "source")
         tgt = read_geometry(expand_path(self.p.target), "target")
         gt = read_transform(expand_path(self.p.gt), "ground truth data.gt") if self.p.gt else None
