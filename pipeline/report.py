@@ -527,7 +527,9 @@ def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scanreg-report", description=__doc__.split("\n\n")[0])
+    from pipeline.registry import _one_line_parser
+
+    ap = _one_line_parser()(prog="scanreg-report", description=__doc__.split("\n\n")[0])
     ap.add_argument("--experiment", default=None,
                     help="MLflow experiment name (default: the experiment of the newest sweep in the store)")
     ap.add_argument("--parent", default="latest",

@@ -97,3 +97,59 @@ def test_experiment_files_are_global_overrides():
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose("config", overrides=[f"experiment={p.stem}"])
         build_stages(cfg)
+
+
+def _yaml_text(v) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, list):
+        return "[" + ", ".join(_yaml_text(x) for x in v) + "]"
+    return str(v)
+
+
+def test_scanreg_stages_shows_the_yaml_defaults_at_100_columns(capsys):
+    """scanreg-stages: every stage, every parameter, with the value its YAML sets (point_to_plane's
+    initial_share is 0.25 there, 1.0 in the shared Params), in at most 100 columns and without markup."""
+    import re
+
+    from pipeline.registry import main as stages_main
+
+    assert stages_main([]) == 0
+    text = capsys.readouterr().out
+    lines = text.splitlines()
+    assert max(len(ln) for ln in lines) <= 100
+    assert "``" not in text and "<Distances" not in text
+    shown: dict[tuple[str, str], dict[str, str]] = {}
+    stage = None
+    for ln in lines:
+        if re.fullmatch(r"[a-z_]+=[a-z0-9_]+", ln):
+            stage = tuple(ln.split("="))
+            shown[stage] = {}
+        m = re.fullmatch(r"  (\w+) = (.*)   \((.*)\)", ln)
+        if m and stage:
+            shown[stage][m.group(1)] = m.group(2)
+    assert set(shown) == set(ALL_OPTIONS)
+    for group, option in ALL_OPTIONS:
+        yaml = OmegaConf.to_container(OmegaConf.load(CONF_DIR / group / f"{option}.yaml"), resolve=False)
+        fields = {f.name for f in dataclasses.fields(REGISTRIES[group].get(option).Params)}
+        assert set(shown[group, option]) == fields, (group, option)
+        for k, v in yaml.items():
+            if k != "name":
+                assert shown[group, option][k] == _yaml_text(v), (group, option, k)
+    assert shown["icp", "point_to_plane"]["initial_share"] == "0.25"
+    assert shown["icp", "point_to_plane"]["distances"] == "spacing"
+
+
+def test_scanreg_stages_help_and_filter(capsys):
+    from pipeline.registry import main as stages_main
+
+    with pytest.raises(SystemExit) as e:
+        stages_main(["--help"])
+    assert e.value.code == 0 and "FAMILY[=NAME]" in capsys.readouterr().out
+    assert stages_main(["icp=horn", "matcher"]) == 0
+    heads = [ln for ln in capsys.readouterr().out.splitlines() if ln and not ln.startswith(" ")]
+    assert heads == ["icp=horn", "matcher=mutual_knn"]
+    assert stages_main(["icp=bogus"]) == 2
+    assert capsys.readouterr().err.startswith("error: unknown icp 'bogus'")
