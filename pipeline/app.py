@@ -162,6 +162,22 @@ def _failed_objective(cfg: DictConfig):
     return float("inf") if cfg.get("objective") else None
 
 
+def _help_groups() -> str:
+    """The config groups and their choices, wrapped at 100 columns, for ``scanreg --help``."""
+    import textwrap
+
+    lines = []
+    for g in sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and any(p.glob("*.yaml"))):
+        choices = ", ".join(sorted(q.stem for q in (CONF_DIR / g).glob("*.yaml")))
+        lines += textwrap.wrap(f"{g}: {choices}", 100, subsequent_indent="    ")
+    return "\n".join(lines)
+
+
+if not OmegaConf.has_resolver("scanreg_conf_dir"):  # where the configs are, and the groups, for the help text
+    OmegaConf.register_new_resolver("scanreg_conf_dir", lambda: str(CONF_DIR))
+    OmegaConf.register_new_resolver("scanreg_groups", _help_groups)
+
+
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> dict | None:
     return run_job(cfg)

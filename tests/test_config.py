@@ -153,3 +153,16 @@ def test_scanreg_stages_help_and_filter(capsys):
     assert heads == ["icp=horn", "matcher=mutual_knn"]
     assert stages_main(["icp=bogus"]) == 2
     assert capsys.readouterr().err.startswith("error: unknown icp 'bogus'")
+
+
+def test_scanreg_help_is_the_projects_own(tmp_path):
+    from conftest import run_cli
+
+    r = run_cli(["--help"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert "powered by Hydra" not in out and "scanreg: repair, sample and rigidly register" in out
+    assert "scanreg data=synthetic" in out and "Exit codes:" in out and str(CONF_DIR) in out
+    assert "icp: anderson, gicp, horn, open3d, point_to_plane" in out
+    assert len(out.splitlines()) < 60 and max(len(ln) for ln in out.splitlines()) <= 100
+    assert not list(tmp_path.iterdir())  # help runs nothing
