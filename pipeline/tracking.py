@@ -333,7 +333,7 @@ def report_progress(status: str, what: str = "") -> None:
         width = 10
         fill = int(round(width * min(done, total) / total))
         left = elapsed / done * max(total - done, 0)
-        line = (f"sweep [{'#' * fill}{'.' * (width - fill)}] {done}/{total} jobs, {failed} failed, {_hms(elapsed)}, "
+        line = (f"sweep [{'#' * fill}{'.' * (width - fill)}] {done}/{total} jobs, {failed} failed, "
                 f"~{_hms(left)} left | {outcome}")
     else:
         line = f"sweep: {done} jobs, {failed} failed, {_hms(elapsed)} | {outcome}"
