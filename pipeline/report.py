@@ -310,6 +310,8 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
     Every group of ``table`` appears in every plot: the runs are matched to the rows by the same canonical
     label (:func:`group_labels`)."""
     plt = _plt()
+    from matplotlib.ticker import NullLocator
+
     paths: list[Path] = []
     labels = list(table["_label"]) if "_label" in table else ["all"] * len(table)
     keys = " / ".join(group_by) or "runs"
@@ -366,7 +368,7 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
                 if (xs > 0).all() and xs.max() / xs.min() >= 10:
                     ax.set_xscale("log")
                 ax.set_xticks(xs, [canonical(v) for v in xs], fontsize=7)
-                ax.minorticks_off()
+                ax.xaxis.set_minor_locator(NullLocator())  # x only: a log y axis within a decade needs its minor labels
                 ax.legend(fontsize=7, title=" / ".join(others) or None, title_fontsize=7)
             fig.tight_layout()
             paths.append(out / f"error_time_vs_{_slug(x)}.png")
