@@ -12,12 +12,18 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from scanreg.config import CONF_PACKAGE, conf_dir
-from scanreg.errors import ScanregError
+from scanreg.errors import ConfigError, ScanregError
+
+EXIT_FAILED, EXIT_USAGE, EXIT_INTERNAL, EXIT_INTERRUPTED = 1, 2, 3, 130
+"""The exit codes (README, Errors): 0 done; 1 the input or a stage failed (the MLflow run ends FAILED), or a
+job of a sweep failed; 2 a usage or config error (unknown stage or parameter, wrong type, a required setting
+missing), found before any MLflow run is created; 3 an internal error (a bug: verbose=true for the traceback);
+130 interrupted."""
 
 CONF_DIR = conf_dir()
 STAGE_GROUPS = ("data", "repair", "sampler", "salience", "descriptor", "matcher", "coarse", "icp", "tracking")
-PRESET_GROUPS = ("method", "experiment")
-"""Groups of ``# @package _global_`` files that set several stage groups at once."""
+PRESET_GROUPS = ("method", "experiment", "launch")
+"""Groups of ``# @package _global_`` files that set several stage groups (or the sweep launcher) at once."""
 
 
 def _err(msg: str) -> None:
@@ -57,6 +63,10 @@ def run_job(cfg: DictConfig) -> dict | None:
             resolve_error = f"config: {e}".splitlines()[0]
         else:
             resolve_error = None
+        if not multirun:  # config errors stop here, before an MLflow run is created (a sweep files them)
+            if resolve_error:
+                raise ConfigError(resolve_error)
+            check_config(cfg)
         choices = {f"group.{g}": str(hc.runtime.choices.get(g)) for g in STAGE_GROUPS + PRESET_GROUPS
                    if g in hc.runtime.choices}
         overrides = " ".join(hc.overrides.task)
@@ -69,9 +79,9 @@ def run_job(cfg: DictConfig) -> dict | None:
     except Exception as e:  # noqa: BLE001: a bad tracking setup is reported like any other error
         _err(str(e) if isinstance(e, ScanregError) else f"tracking: {type(e).__name__}: {e}".splitlines()[0])
         if multirun:
-            report_progress("FAILED")
+            report_progress("FAILED", str(e).splitlines()[0] if str(e) else type(e).__name__)
             return _failed_objective(cfg)
-        raise SystemExit(1)
+        raise SystemExit(EXIT_USAGE if isinstance(e, ConfigError) else EXIT_FAILED)
 
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(resolved))
     try:
@@ -84,11 +94,14 @@ def run_job(cfg: DictConfig) -> dict | None:
             run.end("KILLED", "interrupted")
         raise
     except BaseException as e:  # noqa: BLE001: every failure ends the run FAILED with its reason
+        code = EXIT_USAGE if isinstance(e, ConfigError) else EXIT_FAILED
         if isinstance(e, ScanregError):
             reason = str(e)
         elif isinstance(e, SystemExit):
             reason = f"exit {e.code}"
+            code = e.code if isinstance(e.code, int) else EXIT_FAILED
         else:
+            code = EXIT_INTERNAL
             reason = f"internal error: {type(e).__name__}: {e}".splitlines()[0]
             if verbose:
                 traceback.print_exc()
@@ -101,24 +114,29 @@ def run_job(cfg: DictConfig) -> dict | None:
         if getattr(e, "metrics", None):
             from scanreg.runner import repair_table
 
-            for prefix, role in (("repair_", "source"), ("target_repair_", "target")):
-                lines = repair_table(e.metrics, prefix, role)
-                if lines:
-                    print("\n".join(lines[1:]))
+            table = [ln for prefix, role in (("repair_", "source"), ("target_repair_", "target"))
+                     for ln in repair_table(e.metrics, prefix, role)[1:]]
+            if multirun:  # a sweep's console gets one line per job; the table stays in the job's folder
+                (run_dir / "summary.txt").write_text("\n".join([f"error: {reason}", *table]) + "\n")
+            elif table:
+                print("\n".join(table))
         _err(reason)
         if multirun:
-            report_progress("FAILED")
+            report_progress("FAILED", reason)
             return _failed_objective(cfg)
-        raise SystemExit(1)
+        raise SystemExit(code)
 
     if run:
         run.log_metrics(res.metrics, res.step_metrics)
         run.log_artifacts([run_dir / "config.yaml", *res.artifacts])
         run.end("FINISHED")
-    print("\n".join(summary_lines(res)))
-    print(f"results: {run_dir}" + (f"  (MLflow run {run.run_id})" if run else ""))
-    if multirun:
-        report_progress("FINISHED")
+    where = f"results: {run_dir}" + (f"  (MLflow run {run.run_id})" if run else "")
+    if multirun:  # one line per job on the console; the full table in the job's folder
+        (run_dir / "summary.txt").write_text("\n".join([*summary_lines(res), "", where]) + "\n")
+        report_progress("FINISHED", job_line(res.metrics))
+    else:
+        print("\n".join(summary_lines(res)))
+        print(where)
     objective = cfg.get("objective")
     if objective:  # what a tuning sweeper (Optuna) minimises
         if objective not in res.metrics:
@@ -128,9 +146,50 @@ def run_job(cfg: DictConfig) -> dict | None:
     return res.to_json()
 
 
+def check_config(cfg: DictConfig) -> None:
+    """Every stage's name and parameters, and what a stage needs set (``data.source``): a ConfigError before
+    anything runs or is tracked."""
+    from scanreg.runner import build_stages
+
+    stages = build_stages(cfg)
+    require = getattr(stages["data"], "require", None)
+    if callable(require):
+        require()
+
+
+def job_line(m: dict) -> str:
+    """A sweep job's result in a few words: its errors (with ground truth), RMS and time."""
+    parts = []
+    if "rotation_error_deg" in m:
+        parts.append(f"rot {m['rotation_error_deg']:.3g}°")
+    if "translation_error_rel" in m:
+        parts.append(f"transl {100 * m['translation_error_rel']:.2g} %")
+    elif "rms" in m:
+        parts.append(f"rms {m['rms']:.3g}")
+    if "time_total_s" in m:
+        parts.append(f"{m['time_total_s']:.1f} s")
+    return ", ".join(parts)
+
+
 def _failed_objective(cfg: DictConfig):
     """A failed job's value for a tuning sweeper: the worst possible, so the sweep goes on."""
     return float("inf") if cfg.get("objective") else None
+
+
+def _help_groups() -> str:
+    """The config groups and their choices, wrapped at 100 columns, for ``scanreg --help``."""
+    import textwrap
+
+    lines = []
+    for g in sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and any(p.glob("*.yaml"))):
+        choices = ", ".join(sorted(q.stem for q in (CONF_DIR / g).glob("*.yaml")))
+        lines += textwrap.wrap(f"{g}: {choices}", 100, subsequent_indent="    ")
+    return "\n".join(lines)
+
+
+if not OmegaConf.has_resolver("scanreg_conf_dir"):  # where the configs are, and the groups, for the help text
+    OmegaConf.register_new_resolver("scanreg_conf_dir", lambda: str(CONF_DIR))
+    OmegaConf.register_new_resolver("scanreg_groups", _help_groups)
 
 
 @hydra.main(config_path=f"pkg://{CONF_PACKAGE}", config_name="config", version_base="1.3")
@@ -273,26 +332,6 @@ def precheck(argv: list[str]) -> tuple[str, DictConfig | None] | None:
     return f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)", good
 
 
-def record_failed_run(cfg: DictConfig | None, reason: str, argv: list[str]) -> None:
-    """Best effort: file a FAILED run with the reason, so that the failure shows in MLflow too."""
-    if cfg is None:
-        return
-    try:
-        from scanreg.registry import TRACKING, load_all
-        from scanreg.tracking import flatten
-
-        load_all()
-        run = TRACKING.build(cfg.tracking).start_run(
-            run_name=" ".join(argv)[:250] or "defaults",
-            params=flatten(OmegaConf.to_container(cfg, resolve=False)),
-            tags={"scanreg.overrides": " ".join(argv)},
-        )
-        if run:
-            run.end("FAILED", reason)
-    except Exception:  # noqa: BLE001: the error line below is what matters
-        pass
-
-
 def verbose_requested(argv: list[str]) -> bool:
     return any(a.replace(" ", "") in ("verbose=true", "verbose=True") for a in argv)
 
@@ -301,11 +340,9 @@ def main() -> None:
     argv = sys.argv[1:]
     if not any(a in ("-h", "--help", "--hydra-help", "-c", "--cfg", "--info", "-i") for a in argv):
         problem = precheck(argv)
-        if problem:
-            msg, cfg = problem
-            record_failed_run(cfg, msg, argv)
-            _err(msg)
-            raise SystemExit(2)
+        if problem:  # a usage or config error: one line, exit 2, and no MLflow run
+            _err(problem[0])
+            raise SystemExit(EXIT_USAGE)
     import signal
 
     from scanreg.tracking import _sweep_outcome, end_interrupted_sweep
@@ -322,7 +359,7 @@ def main() -> None:
         except Exception:  # noqa: BLE001: the message below is what matters
             n = 0
         _err("interrupted" + (f"; {n} unfinished MLflow run(s) of the sweep marked KILLED" if n else ""))
-        raise SystemExit(130)
+        raise SystemExit(EXIT_INTERRUPTED)
     except Exception as e:  # noqa: BLE001: e.g. a launcher that cannot start; no run is left RUNNING
         reason = f"sweep failed: {type(e).__name__}: {e}".splitlines()[0]
         try:
@@ -332,9 +369,9 @@ def main() -> None:
         if verbose_requested(sys.argv[1:]):
             traceback.print_exc()
         _err(reason + " (verbose=true for the traceback)")
-        raise SystemExit(1)
+        raise SystemExit(EXIT_INTERNAL)
     if _sweep_outcome.get("failed"):
-        raise SystemExit(1)
+        raise SystemExit(EXIT_FAILED)
 
 
 if __name__ == "__main__":

@@ -55,7 +55,8 @@ def resolve_path(path: str | os.PathLike, what: str = "file") -> Path:
             raise InputError(f"{what} {s}: broken symbolic link (to '{os.readlink(p)}', which does not exist)") \
                 from None
         if e.errno == errno.ENOENT:
-            raise InputError(f"{what} {s}: no such file") from None
+            full = p.absolute()
+            raise InputError(f"{what} {s}: no such file" + ("" if str(full) == s else f" ({full})")) from None
         raise InputError(f"{what} {s}: cannot read ({e.strerror or e})") from None
     if stat.S_ISDIR(st.st_mode):
         raise InputError(f"{what} {s}: is a directory, expected a file")

@@ -1,6 +1,6 @@
 """``scanreg-report``: MLflow runs -> comparison tables (Markdown, CSV) and plots (PNG).
 
-    scanreg-report                                   # latest sweep of experiment 'scanreg', grouped by what varies
+    scanreg-report                                   # the newest sweep (of any experiment), grouped by what varies
     scanreg-report --experiment bunny_benchmark --group-by group.coarse --per data.pair
     scanreg-report --experiment sampling_density --group-by sampler.density --x sampler.density
     scanreg-report --experiment icp_comparison --compare-to icp_comparison_old
@@ -52,7 +52,8 @@ class ReportParams:
     """Write the report when a ``-m`` sweep (or an experiment run as one) ends."""
     out: Optional[str] = None
     """Folder for report.md, report.csv and the PNG plots; null: outputs/reports/<experiment>. Relative paths
-    are taken from the current directory."""
+    are taken from the current directory. The committed reports in experiments/ are rewritten only when asked
+    (``report.out=experiments/NAME``)."""
     group_by: list[str] = field(default_factory=list)
     """Config keys whose values are the compared methods (e.g. ``[group.salience]``); empty: the parameters
     that vary between the runs."""
@@ -91,7 +92,8 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
         if parents.empty:
             raise SystemExit(f"error: experiment '{experiment}' has no sweep"
                              + ("" if parent == "latest" else f" with parent run {parent}")
-                             + " (run 'scanreg -m ...' first, or pass --parent all)")
+                             + " (run 'scanreg -m ...' first, pass --parent all for its single runs, or name "
+                             "another with --experiment NAME; without --experiment: the newest sweep of any)")
         parent_row = parents.iloc[0]
         parent = parent_row["run_id"]
     flt = f"tags.mlflow.parentRunId = '{parent}'" if parent else ""
@@ -105,6 +107,26 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
                     parent_tags={k[5:]: v for k, v in parent_row.items() if k.startswith("tags.")}
                     if parent_row is not None else {})
     return df
+
+
+def latest_sweep_experiment(uri: str | None = None) -> str:
+    """The MLflow experiment holding the newest sweep (parent run) of the store, for a bare ``scanreg-report``."""
+    from scanreg.tracking import MlflowTracking, _quiet_mlflow
+
+    _quiet_mlflow()
+    import mlflow
+
+    tr = MlflowTracking(MlflowTracking.Params(uri=uri))
+    mlflow.set_tracking_uri(tr.uri)
+    client = mlflow.MlflowClient(tr.uri)
+    exps = client.search_experiments()
+    runs = client.search_runs([e.experiment_id for e in exps], filter_string="tags.`scanreg.sweep` = 'parent'",
+                              order_by=["attributes.start_time DESC"], max_results=1) if exps else []
+    if not runs:
+        names = ", ".join(sorted(e.name for e in exps if e.name != "Default")) or "none"
+        raise SystemExit(f"error: no sweep in {tr.uri} (run 'scanreg -m ...' first, or name an experiment with "
+                         f"--experiment NAME --parent all; experiments: {names})")
+    return next(e.name for e in exps if e.experiment_id == runs[0].info.experiment_id)
 
 
 def find_column(key: str, df: pd.DataFrame, bare: bool = True) -> str | None:
@@ -144,6 +166,33 @@ def _typed(s: pd.Series) -> pd.Series:
     return num if num.notna().all() else s.astype(str)
 
 
+def canonical(v) -> str:
+    """One exact text per group value, for tables, plot labels and matching alike: the run values are MLflow
+    strings ("1.0", "20000"), the typed ones numbers; both give "1" and "20000" here (never a rounded "2e+04",
+    which could also merge two groups)."""
+    if isinstance(v, (bool, np.bool_)):
+        return str(v)
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        if np.isnan(v):
+            return "nan"
+        if float(v).is_integer() and abs(v) < 1e15:
+            return str(int(v))
+        return repr(float(v))
+    return str(v)
+
+
+def group_labels(df: pd.DataFrame, group_by: list[str]) -> pd.Series:
+    """Each run's group as one canonical label (``canonical`` of the typed value of every key, joined by
+    " / "); the same function labels the summary rows, the plots and the per-value table."""
+    if not group_by:
+        return pd.Series(["all"] * len(df), index=df.index)
+    typed = [_typed(df[column_for(k, df)]) for k in group_by]
+    return pd.Series([" / ".join(canonical(t.loc[i]) for t in typed) for i in df.index], index=df.index,
+                     dtype=object)
+
+
 def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = ()) -> pd.DataFrame:
     """One row per group: runs, failed, success rate, error quantiles, median stage times (and the median of
     each ``extra`` metric)."""
@@ -166,6 +215,7 @@ def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = ()) -> p
             if c in ok and ok[c].notna().any():
                 s = ok[c].dropna()
                 row[f"{m}_{how}"] = float(s.median() if how == "median" else s.quantile(0.9))
+        row["_label"] = " / ".join(canonical(v) for v in key) if group_by else "all"
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -174,18 +224,11 @@ def per_table(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame:
     """Success rate for each value of ``per`` (rows) and each group (columns)."""
     work = df.copy()
     work["_per"] = _typed(work[column_for(per, df)])
-    work["_grp"] = _labels(work, group_by)
+    work["_grp"] = group_labels(work, group_by)
     work["_ok"] = (work["status"] == "FINISHED") & (work.get("metrics.success", 0).fillna(0) > 0.5)
     t = work.pivot_table(index="_per", columns="_grp", values="_ok", aggfunc="mean")
     t.index.name, t.columns.name = per, None
     return t
-
-
-def _labels(df: pd.DataFrame, group_by: list[str]) -> pd.Series:
-    if not group_by:
-        return pd.Series(["all"] * len(df), index=df.index)
-    cols = [column_for(k, df) for k in group_by]
-    return df[cols].astype(str).agg(" / ".join, axis=1)
 
 
 def fmt_value(v) -> str:
@@ -218,6 +261,35 @@ def compare(a: pd.DataFrame, b: pd.DataFrame, group_by: list[str], name_a: str, 
     return pd.concat([pick(a, name_a), pick(b, name_b)], axis=1)
 
 
+def max_concurrent(df: pd.DataFrame) -> int:
+    """The largest number of runs that were running at the same moment (from their start and end times)."""
+    if "start_time" not in df or "end_time" not in df:
+        return 1
+    t = df[["start_time", "end_time"]].dropna()
+    events = sorted([(s, 1) for s in t["start_time"]] + [(e, -1) for e in t["end_time"]],
+                    key=lambda ev: (ev[0], ev[1]))  # an end before a start at the same instant
+    n = best = 0
+    for _, d in events:
+        n += d
+        best = max(best, n)
+    return max(best, 1)
+
+
+def concurrency_note(df: pd.DataFrame) -> tuple[str, str | None]:
+    """(how the jobs were launched, a warning when stage times come from jobs that ran concurrently)."""
+    ptags = df.attrs.get("parent_tags", {})
+    launcher = ptags.get("scanreg.launcher")
+    par = ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in ptags.items() if k.startswith("scanreg.launcher."))
+    n = max_concurrent(df)
+    how = (f"launcher {launcher}" + (f" ({par})" if par else "") + "; " if launcher else "") + \
+        f"at most {n} run(s) at the same time"
+    warn = None
+    if n > 1:
+        warn = (f"up to {n} jobs ran at once: their stage times include the contention for the cores "
+                "(for timings: launch=serial)")
+    return how, warn
+
+
 # ---------------------------------------------------------------------------------------------------- plots
 def _plt():
     import matplotlib
@@ -234,18 +306,34 @@ def _slug(s: str) -> str:
 
 def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: Path, x: str | None,
                per_t: pd.DataFrame | None) -> list[Path]:
+    """Success per group, then errors and times against ``x`` (or per group), then success per ``per`` value.
+    Every group of ``table`` appears in every plot: the runs are matched to the rows by the same canonical
+    label (:func:`group_labels`)."""
     plt = _plt()
+    from matplotlib.ticker import NullLocator
+
     paths: list[Path] = []
-    labels = [" / ".join(fmt_value(r[k]) for k in group_by) or "all" for _, r in table.iterrows()]
+    labels = list(table["_label"]) if "_label" in table else ["all"] * len(table)
+    keys = " / ".join(group_by) or "runs"
     ok = df[df["status"] == "FINISHED"].copy()
+    ok["_g"] = group_labels(ok, group_by)
+    missing = sorted(set(ok["_g"]) - set(labels))
+    if missing:  # cannot happen with one labelling function; never drop data without a word
+        raise ValueError(f"runs of group(s) {', '.join(missing)} have no row in the table")
+
+    def ticks(ax, names):
+        many = len(names) > 4 or max((len(n) for n in names), default=0) > 12
+        ax.set_xticks(range(len(names)), names, rotation=45 if many else 0, ha="right" if many else "center",
+                      fontsize=7)
+        ax.set_xlabel(keys)
 
     if "success_rate" in table:  # success per method
-        fig, ax = plt.subplots(figsize=(max(4.0, 0.6 * len(table) + 2), 3.2))
+        fig, ax = plt.subplots(figsize=(max(4.5, 0.6 * len(table) + 2), 3.4))
         ax.bar(range(len(table)), table["success_rate"].fillna(0) * 100, color="tab:blue")
-        ax.set_xticks(range(len(table)), labels, rotation=45 if len(table) > 4 else 0, ha="right" if len(table) > 4 else "center")
+        ticks(ax, labels)
         ax.set_ylabel("success [%]")
         ax.set_ylim(0, 100)
-        ax.set_title("success rate (rotation and translation error within the thresholds)", fontsize=9)
+        ax.set_title("success rate (rotation and translation\nerror within the thresholds)", fontsize=9)
         fig.tight_layout()
         paths.append(out / "success.png")
         fig.savefig(paths[-1], dpi=110)
@@ -254,42 +342,44 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
     if x and "metrics.rotation_error_deg" in ok:
         xc = column_for(x, ok)
         ok["_x"] = pd.to_numeric(ok[xc], errors="coerce")
-        ok["_g"] = _labels(ok, [k for k in group_by if k != x])
+        others = [k for k in group_by if k != x]
+        ok["_g2"] = group_labels(ok, others)
         if ok["_x"].notna().any():
-            fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-            for g, d in ok.groupby("_g"):
+            fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+            for g, d in ok.groupby("_g2", sort=True):
+                pre = f"{g} " if others else ""
                 s = d.groupby("_x")
                 med = s["metrics.rotation_error_deg"].median()
                 p90 = s["metrics.rotation_error_deg"].quantile(0.9)
-                line = axes[0].plot(med.index, med.values, "o-", label=f"{g} median")[0]
-                axes[0].plot(p90.index, p90.values, "--", color=line.get_color(), label=f"{g} p90")
+                line = axes[0].plot(med.index, med.values, "o-", label=f"{pre}median")[0]
+                axes[0].plot(p90.index, p90.values, "--", color=line.get_color(), label=f"{pre}p90")
                 if "metrics.time_total_s" in d:
                     t = s["metrics.time_total_s"].median()
-                    axes[1].plot(t.index, t.values, "o-", color=line.get_color(), label=f"{g} total")
+                    axes[1].plot(t.index, t.values, "o-", color=line.get_color(), label=f"{pre}total")
                     if "metrics.time_coarse_s" in d:
                         tc = s["metrics.time_coarse_s"].median()
-                        axes[1].plot(tc.index, tc.values, ":", color=line.get_color(), label=f"{g} coarse")
+                        axes[1].plot(tc.index, tc.values, ":", color=line.get_color(), label=f"{pre}coarse")
             axes[0].set_yscale("log")
-            axes[0].set_xlabel(x)
             axes[0].set_ylabel("rotation error [deg]")
-            axes[1].set_xlabel(x)
             axes[1].set_ylabel("median time [s]")
+            xs = np.sort(ok["_x"].dropna().unique())
             for ax in axes:
-                if (ok["_x"] > 0).all() and ok["_x"].max() / ok["_x"].min() >= 10:
+                ax.set_xlabel(x)
+                if (xs > 0).all() and xs.max() / xs.min() >= 10:
                     ax.set_xscale("log")
-                ax.legend(fontsize=7)
+                ax.set_xticks(xs, [canonical(v) for v in xs], fontsize=7)
+                ax.xaxis.set_minor_locator(NullLocator())  # x only: a log y axis within a decade needs its minor labels
+                ax.legend(fontsize=7, title=" / ".join(others) or None, title_fontsize=7)
             fig.tight_layout()
             paths.append(out / f"error_time_vs_{_slug(x)}.png")
             fig.savefig(paths[-1], dpi=110)
             plt.close(fig)
     elif "metrics.rotation_error_deg" in ok and len(ok):  # error distribution and stage times per method
-        ok["_g"] = _labels(ok, group_by)
-        names = [n for n in dict.fromkeys(labels) if n in set(ok["_g"])]
-        fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-        data = [ok.loc[ok["_g"] == n, "metrics.rotation_error_deg"].clip(lower=1e-3).values for n in names]
-        axes[0].boxplot(data)
-        axes[0].set_xticks(range(1, len(names) + 1), names, rotation=45 if len(names) > 4 else 0,
-                           ha="right" if len(names) > 4 else "center", fontsize=7)
+        names = list(dict.fromkeys(labels))
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+        data = [ok.loc[ok["_g"] == n, "metrics.rotation_error_deg"].dropna().clip(lower=1e-3).values for n in names]
+        axes[0].boxplot([d if len(d) else [np.nan] for d in data], positions=range(len(names)))
+        ticks(axes[0], names)
         axes[0].set_yscale("log")
         axes[0].set_ylabel("rotation error [deg]")
         bottom = np.zeros(len(names))
@@ -301,8 +391,7 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
             v = np.nan_to_num(v)
             axes[1].bar(range(len(names)), v, bottom=bottom, label=s)
             bottom += v
-        axes[1].set_xticks(range(len(names)), names, rotation=45 if len(names) > 4 else 0,
-                           ha="right" if len(names) > 4 else "center", fontsize=7)
+        ticks(axes[1], names)
         axes[1].set_ylabel("median time per stage [s]")
         axes[1].legend(fontsize=7)
         fig.tight_layout()
@@ -332,7 +421,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     out.mkdir(parents=True, exist_ok=True)
     group_by = list(p.group_by) or varying_keys(df)
     table = summarize(df, group_by, list(p.metrics))
-    table.to_csv(out / "report.csv", index=False)
+    table.drop(columns="_label").to_csv(out / "report.csv", index=False)
     per_t = per_table(df, group_by, p.per) if p.per else None
     if per_t is not None:
         per_t.to_csv(out / "per.csv")
@@ -344,6 +433,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     command = ptags.get("scanreg.command") or (f"scanreg -m {ptags['scanreg.overrides']}" if "scanreg.overrides" in ptags else None)
     when = pd.to_datetime(df["start_time"]).min()
     n_fail = int((df["status"] != "FINISHED").sum())
+    how, warn = concurrency_note(df)
     lines = [f"# {p.title or 'Experiment ' + exp}", ""]
     if p.notes:
         lines += [" ".join(p.notes.split()), ""]
@@ -353,6 +443,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         f"- commit: {', '.join(commits) or 'unknown'}",
         f"- runs: {len(df)} ({n_fail} failed), started {when:%Y-%m-%d %H:%M} UTC"
         + (f", sweep parent run `{df.attrs['parent']}`" if df.attrs.get("parent") else ""),
+        f"- jobs: {how}",
         f"- tracking store: `{df.attrs.get('uri')}` (experiment `{exp}`)",
         f"- report: `scanreg-report --experiment {exp}" + (f" --group-by {','.join(group_by)}" if group_by else "")
         + (f" --x {p.x}" if p.x else "") + (f" --per {p.per}" if p.per else "") + "`, "
@@ -362,6 +453,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         "`evaluate.success_translation` (1 %) of the target's bounding-box diagonal; a failed run counts as a "
         "failure. Errors are against the ground truth, in degrees and input units; times are medians in seconds.",
         "",
+        *([f"**Warning: {warn}.**", ""] if warn else []),
         f"## Results by {', '.join(group_by) or 'run'}", "",
         "Medians unless marked p90; every column (more errors, fitness, each stage's time) is in report.csv.", "",
         to_markdown(table[[c for c in [*group_by, *MD_COLUMNS, *[f"{m}_median" for m in p.metrics]]
@@ -383,7 +475,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         reasons = df.loc[df["status"] != "FINISHED", "tags.error"] if "tags.error" in df else pd.Series(dtype=str)
         lines += ["## Failed runs", ""] + [f"- {r}" for r in reasons.fillna("(no reason recorded)").value_counts().index] + [""]
     (out / "report.md").write_text("\n".join(lines))
-    return {"table": table, "per": per_t, "paths": [out / "report.md", out / "report.csv", *figs]}
+    return {"table": table, "per": per_t, "paths": [out / "report.md", out / "report.csv", *figs], "warning": warn}
 
 
 def showcase_section(df: pd.DataFrame, sel: dict, out: Path) -> list[str]:
@@ -431,12 +523,17 @@ def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None
     out = Path(p.out or Path("outputs") / "reports" / experiment)
     df = load_runs(experiment, uri, parent_run_id)
     res = write_report(df, p, out)
+    if res["warning"]:
+        print(f"warning: {res['warning']}")
     print(f"report: {res['paths'][0]}")
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scanreg-report", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--experiment", default="scanreg", help="MLflow experiment name (default: scanreg)")
+    from scanreg.registry import _one_line_parser
+
+    ap = _one_line_parser()(prog="scanreg-report", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--experiment", default=None,
+                    help="MLflow experiment name (default: the experiment of the newest sweep in the store)")
     ap.add_argument("--parent", default="latest",
                     help="parent run id of a sweep; 'latest' (default): the newest sweep; 'all': every run")
     ap.add_argument("--group-by", default=None,
@@ -463,8 +560,12 @@ def main(argv: list[str] | None = None) -> int:
 
         cfg = compose([f"experiment={a.config}"])
         base = make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
-        if a.experiment == ap.get_default("experiment"):
+        if a.experiment is None:
             a.experiment = cfg.tracking.experiment
+    if a.experiment is None:
+        if a.parent not in ("latest",):
+            raise SystemExit("error: --parent needs --experiment NAME")
+        a.experiment = latest_sweep_experiment(a.uri)
     df = load_runs(a.experiment, a.uri, None if a.parent == "all" else a.parent)
     other = load_runs(a.compare_to, a.uri, "latest" if a.parent != "all" else None) if a.compare_to else None
     from dataclasses import replace
@@ -475,12 +576,39 @@ def main(argv: list[str] | None = None) -> int:
         metrics=split(a.metrics) if a.metrics else None).items() if v is not None})
     out = Path(p.out or Path("outputs") / "reports" / a.experiment)
     res = write_report(df, p, out, other, plots=not a.no_plots)
-    with pd.option_context("display.width", 200, "display.max_columns", 50):
-        print(f"{len(df)} run(s) of experiment '{a.experiment}'"
-              + (f", sweep {df.attrs['parent']}" if df.attrs.get("parent") else ""))
-        print(res["table"].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
-    print("written: " + ", ".join(str(x) for x in res["paths"]))
+    print(f"{len(df)} run(s) of experiment '{a.experiment}'"
+          + (f", sweep {df.attrs['parent']}" if df.attrs.get("parent") else ""))
+    print(console_table(res["table"], p.group_by or varying_keys(df)))
+    if res["warning"]:
+        print(f"warning: {res['warning']}")
+    print(f"every column: {out / 'report.csv'}; report: {out / 'report.md'}")
     return 0
+
+
+CONSOLE_COLUMNS = [("runs", "runs"), ("failed", "failed"), ("success_rate", "success"),
+                   ("rotation_error_deg_median", "rot_deg"), ("translation_error_median", "transl"),
+                   ("time_coarse_s_median", "coarse_s"), ("time_total_s_median", "total_s")]
+"""The console's short table: (report.csv column, heading)."""
+
+
+def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100) -> str:
+    """The summary as a table of at most ``width`` columns: the group (its canonical label), runs, success,
+    median errors and times; the rest is in report.csv."""
+    cols = [(c, h) for c, h in CONSOLE_COLUMNS if c in table]
+    head = " / ".join(group_by) or "group"
+    rows = [[str(r["_label"]) if "_label" in table else "all", *[fmt_value(r[c]) for c, _ in cols]]
+            for _, r in table.iterrows()]
+    widths = [max(len(h), *(len(x[i]) for x in rows)) if rows else len(h)
+              for i, h in enumerate([head, *[h for _, h in cols]])]
+    room = width - sum(widths[1:]) - 2 * len(cols)
+    widths[0] = max(8, min(widths[0], room))
+    clip = lambda t, w: t if len(t) <= w else t[: w - 1] + "…"
+    lines = ["  ".join([clip(head, widths[0]).ljust(widths[0]),
+                        *[h.rjust(w) for (_, h), w in zip(cols, widths[1:])]])]
+    for x in rows:
+        lines.append("  ".join([clip(x[0], widths[0]).ljust(widths[0]),
+                                *[v.rjust(w) for v, w in zip(x[1:], widths[1:])]]))
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

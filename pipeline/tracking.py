@@ -219,7 +219,7 @@ class SweepCallback(Callback):
         parent = client.create_run(eid, run_name=f"sweep: {overrides}"[:250],
                                    tags={"scanreg.sweep_dir": sweep_dir, "scanreg.overrides": overrides,
                                          "scanreg.sweep": "parent", "scanreg.command": command,
-                                         "scanreg.git_commit": git_revision()})
+                                         "scanreg.git_commit": git_revision(), **launcher_tags(config)})
         Path(sweep_dir).mkdir(parents=True, exist_ok=True)
         info = json.dumps({"uri": tr.uri, "experiment": params.experiment, "experiment_id": eid,
                            "parent_run_id": parent.info.run_id, "total": sweep_size(config), "start": time.time(),
@@ -250,6 +250,16 @@ class SweepCallback(Callback):
                 msg = str(e) if isinstance(e, (ConfigError, SystemExit)) else f"{type(e).__name__}: {e}"
                 print(f"error: report not written: {msg}".splitlines()[0])
                 _sweep_outcome["failed"] = _sweep_outcome.get("failed", 0) or 1
+
+
+def launcher_tags(config: DictConfig) -> dict[str, str]:
+    """The sweep's launcher and its parallelism (``n_jobs``, ``array_parallelism``...), for the report."""
+    lc = config.hydra.get("launcher") or {}
+    tags = {"scanreg.launcher": str(lc.get("_target_", "?")).rsplit(".", 1)[-1]}
+    for k in ("n_jobs", "array_parallelism"):
+        if lc.get(k) is not None:
+            tags[f"scanreg.launcher.{k}"] = str(lc.get(k))
+    return tags
 
 
 def _children(client, info: dict) -> list:
@@ -297,8 +307,9 @@ def sweep_size(config: DictConfig) -> int | None:
         return None
 
 
-def report_progress(status: str) -> None:
-    """After a sweep job: append to the sweep's progress file and print a bar with the estimated time left."""
+def report_progress(status: str, what: str = "") -> None:
+    """After a sweep job: append to the sweep's progress file and print one line, the job's outcome with a
+    progress bar and the estimated time left (the job's full table is in its folder, ``summary.txt``)."""
     info = sweep_info()
     if not info or not info.get("progress"):
         return
@@ -311,14 +322,22 @@ def report_progress(status: str) -> None:
     done, failed = len(done_lines), sum(s != "FINISHED" for s in done_lines)
     elapsed = time.time() - info["start"]
     total = info.get("total")
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        job = f"#{HydraConfig.get().job.num} "
+    except Exception:  # noqa: BLE001: not inside a Hydra job
+        job = ""
+    outcome = f"{job}{'ok' if status == 'FINISHED' else status}" + (f": {what}" if what else "")
     if total:
-        width = 30
+        width = 10
         fill = int(round(width * min(done, total) / total))
         left = elapsed / done * max(total - done, 0)
-        print(f"sweep [{'#' * fill}{'.' * (width - fill)}] {done}/{total} jobs, {failed} failed, "
-              f"{_hms(elapsed)} elapsed, ~{_hms(left)} left", flush=True)
+        line = (f"sweep [{'#' * fill}{'.' * (width - fill)}] {done}/{total} jobs, {failed} failed, "
+                f"~{_hms(left)} left | {outcome}")
     else:
-        print(f"sweep: {done} jobs done, {failed} failed, {_hms(elapsed)} elapsed", flush=True)
+        line = f"sweep: {done} jobs, {failed} failed, {_hms(elapsed)} | {outcome}"
+    print(line if len(line) <= 100 else line[:99] + "…", flush=True)
 
 
 def _hms(sec: float) -> str:

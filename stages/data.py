@@ -152,13 +152,17 @@ class Files:
     def __init__(self, params: Params):
         self.p = params
 
-    def load(self, ctx: Context) -> Inputs:
+    def require(self) -> None:
+        """Both files named (checked before a run starts)."""
         for key in ("source", "target"):
             if not getattr(self.p, key):
                 raise ConfigError(
                     f"data=files: data.{key} is not set; run e.g. 'scanreg data.source=A.ply data.target=B.ply', "
                     "or the demo: 'scanreg data=synthetic'"
                 )
+
+    def load(self, ctx: Context) -> Inputs:
+        self.require()
         src, n_src_bad = read_input(expand_path(self.p.source), "source", self.p.source_columns or self.p.columns)
         tgt, n_tgt_bad = read_input(expand_path(self.p.target), "target", self.p.target_columns or self.p.columns)
         info = {"n_source_invalid_points": n_src_bad, "n_target_invalid_points": n_tgt_bad}

@@ -116,6 +116,11 @@ BAD_CASES = {
 }
 
 
+CONFIG_CASES = {"unknown_group_choice", "unknown_stage_name", "wrong_type", "unknown_param", "no_source"}
+"""Usage and config errors: exit 2 before any MLflow run exists. The others are input errors: exit 1, and the
+run ends FAILED with the reason."""
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("case", list(BAD_CASES))
 def test_bad_input_one_line_error_and_failed_run(tmp_path, mlflow_uri, case):
@@ -130,11 +135,17 @@ def test_bad_input_one_line_error_and_failed_run(tmp_path, mlflow_uri, case):
     keys = {a.split("=")[0] for a in args}
     argv = [a for a in base if a.split("=")[0] not in keys] + args
     r = run_cli([*argv, f"hydra.run.dir={tmp_path / 'out'}", f"tracking.experiment=bad_{case}"], tmp_path, mlflow_uri)
-    assert r.returncode != 0
+    assert r.returncode == (2 if case in CONFIG_CASES else 1), r.stderr
     assert "Traceback" not in r.stderr + r.stdout
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert lines and lines[-1].startswith("error: ") and message in lines[-1], r.stderr
     assert sum(ln.startswith("error:") for ln in lines) == 1
+    import mlflow
+
+    exp = mlflow.MlflowClient(mlflow_uri).get_experiment_by_name(f"bad_{case}")
+    if case in CONFIG_CASES:  # a typo adds no run to MLflow
+        assert exp is None or mlflow.MlflowClient(mlflow_uri).search_runs([exp.experiment_id]) == []
+        return
     df = runs(mlflow_uri, f"bad_{case}")
     assert list(df["status"]) == ["FAILED"]
     assert message in df.iloc[0]["tags.error"]

@@ -114,3 +114,72 @@ def test_user_config_dir_plugs_in(tmp_path):
     assert "unknown experiment 'my_density'" in msg
     cfg = compose(["experiment=my_density"], config_dirs=[tmp_path])
     assert cfg.sampler.n_points == 3000 and cfg.icp.name == "horn"
+
+
+def _yaml_text(v) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, list):
+        return "[" + ", ".join(_yaml_text(x) for x in v) + "]"
+    return str(v)
+
+
+def test_scanreg_stages_shows_the_yaml_defaults_at_100_columns(capsys):
+    """scanreg-stages: every stage, every parameter, with the value its YAML sets (point_to_plane's
+    initial_share is 0.25 there, 1.0 in the shared Params), in at most 100 columns and without markup."""
+    import re
+
+    from scanreg.registry import main as stages_main
+
+    assert stages_main([]) == 0
+    text = capsys.readouterr().out
+    lines = text.splitlines()
+    assert max(len(ln) for ln in lines) <= 100
+    assert "``" not in text and "<Distances" not in text
+    shown: dict[tuple[str, str], dict[str, str]] = {}
+    stage = None
+    for ln in lines:
+        if re.fullmatch(r"[a-z_]+=[a-z0-9_]+", ln):
+            stage = tuple(ln.split("="))
+            shown[stage] = {}
+        m = re.fullmatch(r"  (\w+) = (.*)   \((.*)\)", ln)
+        if m and stage:
+            shown[stage][m.group(1)] = m.group(2)
+    assert set(shown) == set(ALL_OPTIONS)
+    for group, option in ALL_OPTIONS:
+        yaml = OmegaConf.to_container(OmegaConf.load(CONF_DIR / group / f"{option}.yaml"), resolve=False)
+        fields = {f.name for f in dataclasses.fields(REGISTRIES[group].get(option).Params)}
+        assert set(shown[group, option]) == fields, (group, option)
+        for k, v in yaml.items():
+            if k != "name":
+                assert shown[group, option][k] == _yaml_text(v), (group, option, k)
+    assert shown["icp", "point_to_plane"]["initial_share"] == "0.25"
+    assert shown["icp", "point_to_plane"]["distances"] == "spacing"
+
+
+def test_scanreg_stages_help_and_filter(capsys):
+    from scanreg.registry import main as stages_main
+
+    with pytest.raises(SystemExit) as e:
+        stages_main(["--help"])
+    assert e.value.code == 0 and "FAMILY[=NAME]" in capsys.readouterr().out
+    assert stages_main(["icp=horn", "matcher"]) == 0
+    heads = [ln for ln in capsys.readouterr().out.splitlines() if ln and not ln.startswith(" ")]
+    assert heads == ["icp=horn", "matcher=mutual_knn"]
+    assert stages_main(["icp=bogus"]) == 2
+    assert capsys.readouterr().err.startswith("error: unknown icp 'bogus'")
+
+
+def test_scanreg_help_is_the_projects_own(tmp_path):
+    from conftest import run_cli
+
+    r = run_cli(["--help"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert "powered by Hydra" not in out and "scanreg: repair, sample and rigidly register" in out
+    assert "scanreg data=synthetic" in out and "Exit codes:" in out and str(CONF_DIR) in out
+    assert "icp: anderson, gicp, horn, open3d, point_to_plane" in out
+    assert len(out.splitlines()) < 60 and max(len(ln) for ln in out.splitlines()) <= 100
+    assert not list(tmp_path.iterdir())  # help runs nothing

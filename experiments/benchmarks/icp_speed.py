@@ -4,10 +4,14 @@
 
 Case: pymeshfix's bunny sampled twice independently (N points each, normals from the triangles); the source
 moved by 10 degrees about a random axis through its centre plus 2 % of the diagonal. Every measurement runs in a
-fresh subprocess: per-iteration time is (time of 30 iterations - time of 1) / 29 with the same pair limit, both
-on all cores (Open3D's OpenMP, pykdtree's OpenMP); "to convergence" runs each method with its own stopping rule
-and its ``conf/icp`` defaults (point_to_plane: coarse-to-fine from a quarter of the points).
-Peak memory is the subprocess's maximum resident set size minus that of a process that only loaded the data.
+fresh subprocess, ``--repeat`` rounds, each round running every method once in turn (interleaved with the
+anchor, Open3D, so that a slow spell of the machine hits all of them); the tables give the median over the rounds
+with the min-max range. Per iteration: in one subprocess, 1 iteration then 30 with the same pair limit, after a
+warm-up; per iteration = (t30 - t1) / 29, and its ratio to Open3D point-to-point is taken within each round.
+Both on all cores (Open3D's OpenMP, pykdtree's OpenMP). "To convergence" runs each method with its own stopping
+rule and its ``conf/icp`` defaults (point_to_plane: coarse-to-fine from a quarter of the points).
+Peak memory is the subprocess's maximum resident set size minus that of a process that only loaded the data
+(first round).
 """
 
 from __future__ import annotations
@@ -50,7 +54,7 @@ def make_case(n: int):
     return tgt, src, T_gt, spacing
 
 
-def run_case(method: str, n: int, iters: int | None) -> dict:
+def run_case(method: str, n: int, iters: int | None, case=None) -> dict:
     """One measurement in this process. iters=None: to convergence."""
     from scanreg.config import Context
     from scanreg.geometry import transform_errors
@@ -60,7 +64,7 @@ def run_case(method: str, n: int, iters: int | None) -> dict:
     from scanreg.registry import load_all
 
     load_all()
-    tgt, src, T_gt, spacing = make_case(n)
+    tgt, src, T_gt, spacing = case or make_case(n)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t0 = time.perf_counter_ns()
     if method.startswith("open3d"):
@@ -98,48 +102,77 @@ def run_case(method: str, n: int, iters: int | None) -> dict:
             "peak_extra_mb": max(rss - rss0, 0) / 1024}
 
 
-def measure(method: str, n: int, iters: int | None) -> dict:
-    out = subprocess.run([sys.executable, __file__, "--child", method, str(n), str(iters or 0)],
+def per_iteration_case(method: str, n: int) -> dict:
+    """In this process: a warm-up, then 1 iteration and 30 iterations; per iteration = (t30 - t1) / 29."""
+    case = make_case(n)
+    run_case(method, n, 1, case)  # warm-up: first-call costs (allocations, thread pools) outside the timing
+    t1 = run_case(method, n, 1, case)["time_s"]
+    t30 = run_case(method, n, 30, case)["time_s"]
+    return {"per_iteration_s": (t30 - t1) / 29, "t1_s": t1, "t30_s": t30}
+
+
+def measure(method: str, n: int, iters: int | None, per_iteration: bool = False) -> dict:
+    mode = "per" if per_iteration else str(iters or 0)
+    out = subprocess.run([sys.executable, __file__, "--child", method, str(n), mode],
                          capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
     if out.returncode:
         raise SystemExit(out.stderr)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def spread(values: list[float], fmt: str, scale: float = 1.0) -> str:
+    """``median (min-max)`` of ``values`` times ``scale``."""
+    v = np.asarray(values, float) * scale
+    return f"{np.median(v):{fmt}} ({v.min():{fmt}}-{v.max():{fmt}})"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", default="10000,100000,1000000")
+    ap.add_argument("--repeat", type=int, default=5, help="rounds of every measurement (default 5)")
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(Path(__file__).with_suffix(".md")))
     a = ap.parse_args()
     if a.child:
-        method, n, iters = a.child
-        print(json.dumps(run_case(method, int(n), int(iters) or None)))
+        method, n, mode = a.child
+        print(json.dumps(per_iteration_case(method, int(n)) if mode == "per"
+                         else run_case(method, int(n), int(mode) or None)))
         return
+    if a.repeat < 1:
+        raise SystemExit("error: --repeat must be >= 1")
+    R = a.repeat
     lines = [f"Threads: {os.cpu_count()} cores, Open3D OpenMP and pykdtree OpenMP on all of them. Pair limit "
-             f"{MAXD:g} spacings for every method.", ""]
-    lines += ["Per iteration (fixed 30 iterations vs 1)", "",
+             f"{MAXD:g} spacings for every method. {R} rounds, each running every method once in turn; median "
+             "(min-max) over the rounds.", ""]
+    lines += ["Per iteration ((30 iterations - 1) / 29, in one process after a warm-up)", "",
               "| points | method | per iteration [ms] | ratio to Open3D point-to-point |", "|---|---|---|---|"]
     conv = ["", "To convergence (each method's own stopping rule)", "",
             "| points | method | total [s] | iterations | rotation error [deg] | translation error | peak extra memory [MB] |",
             "|---|---|---|---|---|---|---|"]
+    anchor, per_methods = "open3d_point_to_point", ("open3d_point_to_point", "horn")
+    conv_methods = ("open3d_point_to_plane", "open3d_point_to_point", "horn", "anderson", "point_to_plane", "gicp")
     for n in [int(x) for x in a.sizes.split(",")]:
-        per = {}
-        for m in ("open3d_point_to_point", "horn"):
-            one, thirty = measure(m, n, 1), measure(m, n, 30)
-            per[m] = (thirty["time_s"] - one["time_s"]) / 29
-        for m in ("open3d_point_to_point", "horn"):
-            lines.append(f"| {n:,} | {m} | {per[m] * 1e3:.2f} | {per[m] / per['open3d_point_to_point']:.2f} |")
-        for m in ("open3d_point_to_plane", "open3d_point_to_point", "horn", "anderson", "point_to_plane", "gicp"):
-            r = measure(m, n, None)
+        per: dict[str, list[float]] = {m: [] for m in per_methods}
+        runs: dict[str, list[dict]] = {m: [] for m in conv_methods}
+        for _ in range(R):  # interleaved: every method once per round
+            for m in per_methods:
+                per[m].append(measure(m, n, None, per_iteration=True)["per_iteration_s"])
+            for m in conv_methods:
+                runs[m].append(measure(m, n, None))
+        for m in per_methods:
+            ratio = [x / y for x, y in zip(per[m], per[anchor])]
+            lines.append(f"| {n:,} | {m} | {spread(per[m], '.2f', 1e3)} | {spread(ratio, '.2f')} |")
+        for m in conv_methods:
+            r = runs[m][0]
             its = "-" if r["iterations"] is None else r["iterations"]
-            conv.append(f"| {n:,} | {m} | {r['time_s']:.3f} | {its} | {r['rotation_error_deg']:.4f} | "
-                        f"{r['translation_error']:.4f} | {r['peak_extra_mb']:.0f} |")
+            conv.append(f"| {n:,} | {m} | {spread([x['time_s'] for x in runs[m]], '.3f')} | {its} | "
+                        f"{r['rotation_error_deg']:.4f} | {r['translation_error']:.4f} | {r['peak_extra_mb']:.0f} |")
         print("\n".join(lines + conv), flush=True)
     text = "\n".join(lines + conv)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    Path(a.out).write_text(f"# ICP benchmark\n\nProduced by `python experiments/benchmarks/icp_speed.py` at commit "
-                           f"{commit or '?'} on a 2-core machine.\n\n{text}\n")
+    Path(a.out).write_text(f"# ICP benchmark\n\nProduced by `python experiments/benchmarks/icp_speed.py "
+                           f"--sizes {a.sizes} --repeat {R}` at commit {commit or '?'} on a 2-core machine "
+                           f"(shared with other work: hence the ranges).\n\n{text}\n")
 
 
 if __name__ == "__main__":

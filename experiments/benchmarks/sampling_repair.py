@@ -3,7 +3,7 @@
     ./run python experiments/benchmarks/sampling_repair.py [--points 1000000] [--repeat 3]
 
 Sampling: scanreg's ``barycentric`` against Open3D's ``sample_points_uniformly`` (and the other samplers)
-for N points on pymeshfix's bunny (100k faces); best of ``--repeat`` runs each, single process, same threads.
+for N points on pymeshfix's bunny (100k faces), single process, same threads.
 Repair: each backend on the defect meshes, against pymeshfix's stock ``MeshFix.repair()`` on the same mesh,
 with the audit's verdict (default guard limits); open scans also with repair.open_border=open and =shell. Real
 scans from ../shared/data are included when present.
@@ -13,6 +13,10 @@ scans from ../shared/data are included when present.
 The 10 raw Stanford range scans with the default repair (meshfix, open_border=auto, no override) and the other
 border modes given: time (backend and audit apart) and the guard's measurements; written to
 ``stanford_repair.md``.
+
+Timings: ``--repeat`` rounds, each running the anchor and then every method once (interleaved, so that a slow
+spell of the machine hits all of them); the tables give the median with the min-max range over the rounds, and
+the ratio to the anchor is taken within each round.
 """
 
 from __future__ import annotations
@@ -31,13 +35,16 @@ from scanreg.io import read_mesh
 from scanreg.registry import REPAIR, SAMPLER, make_params
 
 
-def best_of(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter_ns()
-        fn()
-        times.append((time.perf_counter_ns() - t0) / 1e9)
-    return min(times)
+def timed(fn) -> float:
+    t0 = time.perf_counter_ns()
+    fn()
+    return (time.perf_counter_ns() - t0) / 1e9
+
+
+def spread(values: list[float], fmt: str) -> str:
+    """``median (min-max)``."""
+    v = np.asarray(values, float)
+    return f"{np.median(v):{fmt}} ({v.min():{fmt}}-{v.max():{fmt}})"
 
 
 def bench_sampling(n: int, repeat: int) -> list[str]:
@@ -47,21 +54,26 @@ def bench_sampling(n: int, repeat: int) -> list[str]:
     om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
                                    o3d.utility.Vector3iVector(mesh.faces.astype(np.int32)))
     ctx = Context(seed=0, run_dir=None)
-    anchor = best_of(lambda: om.sample_points_uniformly(n), repeat)
-    rows = [f"| Open3D sample_points_uniformly (anchor) | {anchor:.3f} | 1.00 |"]
+    methods = {}
     for name in ("barycentric", "open3d_uniform", "poisson_disk"):
         if name == "poisson_disk" and n > 200_000:
             continue  # sample elimination is far slower; not a like-for-like comparison at this size
         cls = SAMPLER.get(name)
-        s = cls(make_params(cls.Params, {"n_points": n}, name))
-        t = best_of(lambda: s.run(mesh, ctx), repeat)
-        rows.append(f"| scanreg {name} | {t:.3f} | {t / anchor:.2f} |")
-    head = [f"Sampling {n:,} points on pymeshfix's StanfordBunny.ply ({len(mesh.faces):,} faces), best of {repeat}",
-            "", "| method | time [s] | ratio to anchor |", "|---|---|---|"]
+        methods[name] = cls(make_params(cls.Params, {"n_points": n}, name))
+    anchor, times = [], {name: [] for name in methods}
+    for _ in range(repeat):  # interleaved: the anchor, then every method, in each round
+        anchor.append(timed(lambda: om.sample_points_uniformly(n)))
+        for name, s in methods.items():
+            times[name].append(timed(lambda: s.run(mesh, ctx)))
+    rows = [f"| Open3D sample_points_uniformly (anchor) | {spread(anchor, '.3f')} | 1.00 |"]
+    for name, t in times.items():
+        rows.append(f"| scanreg {name} | {spread(t, '.3f')} | {spread([x / y for x, y in zip(t, anchor)], '.2f')} |")
+    head = [f"Sampling {n:,} points on pymeshfix's StanfordBunny.ply ({len(mesh.faces):,} faces), median "
+            f"(min-max) of {repeat} interleaved rounds", "", "| method | time [s] | ratio to anchor |", "|---|---|---|"]
     return head + rows
 
 
-def bench_repair() -> list[str]:
+def bench_repair(repeat: int) -> list[str]:
     import pymeshfix
 
     from scanreg.stages.repair import repair_with_audit
@@ -77,24 +89,28 @@ def bench_repair() -> list[str]:
     for label, path in meshes.items():
         m = read_mesh(path)
         m.source = label
-        t0 = time.perf_counter_ns()
-        mf = pymeshfix.MeshFix(m.vertices, m.faces.astype(np.int32))
-        mf.repair()
-        anchor = (time.perf_counter_ns() - t0) / 1e9
-        rows.append(f"| {label} | pymeshfix MeshFix.repair() (anchor) | {anchor:.2f} | 1.00 | - |")
         configs = [("meshfix", {}), ("meshlab", {})]
         if not label.startswith("StanfordBunny") and "screwdriver" not in label:
             configs += [(b, {"open_border": o}) for o in ("open", "shell") for b in ("meshfix", "meshlab")]
-        for name, kw in configs:
-            cls = REPAIR.get(name)
-            st = cls(make_params(cls.Params, {**kw, "check_only": True}, name))
-            t0 = time.perf_counter_ns()
-            with contextlib.redirect_stdout(io.StringIO()):
-                try:
-                    _, mm = repair_with_audit(st, m, ctx, "r_")
-                except StageError as e:
-                    mm = e.metrics
-            t = (time.perf_counter_ns() - t0) / 1e9
+        anchor, times, audits = [], [[] for _ in configs], [None] * len(configs)
+        for _ in range(repeat):  # interleaved: the anchor, then every configuration, in each round
+            def stock():
+                pymeshfix.MeshFix(m.vertices, m.faces.astype(np.int32)).repair()
+
+            anchor.append(timed(stock))
+            for i, (name, kw) in enumerate(configs):
+                cls = REPAIR.get(name)
+                st = cls(make_params(cls.Params, {**kw, "check_only": True}, name))
+                t0 = time.perf_counter_ns()
+                with contextlib.redirect_stdout(io.StringIO()):
+                    try:
+                        _, mm = repair_with_audit(st, m, ctx, "r_")
+                    except StageError as e:
+                        mm = e.metrics
+                times[i].append((time.perf_counter_ns() - t0) / 1e9)
+                audits[i] = audits[i] or mm
+        rows.append(f"| {label} | pymeshfix MeshFix.repair() (anchor) | {spread(anchor, '.2f')} | 1.00 | - |")
+        for (name, kw), t, mm in zip(configs, times, audits):
             a = {k[2:]: v for k, v in mm.items()}
             verdict = (f"{'ok' if a['guard_ok'] else 'GUARD'}{', watertight' if a['after_watertight'] else ''}: "
                        f"loops {a['before_boundary_loops']}->"
@@ -102,8 +118,10 @@ def bench_repair() -> list[str]:
                        f"{a['after_self_intersecting_faces']}, removed {a['removed_area_share']:.1%}, "
                        f"Hausdorff {a['hausdorff_max_rel']:.2%} of diag")
             opts = " ".join(f"{k}={v}" for k, v in kw.items())
-            rows.append(f"| {label} | scanreg {name} {opts} (with audit) | {t:.2f} | {t / anchor:.2f} | {verdict} |")
-    head = ["Repair (time includes scanreg's audit: before/after statistics, self-intersections, Hausdorff)", "",
+            ratio = spread([x / y for x, y in zip(t, anchor)], ".2f")
+            rows.append(f"| {label} | scanreg {name} {opts} (with audit) | {spread(t, '.2f')} | {ratio} | {verdict} |")
+    head = ["Repair (time includes scanreg's audit: before/after statistics, self-intersections, Hausdorff); "
+            f"median (min-max) of {repeat} interleaved rounds", "",
             "| mesh | method | time [s] | ratio to anchor | audit |", "|---|---|---|---|---|"]
     return head + rows
 
@@ -153,6 +171,8 @@ def main() -> None:
     from scanreg.registry import load_all
 
     load_all()
+    if a.repeat < 1:
+        raise SystemExit("error: --repeat must be >= 1")
     if a.stanford:
         text = "\n".join(bench_stanford(a.borders.split(",")))
         print(text)
@@ -164,14 +184,14 @@ def main() -> None:
                        f"sampling_repair.py --stanford` at commit {commit or '?'} on a 2-core machine shared "
                        f"with other jobs.\n\n{text}\n")
         return
-    lines = bench_sampling(a.points, a.repeat) + [""] + bench_repair()
+    lines = bench_sampling(a.points, a.repeat) + [""] + bench_repair(a.repeat)
     text = "\n".join(lines)
     print(text)
     import subprocess
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     Path(a.out).write_text(f"# Sampling and repair benchmark\n\nProduced by `python experiments/benchmarks/"
-                           f"sampling_repair.py` at commit {commit or '?'} on a 2-core machine.\n\n{text}\n")
+                           f"sampling_repair.py --points {a.points} --repeat {a.repeat}` at commit {commit or '?'} on a 2-core machine.\n\n{text}\n")
 
 
 if __name__ == "__main__":
