@@ -195,7 +195,7 @@ def value_text(v: Any) -> str:
 def yaml_defaults(family: str, name: str) -> dict[str, Any]:
     """The parameter values ``conf/<family>/<name>.yaml`` sets (interpolations such as ``${seed}`` as
     written); every field missing there keeps the Params default."""
-    from scanreg.app import CONF_DIR
+    from scanreg.config import conf_dir
 
     cls = REGISTRIES[family].get(name)
     values: dict[str, Any] = {}
@@ -206,7 +206,7 @@ def yaml_defaults(family: str, name: str) -> dict[str, Any]:
             values[f.name] = f.default_factory()
         else:
             values[f.name] = "???"
-    path = CONF_DIR / family / f"{name}.yaml"
+    path = conf_dir() / family / f"{name}.yaml"
     if path.exists():
         yaml = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
         values.update({k: v for k, v in yaml.items() if k in values})
