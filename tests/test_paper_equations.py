@@ -207,8 +207,20 @@ def sliding_case(seed=0):
     return Cloud(target), Cloud(src)
 
 
+def direct_icp_history(target, source, n, maxd=None):
+    """RMS closest-point distance (of the pairs within ``maxd``) at each of n + 1 Besl-McKay iterates, each
+    T_{k+1} = Horn(Y_k, P0) from the original source: the loop written out plainly."""
+    T, h = np.eye(4), []
+    for _ in range(n + 1):
+        Y, d = nearest(apply_T(T, source.points), target.points)
+        ok = np.ones(len(d), bool) if maxd is None else d <= maxd
+        h.append(math.sqrt(np.mean(d[ok] ** 2)))
+        T = horn_quaternion(Y[ok], source.points[ok])
+    return np.array(h)
+
+
 def run_horn(target, source, **kw):
-    st = build(ICP, "horn", max_correspondence_distance=None, distances="absolute", **kw)
+    st = build(ICP, "horn", **{"max_correspondence_distance": None, "distances": "absolute", **kw})
     return st.run(target, source, np.eye(4), ctx())
 
 
@@ -234,7 +246,7 @@ def test_icp_stopping_rule_is_the_absolute_rms_change_before_each_update():
     The paper's rule, d_k - d_{k+1} < tau on Besl-McKay's mean-square error d_k, would stop at a different
     iterate on this case: pinned here as the code's documented deviation."""
     target, source = sliding_case()
-    h = run_horn(target, source, tau=0.0, max_iterations=30).rms_history
+    h = direct_icp_history(target, source, 30)
     dh = np.abs(np.diff(h))
     msd = np.diff(np.asarray(h) ** 2) * -1.0  # the paper's d_k - d_{k+1} on the mean-square error
     first = lambda change, tau: int(np.argmax(change < tau)) + 1
@@ -243,8 +255,23 @@ def test_icp_stopping_rule_is_the_absolute_rms_change_before_each_update():
     res = run_horn(target, source, tau=float(tau), max_iterations=30)
     k_code = first(dh, tau)
     assert res.converged and res.iterations == k_code and len(res.rms_history) == k_code + 1
-    assert res.rms_history == pytest.approx(h[:k_code + 1], rel=1e-12)
+    assert res.rms_history == pytest.approx(h[:k_code + 1], rel=1e-9)
     assert first(msd, tau) != k_code
+
+
+def test_icp_stopping_rule_takes_the_absolute_change_so_an_rms_increase_does_not_stop_it():
+    """With max_correspondence_distance the RMS of the pairs used can rise (pairs enter and leave). The code's
+    |rms_{k-1} - rms_k| < tau goes on through a rise larger than tau; the paper's signed d_k - d_{k+1} < tau
+    would stop right there. Pinned: the code's count, and that the signed rule stops earlier, at a rise."""
+    target, source = sliding_case()
+    h = direct_icp_history(target, source, 30, maxd=0.15)
+    first = lambda change, tau: int(np.argmax(change < tau)) + 1
+    dh, signed = np.abs(np.diff(h)), h[:-1] - h[1:]
+    tau = next(t for t in np.sort(dh[dh > 0]) * 1.0001 if first(dh, t) != first(signed, t))
+    res = run_horn(target, source, tau=float(tau), max_iterations=30, max_correspondence_distance=0.15)
+    k_code, k_signed = first(dh, tau), first(signed, tau)
+    assert res.converged and res.iterations == k_code
+    assert k_signed < k_code and h[k_signed] > h[k_signed - 1] + tau  # the signed rule stops at a rise
 
 
 # ------------------------------------------------------------------------------------------ barycentric
@@ -341,13 +368,15 @@ def test_nms_only_sees_the_64_nearest_within_the_radius():
     assert 0 not in non_maximum_suppression(pts, h, 1.0, max_neighbors=128)
 
 
+@pytest.mark.parametrize("weights", ["uniform", "gaussian"])
 @pytest.mark.parametrize("measure", ["min_ratio", "l1", "l3"])
-def test_salience_at_the_64_neighbour_cap(measure):
-    """EigenSalience's default cap: the covariance of exactly the 64 nearest neighbours within the radius
-    (itself included, uniform weights, divided by their count) gives the code's value."""
+def test_salience_at_the_64_neighbour_cap(measure, weights):
+    """EigenSalience's default cap: the weighted covariance of exactly the 64 nearest neighbours within the
+    radius (itself included; weights 1 or exp(-d^2 / (2 (radius/2)^2)); divided by the sum of the weights) gives
+    the code's value."""
     rng = np.random.default_rng(8)
     pts = rng.normal(size=(600, 3)) * [2.0, 1.0, 0.3]
-    st = build(SALIENCE, f"cp_{measure}", radius=1.5, distances="absolute")
+    st = build(SALIENCE, f"cp_{measure}", radius=1.5, weights=weights, distances="absolute")
     assert st.p.max_neighbors == 64
     h = st.values(Cloud(pts), ctx())
     checked = 0
@@ -357,7 +386,9 @@ def test_salience_at_the_64_neighbour_cap(measure):
         if dist[nb].max() > 1.5 or (dist <= 1.5).sum() <= 64:
             continue  # only points whose radius holds more than 64 neighbours
         P = pts[nb]
-        C = (P - P.mean(0)).T @ (P - P.mean(0)) / 64
+        w = np.exp(-dist[nb] ** 2 / (2 * 0.75 ** 2)) if weights == "gaussian" else np.ones(64)
+        mu = w @ P / w.sum()
+        C = ((P - mu) * w[:, None]).T @ (P - mu) / w.sum()
         l1, l2, l3 = np.linalg.eigvalsh(C)
         want = {"min_ratio": min(l1 / l2, l2 / l3), "l1": l1, "l3": l3}[measure]
         assert h[i] == pytest.approx(want, rel=1e-9)
