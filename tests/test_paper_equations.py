@@ -147,6 +147,39 @@ def test_histogram3p_orientation_bins_wrap_around(monkeypatch):
     assert np.abs(got - want).max() < 1e-12
 
 
+def test_histogram3p_expresses_neighbours_in_the_frame_rows(monkeypatch):
+    """Local coordinates are F (p - k) and local normals F n, F the frame with rows x, y, z: the histogram of a
+    cloud with frame F equals that of the cloud mapped by F with the identity frame."""
+    rng = np.random.default_rng(11)
+    pts = np.vstack([[0, 0, 0], rng.uniform(-2.5, 2.5, size=(40, 3))])
+    nrm = rng.normal(size=(41, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    F = Rotation.from_rotvec([0.3, -0.8, 0.5]).as_matrix()
+    st = build(DESCRIPTOR, "histogram3p", radius=3.0, frame_radius=3.0, density_radius=0.8, distances="absolute")
+    monkeypatch.setattr(descriptor_mod, "local_frames", lambda p, n, kp, r, *a, **k: np.tile(F, (len(kp), 1, 1)))
+    got = st.compute(Cloud(pts, nrm), np.array([0]), ctx())[0]
+    monkeypatch.setattr(descriptor_mod, "local_frames", lambda p, n, kp, r, *a, **k: np.tile(np.eye(3), (len(kp), 1, 1)))
+    want = st.compute(Cloud(pts @ F.T, nrm @ F.T), np.array([0]), ctx())[0]
+    assert np.count_nonzero(want) > 50 and np.abs(got - want).max() < 1e-12
+
+
+def test_local_frame_of_a_crafted_patch():
+    """A flat patch in z = 0 stretched along the direction 30 degrees from x, more points on its positive side,
+    keypoint normal (0, 0, -1): z = the normal, x = the stretch direction (sign: the weighted mean offset),
+    y = z cross x."""
+    rng = np.random.default_rng(12)
+    c, s_ = math.cos(math.radians(30)), math.sin(math.radians(30))
+    a = np.r_[rng.uniform(-1.0, 2.0, 300)]          # along the stretch, skewed positive
+    b = rng.uniform(-0.4, 0.4, 300)                 # across
+    pts = np.vstack([[0, 0, 0], np.c_[a * c - b * s_, a * s_ + b * c, np.zeros(300)]])
+    nrm = np.tile([0.0, 0.0, -1.0], (301, 1))
+    F = descriptor_mod.local_frames(pts, nrm, np.array([0]), 2.5, max_neighbors=512)[0]
+    x = np.array([c, s_, 0.0])
+    assert np.abs(F[2] - [0, 0, -1]).max() < 1e-9
+    assert np.abs(F[0] - x).max() < 0.05        # sampled: the covariance's axis within a few degrees
+    assert np.abs(F[1] - np.cross(F[2], F[0])).max() < 1e-12 and np.linalg.det(F) == pytest.approx(1.0)
+
+
 # ------------------------------------------------------------------------------------------ RANSAC iterations
 
 
