@@ -9,7 +9,8 @@ Points with fewer than ``min_neighbors`` neighbours are never keypoints. A keypo
 maximum: p is kept when ``h(p) >= h(i)`` for every neighbour i within the suppression radius. Deviation from the
 paper: both the covariances and the suppression see only the ``max_neighbors`` (64) nearest points within their
 radius, so a more salient point farther than the 64th nearest does not suppress p (pinned by
-``tests/test_paper_equations.py``). Optionally only the ``top_k`` most salient are kept. ``uniform`` (voxel grid) and ``iss`` (Open3D's ISS) are the comparators.
+``tests/test_paper_equations.py``). Optionally only the ``top_k`` most salient are kept. ``uniform`` (voxel
+grid) and ``iss`` (Open3D's ISS) are the comparators.
 """
 
 from __future__ import annotations

@@ -71,13 +71,18 @@ def hist_index(plane, ca, cb, co):
     return ((plane * 3 + ca) * 3 + cb) * 8 + co
 
 
+def patch_frames(monkeypatch, F):
+    """Every keypoint's local frame is F (rows x, y, z)."""
+    monkeypatch.setattr(descriptor_mod, "local_frames", lambda p, n, kp, r, *a, **k: np.tile(F, (len(kp), 1, 1)))
+
+
 def test_histogram3p_bins_by_hand(monkeypatch):
     """Identity local frame (patched), support radius R = 3: spatial bins of width 2 centred at -2, 0, 2 on each
     axis of the planes (x, y), (y, z), (z, x); orientation bins of width 45 degrees centred at -180 + 22.5 +
     45 k degrees of atan2(second, first) of the projected normal. Every vote is bilinear (1 - f, f) into the two
     nearest bins per axis, weighted (1 - d / R) / density (points within the density radius, itself included);
     votes into spatial bins outside the 3x3 grid are dropped. The expected 216 values are written out by hand."""
-    monkeypatch.setattr(descriptor_mod, "local_frames", lambda pts, n, kp, r, *a, **k: np.tile(np.eye(3), (len(kp), 1, 1)))
+    patch_frames(monkeypatch, np.eye(3))
     a22 = np.radians(-180 + 22.5 + 45 * 4)  # centre of orientation bin 4 (22.5 degrees)
     a45 = np.radians(45.0)  # between bins 4 (22.5) and 5 (67.5): half each
     pts = np.array([
@@ -87,7 +92,7 @@ def test_histogram3p_bins_by_hand(monkeypatch):
         [0.0, 0.0, -2.55],   # B's twin within the density radius: B and B' each have density 2
     ])
     nrm = np.array([
-        [math.cos(a22), math.sin(a22), 0.0],   # (x, y) plane angle 22.5: bin 4; (y, z): atan2(0, sin) = 0; (z, x): atan2(cos, 0) = 90
+        [math.cos(a22), math.sin(a22), 0.0],   # angle in (x, y) 22.5: bin 4; (y, z): 0; (z, x): 90
         [math.cos(a45), math.sin(a45), 0.0],
         [0.0, 0.0, 1.0],
         [0.0, 0.0, 1.0],
@@ -134,7 +139,7 @@ def test_histogram3p_bins_by_hand(monkeypatch):
 
 def test_histogram3p_orientation_bins_wrap_around(monkeypatch):
     """An angle of 180 degrees (uo = 7.5) votes half into bin 7 and half into bin 0 (the circle closes)."""
-    monkeypatch.setattr(descriptor_mod, "local_frames", lambda pts, n, kp, r, *a, **k: np.tile(np.eye(3), (len(kp), 1, 1)))
+    patch_frames(monkeypatch, np.eye(3))
     c = Cloud(np.zeros((1, 3)), np.array([[-1.0, 1e-300, 0.0]]))  # (x, y) angle atan2(+tiny, -1) = +180
     st = build(DESCRIPTOR, "histogram3p", radius=3.0, frame_radius=3.0, density_radius=0.1, distances="absolute")
     got = st.compute(c, np.array([0]), ctx())[0]
@@ -156,9 +161,9 @@ def test_histogram3p_expresses_neighbours_in_the_frame_rows(monkeypatch):
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     F = Rotation.from_rotvec([0.3, -0.8, 0.5]).as_matrix()
     st = build(DESCRIPTOR, "histogram3p", radius=3.0, frame_radius=3.0, density_radius=0.8, distances="absolute")
-    monkeypatch.setattr(descriptor_mod, "local_frames", lambda p, n, kp, r, *a, **k: np.tile(F, (len(kp), 1, 1)))
+    patch_frames(monkeypatch, F)
     got = st.compute(Cloud(pts, nrm), np.array([0]), ctx())[0]
-    monkeypatch.setattr(descriptor_mod, "local_frames", lambda p, n, kp, r, *a, **k: np.tile(np.eye(3), (len(kp), 1, 1)))
+    patch_frames(monkeypatch, np.eye(3))
     want = st.compute(Cloud(pts @ F.T, nrm @ F.T), np.array([0]), ctx())[0]
     assert np.count_nonzero(want) > 50 and np.abs(got - want).max() < 1e-12
 
