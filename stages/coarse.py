@@ -126,7 +126,10 @@ class LoRansac:
         distance_threshold: float = 3.0
         """Largest distance of an inlier correspondence after the transform (see ``distances``)."""
         miss_probability: float = 0.01
-        """Stop when the chance of not having drawn an all-inlier sample is below this (mu)."""
+        """Stop when the chance of not having drawn an all-inlier sample is below this (mu). ``sampling: uniform``
+        draws N = ceil(log(mu) / log(1 - w^3)) hypotheses, w the inlier share of the best model so far, rounded
+        up to a whole number of batches and at least ``min_iterations``; ``guided`` uses its own all-inlier
+        probability instead of w^3 (see ``sampling``)."""
         max_iterations: int = 100000
         """Most hypotheses drawn."""
         min_iterations: int = 200

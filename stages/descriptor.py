@@ -105,7 +105,14 @@ class Histogram3P:
     a 3x3 grid of spatial bins x 8 orientation bins of the projected normal's angle. Each neighbour votes
     bilinearly into its 4 nearest spatial bins and its 2 nearest orientation bins, weighted by proximity
     (1 - d / radius) and by the inverse of the local sampling density. The result is 3 x 9 x 8 = 216 values,
-    L2-normalised."""
+    L2-normalised.
+
+    Conventions (pinned by ``tests/test_paper_equations.py``): on each axis of a plane the spatial bins are 2R/3
+    wide, centred at -2R/3, 0, 2R/3, and the shares are (1 - f, f) of the two nearest centres; a share that falls
+    outside the 3x3 grid is dropped, not moved inside. The planes are (x, y), (y, z), (z, x) and the angle is
+    atan2(second, first) of the projected normal, bins 45 degrees wide centred at -180 + 22.5 + 45 k degrees,
+    wrapping around; a normal perpendicular to the plane (zero projection) gets the angle atan2(0, 0) = 0. The
+    density is the count of points within ``density_radius`` (itself included, at most 64)."""
 
     @dataclass
     class Params:

@@ -6,8 +6,11 @@ sum w_i``, with eigenvalues l1 <= l2 <= l3. The salience ``h(p)`` is one of min(
 l1/l2 or l2/l3, of either matrix. That gives 12 registered names, ``cp_min_ratio`` ... ``cn_l2_l3``.
 
 Points with fewer than ``min_neighbors`` neighbours are never keypoints. A keypoint is a non-maximum-suppressed
-maximum: p is kept when ``h(p) >= h(i)`` for every neighbour i within the suppression radius. Optionally only
-the ``top_k`` most salient are kept. ``uniform`` (voxel grid) and ``iss`` (Open3D's ISS) are the comparators.
+maximum: p is kept when ``h(p) >= h(i)`` for every neighbour i within the suppression radius. Deviation from the
+paper: both the covariances and the suppression see only the ``max_neighbors`` (64) nearest points within their
+radius, so a more salient point farther than the 64th nearest does not suppress p (pinned by
+``tests/test_paper_equations.py``). Optionally only the ``top_k`` most salient are kept. ``uniform`` (voxel
+grid) and ``iss`` (Open3D's ISS) are the comparators.
 """
 
 from __future__ import annotations
@@ -100,7 +103,8 @@ def measure_values(lam: np.ndarray, measure: str) -> np.ndarray:
 
 
 def non_maximum_suppression(points: np.ndarray, h: np.ndarray, radius: float, max_neighbors: int = 64) -> np.ndarray:
-    """Indices p with finite h(p) >= h(i) for every i within ``radius`` (ties keep both)."""
+    """Indices p with finite h(p) >= h(i) for every i among the ``max_neighbors`` nearest within ``radius`` (ties
+    keep both); with more points than that within the radius, the farther ones are not compared."""
     j, _, valid = neighbourhoods(points, radius, max_neighbors)
     hn = np.where(valid, h[j], -np.inf)
     keep = np.isfinite(h) & (h >= hn.max(axis=1))
