@@ -106,7 +106,10 @@ class IcpParams:
     """Maximum number of iterations (transform updates), over all pair limits."""
     tau: float = 1e-4
     """Stop when the RMS error changes by less than this between iterations at the final pair limit (see
-    ``distances``)."""
+    ``distances``). A deliberate deviation from the paper, whose rule is d_k - d_(k+1) < tau on Besl-McKay's
+    signed mean-square error: here |rms_(k-1) - rms_k| < tau on the RMS distance of the pairs, measured before
+    each update, so that tau is a distance (in spacings or input units, like every other distance) and a rise of
+    the RMS (possible with a pair limit or trimming) does not stop the loop (tests/test_paper_equations.py)."""
     max_correspondence_distance: Optional[float] = 3.0
     """Pairs farther apart are ignored at the end (see ``distances``): the final pair limit, the floor of the
     adaptive schedule, and the distance of ``icp_fitness`` and of the acceptance test; null keeps every pair

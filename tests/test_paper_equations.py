@@ -258,7 +258,9 @@ def direct_icp_history(target, source, n, maxd=None):
 
 
 def run_horn(target, source, **kw):
-    st = build(ICP, "horn", **{"max_correspondence_distance": None, "distances": "absolute", **kw})
+    """The paper's Besl-McKay loop: a fixed pair limit (no adaptive schedule), least squares, no acceptance test."""
+    st = build(ICP, "horn", **{"max_correspondence_distance": None, "distances": "absolute", "schedule": "fixed",
+                               "kernel": "none", "accept": False, **kw})
     return st.run(target, source, np.eye(4), ctx())
 
 
