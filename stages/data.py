@@ -54,6 +54,8 @@ def scale_geometry(g: Geometry, s: float) -> Geometry:
 def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> None:
     """Before any expensive stage: the two inputs' sizes agree to within ``max_size_ratio``, else one line
     naming both extents and the likely unit factor (counts and flatness: ``scanreg.checks``)."""
+    if min(len(points_of(src)), len(points_of(tgt))) < 10:
+        return  # too few points: scanreg.checks says so
     ds, dt = bbox_diagonal(points_of(src)), bbox_diagonal(points_of(tgt))
     if max_size_ratio is None or not (ds > 0 and dt > 0):
         return
@@ -66,7 +68,7 @@ def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> No
         unit, factor = "different units or a different object", float(f"{f:.3g}")
     fix = (f"data.source_scale={1 / factor:g}" if big == "source" else f"data.target_scale={1 / factor:g}")
     raise InputError(
-        f"source {src.source} is {ds:.4g} across (bounding-box diagonal) and target {tgt.source} {dt:.4g}: "
+        f"{src.source or 'source'} is {ds:.4g} across (bounding-box diagonal) and {tgt.source or 'target'} {dt:.4g}: "
         f"{f:.3g}x apart, likely {unit}; set {fix} (or data.max_size_ratio=null to register them as they are)")
 
 
