@@ -83,7 +83,7 @@ def compared_mask(dev: np.ndarray, cos: np.ndarray | None, max_distance: float |
 
 
 def stats(dev: np.ndarray, scale: float, unit: str, bands: list[float], prefix: str = "dev_") -> dict[str, float]:
-    """Mean, RMS, median, 5th/95th percentile, max |.| in display units, and the share within each ±band."""
+    """Mean, RMS, median, 5th/95th percentile, 95th percentile and max of |.| in display units, and the share within each ±band."""
     if not len(dev):
         return {f"{prefix}points": 0.0}
     v = dev * scale
@@ -94,6 +94,7 @@ def stats(dev: np.ndarray, scale: float, unit: str, bands: list[float], prefix: 
         f"{prefix}median_{unit}": float(np.median(v)),
         f"{prefix}p05_{unit}": float(np.percentile(v, 5)),
         f"{prefix}p95_{unit}": float(np.percentile(v, 95)),
+        f"{prefix}p95_abs_{unit}": float(np.percentile(np.abs(v), 95)),
         f"{prefix}max_abs_{unit}": float(np.abs(v).max()),
     }
     for b in bands:

@@ -252,6 +252,8 @@ def summary_lines(res: Result) -> list[str]:
             "icp_rms", "icp_fitness", "icp_inlier_rms", "rms", "fitness", "p2s_mean", "p2s_median", "p2s_rms",
             "p2s_p95_abs", "p2s_max_abs", "coarse_rotation_error_deg", "rotation_error_deg", "translation_error", "translation_error_rel", "success"]
     keys += ["gt_overlap", "coarse_translation_error", "landmark_coarse_rms", "landmark_final_rms"]
+    keys += ["pose_sigma_rot_deg", "pose_sigma_trans", "pose_condition", "pose_bootstrap_rot_deg",
+             "pose_bootstrap_trans"]
     keys += [k for k in m if k.startswith("dev_") and "_tooth_" not in k and "_part_" not in k]
     lines.append("")
     lines += [f"{k:<26} {m[k]:.6g}" for k in keys if k in m]

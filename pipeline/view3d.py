@@ -86,8 +86,10 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
     if table:
         u = p.deviation_unit
         if f"mean_sigma_{u}" in table[0]:  # mean ± its pose uncertainty, as a dentist reads it
-            table = [{**{k: v for k, v in row.items() if k != f"mean_{u}"},
-                      f"mean ± pose sigma [{du}]": f"{row[f'mean_{u}']:.1f} ± {row[f'mean_sigma_{u}']:.1f}"}
+            lead = [k for k in table[0] if k in (dev_view["label_name"], "side", "points")]
+            table = [{**{k: row[k] for k in lead},
+                      f"mean ± pose sigma [{du}]": f"{row[f'mean_{u}']:.1f} ± {row[f'mean_sigma_{u}']:.1f}",
+                      **{k: v for k, v in row.items() if k not in lead and k not in (f"mean_{u}", f"mean_sigma_{u}")}}
                      for row in table]
         cols = list(table[0].keys())
         fmt = [[(f"{row.get(c):.3g}" if isinstance(row.get(c), float) else str(row.get(c, ""))) for row in table]
