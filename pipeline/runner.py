@@ -25,7 +25,8 @@ from scanreg.metrics import EvalParams, alignment_metrics, estimate_spacing, gt_
 from scanreg.registry import COARSE, DATA, ICP, REPAIR, SAMPLER, load_all, make_params, REGISTRIES
 from scanreg.closest import ClosestPoints
 from scanreg.config import to_abs
-from scanreg.uncertainty import PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance
+from scanreg.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
+                                 relative_motion)
 
 MIN_POINTS = 10
 """Fewest points a cloud may have after sampling (the coarse and fine stages need neighbourhoods)."""
@@ -162,6 +163,8 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
         pc = None
         if ev.pose_uncertainty:
             pc = pose_uncertainty(st["icp"], src, T, aligned, on_points, on_surface, surface is not None, spacing, ev, m)
+            if pc is not None and inputs.T_gt is not None:  # the true error where pose_sigma_trans is measured
+                m["pose_gt_centre_shift"] = relative_motion(T, inputs.T_gt, pc.centre)[1]
             if pc is not None and ev.pose_bootstrap > 0:
                 m.update(bootstrap(st["icp"], tgt, src, T0, T, pc.centre, ev.pose_bootstrap, ctx))
         dev_view = None
@@ -252,7 +255,7 @@ def summary_lines(res: Result) -> list[str]:
             "icp_rms", "icp_fitness", "icp_inlier_rms", "rms", "fitness", "p2s_mean", "p2s_median", "p2s_rms",
             "p2s_p95_abs", "p2s_max_abs", "coarse_rotation_error_deg", "rotation_error_deg", "translation_error", "translation_error_rel", "success"]
     keys += ["gt_overlap", "coarse_translation_error", "landmark_coarse_rms", "landmark_final_rms"]
-    keys += ["pose_sigma_rot_deg", "pose_sigma_trans", "pose_condition", "pose_bootstrap_rot_deg",
+    keys += ["pose_sigma_rot_deg", "pose_sigma_trans", "pose_condition", "pose_gt_centre_shift", "pose_bootstrap_rot_deg",
              "pose_bootstrap_trans"]
     keys += [k for k in m if k.startswith("dev_") and "_tooth_" not in k and "_part_" not in k]
     lines.append("")

@@ -227,3 +227,27 @@ def test_dental_pose_sigmas_agree_with_the_bootstrap(tmp_path):
     if shutil.which("chromium"):
         red, blue = coloured_share(screenshot(html, tmp_path / "dental.png"))
         assert red + blue > 0.002, (red, blue)
+
+
+def test_pipeline_on_a_cylinder_logs_the_free_axis(tmp_path):
+    """The whole pipeline on a cylinder registered to itself (no repair, no coarse stage; point-to-point ICP, as
+    point-to-plane refuses the exactly singular system): a poor
+    pose_condition in result.json and one warning line naming the cylinder's axis (z)."""
+    from scanreg.geometry import Mesh
+    from scanreg.io import write_ply
+
+    th, z = np.meshgrid(np.linspace(0, 2 * np.pi, 90, endpoint=False), np.linspace(-5, 5, 40))
+    v = np.c_[2 * np.cos(th.ravel()), 2 * np.sin(th.ravel()), z.ravel()]
+    i, j = np.meshgrid(np.arange(89 + 1), np.arange(39))
+    a = (j * 90 + i).ravel()
+    b = (j * 90 + (i + 1) % 90).ravel()
+    f = np.r_[np.c_[a, b, a + 90], np.c_[b, b + 90, a + 90]]
+    write_ply(tmp_path / "cyl.ply", Mesh(v, f))
+    out = tmp_path / "run"
+    r = run_cli([f"data.source={tmp_path / 'cyl.ply'}", f"data.target={tmp_path / 'cyl.ply'}", "repair=none",
+                 "coarse=none", "icp=horn", "tracking=none", "evaluate.view_html=false", f"hydra.run.dir={out}"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    res = json.loads((out / "result.json").read_text())
+    assert res["pose_condition"] < 1e-3, res["pose_condition"]
+    lines = [x for x in r.stdout.splitlines() if "poorly constrained" in x]
+    assert len(lines) == 1 and "(0.00, 0.00, 1.00)" in lines[0], r.stdout
