@@ -251,3 +251,14 @@ def test_pipeline_on_a_cylinder_logs_the_free_axis(tmp_path):
     assert res["pose_condition"] < 1e-3, res["pose_condition"]
     lines = [x for x in r.stdout.splitlines() if "poorly constrained" in x]
     assert len(lines) == 1 and "(0.00, 0.00, 1.00)" in lines[0], r.stdout
+
+
+def test_labels_units_and_options():
+    from scanreg.deviation import display_unit, fdi_side, plural
+    from scanreg.errors import ConfigError
+    from scanreg.registry import make_params
+
+    assert [fdi_side(n) for n in (11, 18, 21, 28, 31, 38, 41, 48)] == ["right"] * 2 + ["left"] * 4 + ["right"] * 2
+    assert plural("tooth") == "teeth" and plural("part") == "parts" and display_unit("um") == "µm"
+    with pytest.raises(ConfigError, match="deviation_confidence must be in"):
+        make_params(EvalParams, {"deviation_confidence": 1.5}, "evaluate")
