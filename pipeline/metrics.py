@@ -40,6 +40,38 @@ class EvalParams:
     """Display unit per input unit (1000: mm -> µm)."""
     deviation_unit: str = "um"
     """Name of the display unit, used in metric names (``dev_rms_um``) and legends."""
+    view_html: bool = True
+    """Write ``view3d.html``: one self-contained interactive 3D view (plotly, its JavaScript embedded, opens
+    without network) of the target, the source before and after alignment coloured by deviation, and the
+    per-part table (see pipeline/view3d.py)."""
+    view_max_points: int = 40000
+    """At most this many points per shown surface in ``view3d.html`` (seeded subsample; keeps it a few MB)."""
+    pose_uncertainty: bool = True
+    """Log the pose covariance of the final transform from the fine stage's point-to-plane normal equations at
+    the final pairs (``pose_sigma_rot_deg`` in degrees, ``pose_sigma_trans`` in input units, ``pose_condition``
+    dimensionless; see pipeline/uncertainty.py) and, with ``deviation_map``, each compared point's deviation
+    uncertainty. Needs target normals (a mesh target, or a cloud with normals)."""
+    pose_condition_warn: float = 1.0e-3
+    """Warn (one line naming the free motions) when ``pose_condition`` (smallest over largest eigenvalue of the
+    scaled information matrix, dimensionless) is below this."""
+    pose_bootstrap: int = 0
+    """Number of bootstrap re-registrations (the fine stage rerun from the final pose on the source points
+    resampled with replacement, seeded) whose RMS spread is logged as ``pose_bootstrap_rot_deg`` (degrees) and
+    ``pose_bootstrap_trans`` (input units) beside the analytic sigmas; 0: none (each costs one fine stage)."""
+    deviation_tolerance: float = 0.05
+    """Tolerance on |signed deviation| (input units; 0.05 = 50 µm for mm data): ``dev_over_<tol><unit>_share`` is
+    the share of compared points beyond it, ``dev_over_<tol><unit>_sure_share`` the share beyond it with
+    ``deviation_confidence`` given the pose uncertainty (|deviation| - z sigma > tolerance)."""
+    deviation_confidence: float = 0.95
+    """One-sided confidence (0..1) of the ``_sure_share`` above (0.95: z = 1.645)."""
+
+    def check(self):
+        if not 0.5 <= self.deviation_confidence < 1:
+            raise ValueError(f"deviation_confidence must be in [0.5, 1), got {self.deviation_confidence}")
+        if self.pose_bootstrap < 0:
+            raise ValueError(f"pose_bootstrap must be >= 0, got {self.pose_bootstrap}")
+        if not self.pose_condition_warn >= 0:
+            raise ValueError(f"pose_condition_warn must be >= 0, got {self.pose_condition_warn}")
 
 
 def estimate_spacing(points: np.ndarray, rng: np.random.Generator, n: int = 5000) -> float:

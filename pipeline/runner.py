@@ -24,6 +24,9 @@ from scanreg.io import write_ply, write_transform
 from scanreg.metrics import EvalParams, alignment_metrics, estimate_spacing, gt_metrics, surface_deviation
 from scanreg.registry import COARSE, DATA, ICP, REPAIR, SAMPLER, load_all, make_params, REGISTRIES
 from scanreg.closest import ClosestPoints
+from scanreg.config import to_abs
+from scanreg.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
+                                 relative_motion)
 
 MIN_POINTS = 10
 """Fewest points a cloud may have after sampling (the coarse and fine stages need neighbourhoods)."""
@@ -157,20 +160,79 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
                 r = np.linalg.norm(apply_T(TT, ls) - lt, axis=1)
                 m[f"landmark_{name}_rms"] = float(np.sqrt(np.mean(r ** 2)))
             ctx.step_metrics["landmark_final_residual"] = r.tolist()
+        pc = None
+        if ev.pose_uncertainty:
+            pc = pose_uncertainty(st["icp"], src, T, aligned, on_points, on_surface, surface is not None, spacing, ev, m)
+            if pc is not None and inputs.T_gt is not None:  # the true error where pose_sigma_trans is measured
+                m["pose_gt_centre_shift"] = relative_motion(T, inputs.T_gt, pc.centre)[1]
+            if pc is not None and ev.pose_bootstrap > 0:
+                m.update(bootstrap(st["icp"], tgt, src, T0, T, pc.centre, ev.pose_bootstrap, ctx))
+        dev_view = None
         if ev.deviation_map:
             from scanreg.deviation import evaluate_deviation
 
             labels = inputs.target_labels if target_labels_valid else None
-            dm, dev_paths = evaluate_deviation(run_dir, transform_geometry(T, src), transform_geometry(T, geoms["source"]),
-                                               surface or ClosestPoints(tgt), labels, ev, inputs.label_name)
+            dm, dev_paths, dev_view = evaluate_deviation(run_dir, transform_geometry(T, src),
+                                                         transform_geometry(T, geoms["source"]),
+                                                         surface or ClosestPoints(tgt), labels, ev, inputs.label_name,
+                                                         pose=pc)
             m.update(dm)
+        if ev.view_html:
+            from scanreg.view3d import write_view
+
+            dev_paths = (dev_paths if ev.deviation_map else []) + [
+                write_view(run_dir / "view3d.html", geoms["target"], geoms["source"], T, aligned, on_surface,
+                           dev_view, ev, seed=int(cfg.seed))]
     m["time_total_s"] = (time.perf_counter_ns() - t_start) / 1e9
 
     res.T_target_source = T
     res.step_metrics = dict(ctx.step_metrics)
-    res.artifacts = (dev_paths if ev.deviation_map else []) + write_outputs(run_dir, res, transform_geometry(T, src), tgt if inputs.T_gt is not None and
+    res.artifacts = (dev_paths if ev.deviation_map or ev.view_html else []) + write_outputs(run_dir, res, transform_geometry(T, src), tgt if inputs.T_gt is not None and
                                   cfg.data.name != "files" else None)
     return res
+
+
+def pose_uncertainty(icp, src: Cloud, T: np.ndarray, aligned: np.ndarray, on_points, on_surface, mesh_target: bool,
+                     spacing: float, ev: EvalParams, m: dict) -> PoseCovariance | None:
+    """The pose covariance at the final pose from the pairs the fine stage keeps there (its distance, normal and
+    trim rejections, on the target it searches); logs ``pose_*`` into ``m`` and warns when degenerate. None when
+    the target has no normals or too few pairs remain."""
+    p = icp.p
+    use_mesh = mesh_target and getattr(p, "target", "auto") in ("mesh", "auto")
+    q, d, qn = on_surface if use_mesh else on_points
+    if qn is None:
+        return None
+    maxd = to_abs(getattr(p, "max_correspondence_distance", None), getattr(p, "distances", "spacing"), spacing)
+    ok = np.isfinite(d) if maxd is None else d <= maxd
+    angle = getattr(p, "max_normal_angle_deg", None)
+    if angle is not None and src.normals is not None:
+        ok &= np.einsum("ij,ij->i", src.normals @ T[:3, :3].T, qn) >= np.cos(np.radians(angle))
+    trim = getattr(p, "trim", 1.0)
+    if trim < 1.0 and ok.sum() > 3:
+        keep = max(3, int(np.ceil(trim * ok.sum())))
+        ok &= d <= np.partition(d[ok], keep - 1)[keep - 1]
+    if ok.sum() < 7:
+        return None
+    pc = pose_covariance(aligned[ok], q[ok], qn[ok])
+    m.update(pc.metrics())
+    msg = degeneracy_warning(pc, ev.pose_condition_warn)
+    if msg:
+        print(f"warning: {msg}", flush=True)
+    return pc
+
+
+def bootstrap(icp, tgt: Cloud, src: Cloud, T0: np.ndarray, T: np.ndarray, centre: np.ndarray, runs: int,
+              ctx: Context) -> dict[str, float]:
+    """Re-register ``runs`` sources resampled with replacement (seeded) from the coarse pose with the same fine
+    stage; their RMS spread about ``T`` (see :func:`scanreg.uncertainty.bootstrap_spread`)."""
+    saved = dict(ctx.step_metrics)
+    Ts = []
+    for b in range(runs):
+        idx = ctx.rng(1000 + b).integers(0, src.n_points, src.n_points)
+        Ts.append(icp.run(tgt, src.subset(idx), T0, ctx).T_target_source)
+    ctx.step_metrics.clear()
+    ctx.step_metrics.update(saved)
+    return bootstrap_spread(Ts, T, centre)
 
 
 def write_outputs(run_dir: Path, res: Result, aligned: Cloud, generated_target: Cloud | None) -> list[Path]:
@@ -193,6 +255,8 @@ def summary_lines(res: Result) -> list[str]:
             "icp_rms", "icp_fitness", "icp_inlier_rms", "rms", "fitness", "p2s_mean", "p2s_median", "p2s_rms",
             "p2s_p95_abs", "p2s_max_abs", "coarse_rotation_error_deg", "rotation_error_deg", "translation_error", "translation_error_rel", "success"]
     keys += ["gt_overlap", "coarse_translation_error", "landmark_coarse_rms", "landmark_final_rms"]
+    keys += ["pose_sigma_rot_deg", "pose_sigma_trans", "pose_condition", "pose_gt_centre_shift", "pose_bootstrap_rot_deg",
+             "pose_bootstrap_trans"]
     keys += [k for k in m if k.startswith("dev_") and "_tooth_" not in k and "_part_" not in k]
     lines.append("")
     lines += [f"{k:<26} {m[k]:.6g}" for k in keys if k in m]

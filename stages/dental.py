@@ -3,7 +3,8 @@
 Built reproducibly from ../shared/data/open_full_jaw_p26 (CBCT-segmented tooth surfaces, mm, one CT frame):
 
 - **target**: every tooth surface of the arch merged into one mesh (crowns and roots, as the CT shows them);
-  each face keeps its tooth number, so deviations can be reported per tooth.
+  each face keeps its tooth number, so deviations can be reported per tooth. The data numbers teeth in the
+  Universal scheme (1-32); they are converted to FDI (ISO 3950: 11-48, quadrant then position) for reporting.
 - **source**: what a 3D scanner sees of a plaster cast of that arch, seen from the occlusal side: the crowns of
   the erupted teeth (teeth with an axis in the JSON) above a cut at ``crown_height`` below each tooth's
   occlusal-most point along its axis, and a gum surface around and between them that the CT does not have.
@@ -64,6 +65,21 @@ def load_arch(folder: Path, arch: str) -> list[Tooth]:
     if not teeth:
         raise InputError(f"data=dental: no tooth_*.ply files in {d}")
     return teeth
+
+
+def universal_to_fdi(n: int) -> int:
+    """FDI (ISO 3950) number of a permanent tooth in the Universal scheme: 1-8 (upper right, third molar to
+    central incisor) -> 18-11, 9-16 (upper left) -> 21-28, 17-24 (lower left, third molar to central incisor)
+    -> 38-31, 25-32 (lower right) -> 41-48."""
+    if not 1 <= n <= 32:
+        raise InputError(f"data=dental: tooth number {n} is not a Universal number (1-32)")
+    if n <= 8:
+        return 19 - n
+    if n <= 16:
+        return 12 + n
+    if n <= 24:
+        return 55 - n
+    return 16 + n
 
 
 def merge(meshes: list[Mesh], labels: list[int]) -> tuple[Mesh, np.ndarray]:
@@ -139,7 +155,8 @@ class Dental:
             raise InputError(f"data.folder {p.folder}: no such folder ({folder}); the Open-Full-Jaw data lives "
                              "in ../shared/data/open_full_jaw_p26")
         teeth = load_arch(folder, p.arch)
-        target, labels = merge([t.mesh for t in teeth], [t.number for t in teeth])
+        # Open-Full-Jaw numbers teeth in the Universal scheme (1-32); parts are reported in FDI (ISO 3950)
+        target, labels = merge([t.mesh for t in teeth], [universal_to_fdi(t.number) for t in teeth])
         target.source = f"CT dentition ({p.arch}, {len(teeth)} teeth)"
         erupted = [t for t in teeth if t.axis is not None]
         if len(erupted) < 3:

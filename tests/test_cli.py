@@ -43,7 +43,7 @@ def test_demo_recovers_random_pose_and_logs(tmp_path, mlflow_uri):
     import mlflow
 
     arts = {a.path for a in mlflow.MlflowClient(mlflow_uri).list_artifacts(row["run_id"])}
-    assert {"config.yaml", "result.json", "T_target_source.txt", "aligned_source.ply"} <= arts
+    assert {"config.yaml", "result.json", "T_target_source.txt", "aligned_source.ply", "view3d.html"} <= arts
     hist = mlflow.MlflowClient(mlflow_uri).get_metric_history(row["run_id"], "icp_rms_step")
     assert len(hist) == res["icp_iterations"] + 1
 

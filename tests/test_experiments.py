@@ -185,7 +185,7 @@ def test_deviation_of_a_known_offset(tmp_path):
     pts, nrm, _ = barycentric_sample(moved, 20000, np.random.default_rng(0))
     from scanreg.closest import ClosestPoints
 
-    m, paths = evaluate_deviation(tmp_path, Cloud(pts, nrm), moved, ClosestPoints(Cloud(mesh.vertices), mesh), labels,
+    m, paths, _ = evaluate_deviation(tmp_path, Cloud(pts, nrm), moved, ClosestPoints(Cloud(mesh.vertices), mesh), labels,
                                   EvalParams(deviation_map=True), "part")
     assert m["dev_median_um"] == pytest.approx(50.0, abs=3.0)
     assert m["dev_within_100um"] > 0.95 and m["dev_p05_um"] > 30
@@ -213,7 +213,7 @@ def test_dental_experiment_end_to_end(tmp_path):
     assert res["repair_after_components"] == 1
     assert 10 < res["dev_rms_um"] < 200 and res["dev_compared_share"] > 0.2
     assert sum(k.startswith("dev_rms_um_tooth_") for k in res) == 14
-    for f in ("deviation_map.ply", "deviation_histogram.png", "deviation_map.png", "deviation_tooths.csv"):
+    for f in ("deviation_map.ply", "deviation_histogram.png", "deviation_map.png", "deviation_teeth.csv"):
         assert (out / f).exists(), f
 
 
