@@ -499,10 +499,16 @@ def showcase_section(df: pd.DataFrame, sel: dict, out: Path) -> list[str]:
     keys += [k for k in metrics if k.startswith("dev_")]
     if keys:
         lines += ["| metric | value |", "|---|---|"] + [f"| {k} | {fmt_value(float(metrics[k]))} |" for k in keys] + [""]
-    for csv in sorted(run_dir.glob("deviation_*s.csv")) if run_dir.is_dir() else []:
+    for csv in sorted(run_dir.glob("deviation_*.csv")) if run_dir.is_dir() else []:
         part = pd.read_csv(csv)
-        lines += [f"### Per {csv.stem[len('deviation_'):-1]}", "", to_markdown(part), ""]
+        plural = csv.stem[len("deviation_"):]
+        lines += [f"### Per {'tooth' if plural == 'teeth' else plural.removesuffix('s')}", "", to_markdown(part), ""]
         shutil.copy(csv, out / f"showcase_{csv.name}")
+    view = run_dir / "view3d.html"
+    if view.is_file():  # the interactive 3D view (self-contained HTML: opens without a network)
+        shutil.copy(view, out / "showcase_view3d.html")
+        lines += ["Interactive 3D view (source before and after alignment over the target, deviation colours, "
+                  "per-part table): [showcase_view3d.html](showcase_view3d.html)", ""]
     for png in sorted(run_dir.glob("*.png")) if run_dir.is_dir() else []:
         shutil.copy(png, out / f"showcase_{png.name}")
         lines += [f"![{png.stem}](showcase_{png.name})", ""]
