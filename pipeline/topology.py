@@ -103,6 +103,15 @@ def _meshset(mesh: Mesh):
     return ms
 
 
+def fold_count(mesh: Mesh) -> int:
+    """Self-intersecting faces plus non-manifold edges and vertices (MeshLab): what an edge collapse can add."""
+    ms = _meshset(mesh)
+    topo = ms.get_topological_measures()
+    ms.compute_selection_by_self_intersections_per_face()
+    return (int(ms.current_mesh().selected_face_number()) + int(topo["non_two_manifold_edges"])
+            + int(topo["non_two_manifold_vertices"]))
+
+
 def audit_mesh(mesh: Mesh) -> dict[str, float]:
     """:func:`mesh_stats` plus MeshLab's counts: ``non_manifold_vertices`` and ``self_intersecting_faces``
     (faces that intersect a face they do not share a vertex with)."""

@@ -33,15 +33,17 @@ from scanreg.config import Context
 from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.shell import close_as_shell
-from scanreg.topology import collapse_slivers, audit_mesh, border_loops, component_areas, open_scan_borders, surface_distances
+from scanreg.topology import collapse_slivers, fold_count, audit_mesh, border_loops, component_areas, open_scan_borders, surface_distances
 
 
 @dataclass
 class GuardParams:
     remove_slivers: bool = True
-    """Before the backend, remove slivers (faces whose smallest angle is below ``sliver_angle_deg``: caps and
-    needles, which neither MeshFix nor MeshLab's cleaning touch) by edge collapse, as the paper does; the
-    backend then cleans what a collapse may fold, and the guard checks that the surface did not move. The audit counts them as ``sliver_faces`` before and after."""
+    """After the backend, remove slivers (faces whose smallest angle is below ``sliver_angle_deg``: caps and
+    needles, which neither MeshFix nor MeshLab's cleaning touch) by edge collapse, as the paper does, unless the
+    collapse would add self-intersecting faces or non-manifold edges or vertices (then the backend's mesh
+    is kept); the guard checks that the
+    surface did not move. The audit counts them as ``sliver_faces`` before and after."""
     sliver_angle_deg: float = 1.0
     """The smallest angle, in degrees, below which a face is a sliver (for ``remove_slivers``)."""
     apply_to: str = "both"
@@ -173,8 +175,11 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
                                     "open" if mode == "open" else "no outer border: every hole is capped")
               + " (repair.open_border=auto; set cap, open or shell to choose)")
     t1 = time.perf_counter()
-    # slivers collapsed first, so that the backend cleans whatever the collapse may fold (a self-intersection)
-    out = _run_backend(run, collapse_slivers(mesh, p.sliver_angle_deg) if p.remove_slivers else mesh, ctx)
+    out = _run_backend(run, mesh, ctx)
+    if p.remove_slivers:  # kept only where the collapse folds nothing (a raw scan's ragged border can)
+        collapsed = collapse_slivers(out, p.sliver_angle_deg)
+        if collapsed is not out and fold_count(collapsed) <= fold_count(out):
+            out = collapsed
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
     t2 = time.perf_counter()
