@@ -126,21 +126,28 @@ def test_lo_ransac_recovers_a_pose_from_matches_with_70_percent_outliers():
     assert np.array_equal(T_est, T2)  # seeded: bit for bit
 
 
-def test_lo_ransac_end_to_end_on_stanford_scans():
-    folder = shared("stanford_bunny")
+def stanford_case(pose_seed: int, n: int, salience):
+    """bun045 -> bun000 sampled with n points each, the source under a random pose: (target, source, truth,
+    a context whose coarse helper stages use ``salience``, FPFH and mutual kNN)."""
     from scanreg.io import read_stanford_conf
     from scanreg.geometry import invert_T
 
+    folder = shared("stanford_bunny")
     poses = read_stanford_conf(folder / "bun.conf")
     t, s = read_mesh(folder / "bun000.ply"), read_mesh(folder / "bun045.ply")
-    P = random_pose(np.random.default_rng(7), 180, 0.1)
+    P = random_pose(np.random.default_rng(pose_seed), 180, 0.1)
     T_gt = invert_T(poses["bun000.ply"]) @ poses["bun045.ply"] @ invert_T(P)
-    tp, tn, _ = barycentric_sample(t, 20000, np.random.default_rng(0))
-    sp_, sn, _ = barycentric_sample(s, 20000, np.random.default_rng(1))
+    tp, tn, _ = barycentric_sample(t, n, np.random.default_rng(0))
+    sp_, sn, _ = barycentric_sample(s, n, np.random.default_rng(1))
     tgt, src = Cloud(tp, tn), Cloud(apply_T(P, sp_), sn @ P[:3, :3].T)
     c = ctx(max(estimate_spacing(tp, np.random.default_rng(0)), estimate_spacing(sp_, np.random.default_rng(0))))
-    c.stages = {"salience": build(SALIENCE, "uniform"), "descriptor": build(DESCRIPTOR, "fpfh"),
+    c.stages = {"salience": salience, "descriptor": build(DESCRIPTOR, "fpfh"),
                 "matcher": build(__import__("scanreg.registry").registry.MATCHER, "mutual_knn")}
+    return tgt, src, T_gt, c
+
+
+def test_lo_ransac_end_to_end_on_stanford_scans():
+    tgt, src, T_gt, c = stanford_case(7, 20000, build(SALIENCE, "uniform"))
     T, m = build(COARSE, "lo_ransac").run(tgt, src, c)
     rot, trans = transform_errors(T, T_gt)
     assert rot < 5 and m["coarse_inliers"] >= 6, (rot, m)
@@ -151,21 +158,7 @@ def test_lo_ransac_falls_back_to_uniform_keypoints():
     """When the configured keypoints fail (here ISS with a support radius so small that no point is salient),
     lo_ransac retries with uniform keypoints, solves the Stanford pair and logs coarse_fallback = 1; with the
     fallback off it fails with the keypoint message."""
-    folder = shared("stanford_bunny")
-    from scanreg.io import read_stanford_conf
-    from scanreg.geometry import invert_T
-
-    poses = read_stanford_conf(folder / "bun.conf")
-    t, s = read_mesh(folder / "bun000.ply"), read_mesh(folder / "bun045.ply")
-    P = random_pose(np.random.default_rng(11), 180, 0.1)
-    T_gt = invert_T(poses["bun000.ply"]) @ poses["bun045.ply"] @ invert_T(P)
-    tp, tn, _ = barycentric_sample(t, 15000, np.random.default_rng(0))
-    sp_, sn, _ = barycentric_sample(s, 15000, np.random.default_rng(1))
-    tgt, src = Cloud(tp, tn), Cloud(apply_T(P, sp_), sn @ P[:3, :3].T)
-    c = ctx(max(estimate_spacing(tp, np.random.default_rng(0)), estimate_spacing(sp_, np.random.default_rng(0))))
-    c.stages = {"salience": build(SALIENCE, "iss", salient_radius=0.1, non_max_radius=0.1),
-                "descriptor": build(DESCRIPTOR, "fpfh"),
-                "matcher": build(__import__("scanreg.registry").registry.MATCHER, "mutual_knn")}
+    tgt, src, T_gt, c = stanford_case(11, 15000, build(SALIENCE, "iss", salient_radius=0.1, non_max_radius=0.1))
     T, m = build(COARSE, "lo_ransac").run(tgt, src, c)
     assert m["coarse_fallback"] == 1 and transform_errors(T, T_gt)[0] < 5, m
     with pytest.raises(StageError, match="too few keypoints"):
