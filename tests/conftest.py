@@ -50,3 +50,20 @@ def runs(uri: str, experiment: str):
     exp = mlflow.get_experiment_by_name(experiment)
     assert exp is not None, f"experiment {experiment} was not created"
     return mlflow.search_runs([exp.experiment_id])
+
+
+def stage_ctx(spacing=1.0, seed=0):
+    """A stage context with this sampling spacing (no run directory)."""
+    from scanreg.config import Context
+
+    c = Context(seed=seed, run_dir=None)
+    c.spacing = spacing
+    return c
+
+
+def build(reg, name, **kw):
+    """A stage of registry ``reg`` by name, its Params validated."""
+    from scanreg.registry import make_params
+
+    cls = reg.get(name)
+    return cls(make_params(cls.Params, kw, name))

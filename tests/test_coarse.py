@@ -3,28 +3,18 @@
 import numpy as np
 import pytest
 
-from conftest import shared
-from scanreg.config import Context, Distances
+from conftest import build, shared
+from conftest import stage_ctx as ctx
+from scanreg.config import Distances
 from scanreg.errors import StageError
 from scanreg.geometry import Cloud, apply_T, random_pose, transform_errors
 from scanreg.io import read_mesh
 from scanreg.metrics import estimate_spacing
-from scanreg.registry import COARSE, DESCRIPTOR, SALIENCE, load_all, make_params
+from scanreg.registry import COARSE, DESCRIPTOR, SALIENCE, load_all
 from scanreg.stages.salience import MATRICES, MEASURES
 from scanreg.geometry import barycentric_sample
 
 load_all()
-
-
-def ctx(spacing=1.0, seed=0):
-    c = Context(seed=seed, run_dir=None)
-    c.spacing = spacing
-    return c
-
-
-def build(reg, name, **kw):
-    cls = reg.get(name)
-    return cls(make_params(cls.Params, kw, name))
 
 
 @pytest.fixture(scope="module")

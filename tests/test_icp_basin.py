@@ -110,17 +110,24 @@ def test_kernel_weights():
                                                 ctx(0.1))
 
 
-@pytest.mark.parametrize("variant", ["horn", "point_to_plane", "open3d_plane"])
-def test_robust_kernels_hold_a_partial_overlap(variant):
-    """Target: 40 % of the bunny; source: all of it, started 5 deg off. With a wide fixed limit (20 spacings)
-    least squares is pulled by the source's unmatched part; a Geman-McClure kernel at 1 spacing holds the truth
-    (weighted Horn, the weighted 6x6 solve, Open3D's GMLoss)."""
+def partial_overlap_case():
+    """Target: 40 % of the bunny under a 5-degree pose T; source: an independent sampling of all of it.
+    Returns (target, source, T, context)."""
     m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
     a, b = sampled(m, 20000, 1), sampled(m, 20000, 2)
     keep = a.points[:, 1] < np.quantile(a.points[:, 1], 0.4)
     T = random_pose(np.random.default_rng(5), 5, 1.0)
     tgt = Cloud(apply_T(T, a.points[keep]), a.normals[keep] @ T[:3, :3].T)
     c = ctx(estimate_spacing(tgt.points, np.random.default_rng(0)))
+    return tgt, b, T, c
+
+
+@pytest.mark.parametrize("variant", ["horn", "point_to_plane", "open3d_plane"])
+def test_robust_kernels_hold_a_partial_overlap(variant):
+    """Target: 40 % of the bunny; source: all of it, started 5 deg off. With a wide fixed limit (20 spacings)
+    least squares is pulled by the source's unmatched part; a Geman-McClure kernel at 1 spacing holds the truth
+    (weighted Horn, the weighted 6x6 solve, Open3D's GMLoss)."""
+    tgt, b, T, c = partial_overlap_case()
     name, kw = ("open3d", dict(estimation="point_to_plane")) if variant == "open3d_plane" else (variant, {})
     kw.update(schedule="fixed", max_correspondence_distance=20.0, accept=False, max_iterations=200)
     ls = icp_stage(name, kernel="none", **kw).run(tgt, b, np.eye(4), c)
@@ -134,12 +141,7 @@ def test_acceptance_keeps_the_start_pose_when_icp_drifts():
     degrees away: fewer source points within 3 spacings afterwards (accept_distance), so the start pose is kept
     and logged as icp_accepted = 0; with the default schedule ICP stays and is accepted (accept_distance null: the
     final pair limit, 3 spacings)."""
-    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
-    a, b = sampled(m, 20000, 1), sampled(m, 20000, 2)
-    keep = a.points[:, 1] < np.quantile(a.points[:, 1], 0.4)
-    T = random_pose(np.random.default_rng(5), 5, 1.0)
-    tgt = Cloud(apply_T(T, a.points[keep]), a.normals[keep] @ T[:3, :3].T)
-    c = ctx(estimate_spacing(tgt.points, np.random.default_rng(0)))
+    tgt, b, T, c = partial_overlap_case()
     kw = dict(schedule="fixed", max_correspondence_distance=20.0, accept_distance=3.0)
     drift = icp_stage("horn", accept=False, **kw).run(tgt, b, T, c)
     assert transform_errors(drift.T_target_source, T)[0] > 2.0 and drift.metrics["icp_accepted"] == 1.0

@@ -11,25 +11,16 @@ from scipy import optimize, stats
 from scipy.spatial.transform import Rotation
 
 from scanreg.closest import ClosestPoints
-from scanreg.config import Context
 from scanreg.geometry import (Cloud, Mesh, apply_T, barycentric_sample, horn_quaternion, make_T, random_pose,
                               rigid_points_normals)
-from scanreg.registry import COARSE, DESCRIPTOR, ICP, SALIENCE, load_all, make_params
+from scanreg.registry import COARSE, DESCRIPTOR, ICP, SALIENCE, load_all
 from scanreg.stages import descriptor as descriptor_mod
 from scanreg.stages.salience import non_maximum_suppression
 
+from conftest import build
+from conftest import stage_ctx as ctx
+
 load_all()
-
-
-def ctx(spacing=1.0, seed=0):
-    c = Context(seed=seed, run_dir=None)
-    c.spacing = spacing
-    return c
-
-
-def build(reg, name, **kw):
-    cls = reg.get(name)
-    return cls(make_params(cls.Params, kw, name))
 
 
 # ------------------------------------------------------------------------------------------ eq. 4
