@@ -135,7 +135,6 @@ def test_write_ply_edges_read_back_as_a_line_set(tmp_path):
         write_ply(tmp_path / "bad.ply", Cloud(pts, None, "l"), edges=[[0, 4]])
 
 
-@pytest.mark.slow
 def test_stanford_run_logs_the_field_metrics_and_writes_coloured_plys(tmp_path):
     shared("stanford_bunny/bun.conf")
     from scanreg.config import compose
