@@ -25,6 +25,20 @@ def _cached(mesh: Mesh, name: str, compute):
     return value
 
 
+def remember(mesh: Mesh, name: str, value) -> None:
+    """Record a measurement of ``mesh`` made elsewhere (a backend that has just run the same test, e.g.
+    ``self_intersecting_faces``) so that the audit does not repeat it."""
+    key = (id(mesh.vertices), id(mesh.faces), mesh.vertices.shape, mesh.faces.shape)
+    mesh.__dict__.setdefault("_topology_cache", {})[name] = (key, value)
+
+
+def known(mesh: Mesh, name: str):
+    """A measurement :func:`remember`-ed (or cached) for ``mesh`` as it is now, or None."""
+    key = (id(mesh.vertices), id(mesh.faces), mesh.vertices.shape, mesh.faces.shape)
+    hit = mesh.__dict__.get("_topology_cache", {}).get(name)
+    return hit[1] if hit is not None and hit[0] == key else None
+
+
 SLIVER_ANGLE_DEG = 1.0
 """A face whose smallest angle is below this many degrees is a sliver (a cap, with one angle near 180 degrees,
 or a needle, with one edge near zero length)."""
@@ -91,7 +105,7 @@ def mesh_stats(mesh: Mesh) -> dict[str, float]:
     forward = directed[:, 0] < directed[:, 1]
     dcounts = np.bincount(2 * edge + forward, minlength=2 * len(counts))
     bnd = directed[counts[edge] == 1]
-    used = np.unique(f)
+    used = np.flatnonzero(np.bincount(f.ravel(), minlength=nv)) if nf else np.zeros(0, np.int64)
     n_comp = int(_face_components(mesh).max()) + 1 if nf else 0
     loops = len(_loop_sizes(bnd))
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
@@ -145,8 +159,9 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
     and would add the same count to each. Both are zeros when no face differs."""
     from scipy.spatial import cKDTree
 
-    def coords(m: Mesh) -> np.ndarray:  # each vertex's coordinates as one opaque value
-        return np.ascontiguousarray(m.vertices, dtype=np.float64).view(np.dtype((np.void, 24))).ravel()
+    def coords(m: Mesh) -> np.ndarray:  # each vertex's coordinates hashed into one int64
+        b = np.ascontiguousarray(m.vertices, dtype=np.float64).view(np.int64)
+        return b[:, 0] * np.int64(-7046029254386353131) + b[:, 1] * np.int64(-4658895280553007687) + b[:, 2]
 
     cb, fb = coords(before), before.faces
     ca, fa = coords(after), after.faces
@@ -194,14 +209,50 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return fold_counts(submesh(before, near(xb))), fold_counts(submesh(after, near(xa)))
 
 
+def non_manifold_vertices(mesh: Mesh) -> int:
+    """Vertices whose faces do not form one fan (two cones meeting at a point), not counting the vertices of
+    non-manifold edges: MeshLab's ``non_two_manifold_vertices`` (vcg's CountNonManifoldVertexFF), in NumPy.
+    The corners of a vertex are joined across each edge with two faces; a vertex whose corners fall into
+    more than one group is non-manifold."""
+    f = mesh.faces
+    nf = len(f)
+    if not nf:
+        return 0
+    directed, edge, counts = _mesh_edges(mesh)
+    rows = np.flatnonzero(counts[edge] == 2)
+    rows = rows[np.argsort(edge[rows], kind="stable")]
+    r1, r2 = rows[0::2], rows[1::2]  # the two faces' directed copies of each two-face edge
+    j1, j2 = r1 // nf, r2 // nf  # local edge j runs from corner j to corner j + 1 of face r % nf
+    c1s, c1e = 3 * (r1 % nf) + j1, 3 * (r1 % nf) + (j1 + 1) % 3
+    c2s, c2e = 3 * (r2 % nf) + j2, 3 * (r2 % nf) + (j2 + 1) % 3
+    same = directed[r1, 0] == directed[r2, 0]  # traversed the same way (inconsistent orientation)
+    a = np.concatenate([c1s, c1e])
+    b = np.concatenate([np.where(same, c2s, c2e), np.where(same, c2e, c2s)])
+    g = coo_matrix((np.ones(len(a)), (a, b)), shape=(3 * nf, 3 * nf))
+    fan = connected_components(g, directed=False)[1]
+    vert = f.ravel()  # corner 3 * face + k is vertex f[face, k]
+    nv = max(len(mesh.vertices), int(vert.max()) + 1)
+    one = np.empty(nv, fan.dtype)
+    one[vert] = fan  # one of each vertex's groups; a corner in another group makes the vertex non-manifold
+    several = np.zeros(nv, bool)
+    several[vert[fan != one[vert]]] = True
+    several[directed[counts[edge] > 2].ravel()] = False
+    return int(several.sum())
+
+
 def audit_mesh(mesh: Mesh) -> dict[str, float]:
-    """:func:`mesh_stats` plus MeshLab's counts: ``non_manifold_vertices`` and ``self_intersecting_faces``
-    (faces that intersect a face they do not share a vertex with)."""
+    """:func:`mesh_stats` plus MeshLab's counts: ``non_manifold_vertices`` (:func:`non_manifold_vertices`) and
+    ``self_intersecting_faces`` (faces that intersect a face they do not share a vertex with). The self-intersection test, the costly
+    part, is skipped when a backend has just made it on this very mesh (:func:`remember`)."""
     out = mesh_stats(mesh)
-    ms = _meshset(mesh)
-    out["non_manifold_vertices"] = int(ms.get_topological_measures()["non_two_manifold_vertices"])
-    ms.compute_selection_by_self_intersections_per_face()
-    out["self_intersecting_faces"] = int(ms.current_mesh().selected_face_number())
+    out["non_manifold_vertices"] = non_manifold_vertices(mesh)
+    si = known(mesh, "self_intersecting_faces")
+    if si is None:
+        ms = _meshset(mesh)
+        ms.compute_selection_by_self_intersections_per_face()
+        si = int(ms.current_mesh().selected_face_number())
+        remember(mesh, "self_intersecting_faces", si)
+    out["self_intersecting_faces"] = int(si)
     return out
 
 

@@ -33,7 +33,7 @@ from scanreg.config import Context
 from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.shell import close_as_shell
-from scanreg.topology import collapse_folds, collapse_slivers, audit_mesh, point_distances, raycasting_scene, border_loops, component_areas, open_scan_borders, surface_distances
+from scanreg.topology import collapse_folds, collapse_slivers, audit_mesh, known, remember, point_distances, raycasting_scene, border_loops, component_areas, open_scan_borders, surface_distances
 
 
 @dataclass
@@ -124,6 +124,11 @@ class GuardParams:
             raise ValueError(f"displacement_quantile must be in (0, 1], got {self.displacement_quantile}")
 
 
+VERTICES_PER_PART = 2000
+"""The audit tells a part that is gone (most of its vertices farther than ``removed_tolerance`` from the
+output) on at most this many of its vertices."""
+
+
 def _median_edge(mesh: Mesh) -> float:
     v, f = mesh.vertices, mesh.faces
     return float(np.median(row_norms(v[f[:, [1, 2, 0]]] - v[f]))) if len(f) else 0.0
@@ -195,6 +200,9 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
             folds_out, folds_collapsed = collapse_folds(out, collapsed)  # the neighbourhood of the collapse only
             t_folds = time.perf_counter() - tf
             if (folds_collapsed <= folds_out).all():  # no kind of fold added
+                si = known(out, "self_intersecting_faces")
+                if si is not None:  # the collapse's own change to it, measured where it happened
+                    remember(collapsed, "self_intersecting_faces", si + int(folds_collapsed[0] - folds_out[0]))
                 out = collapsed
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
@@ -249,13 +257,18 @@ def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ctx: Context, prefix
     tol = p.removed_tolerance * diag
     # one raycasting scene of the output for both of its uses (the input's vertices, the input's samples)
     scene_out = raycasting_scene(out)
-    # a part is gone when most of its vertices are farther than the tolerance from the output
-    used = np.unique(mesh.faces)
-    dv = np.full(len(mesh.vertices), np.inf)
-    dv[used] = point_distances(scene_out, mesh.vertices[used])
-    vcomp = np.zeros(len(mesh.vertices), np.int64)
+    # a part is gone when most of its vertices are farther than the tolerance from the output; "most" is
+    # judged on up to VERTICES_PER_PART of each part's vertices (every k-th, in index order)
+    vcomp = np.full(len(mesh.vertices), -1, np.int64)
     vcomp[mesh.faces.ravel()] = np.repeat(lab, 3)
-    far = np.bincount(vcomp[used], dv[used] > tol, minlength=len(ca)) / np.bincount(vcomp[used], minlength=len(ca))
+    used = np.flatnonzero(vcomp >= 0)
+    per = np.bincount(vcomp[used], minlength=len(ca))
+    order = used[np.argsort(vcomp[used], kind="stable")]  # grouped by part, index order within
+    rank = np.arange(len(order)) - np.repeat(np.cumsum(per) - per, per)
+    stride = np.maximum(1, -(-per // VERTICES_PER_PART))
+    probe = order[rank % stride[vcomp[order]] == 0]
+    far = np.bincount(vcomp[probe], point_distances(scene_out, mesh.vertices[probe]) > tol,
+                      minlength=len(ca)) / np.bincount(vcomp[probe], minlength=len(ca))
     gone = far > 0.5
     d_in = surface_distances(kept_in, out, p.audit_samples, ctx.seed, scene=scene_out)
     d_out = surface_distances(out, mesh, p.audit_samples, ctx.seed + 1)
