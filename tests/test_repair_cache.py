@@ -58,6 +58,33 @@ def test_cache_round_trip_key_and_atomic_write(tmp_path, capsys):
     assert m3["repair_cache_hit"] == 0.0 and cache.load(k, "") is not None
 
 
+def test_a_job_waits_for_the_entry_another_job_is_making(tmp_path):
+    import threading
+
+    from scanreg.stages.repair.cache import RepairCache, cache_key, cached_repair
+
+    load_all()
+    st = build(REPAIR, "meshfix")
+    mesh, ctx = holed_cow(), Context(seed=0, run_dir=None)
+    made = RepairCache(tmp_path / "made")
+    out, _ = cached_repair(st, mesh, ctx, "repair_", made)
+    key = cache_key(st, mesh, 0)
+    cache = RepairCache(tmp_path / "c")
+    lock = cache.lock(key)  # "another job" holds the lock and stores its entry a little later
+    assert lock is not None and cache.lock(key) is None
+
+    def other_job():
+        cache.store(key, *made.load(key, ""))
+        lock.unlink()
+
+    timer = threading.Timer(0.5, other_job)
+    timer.start()
+    got, m = cached_repair(st, mesh, ctx, "repair_", cache)
+    timer.join()
+    assert m["repair_cache_hit"] == 1.0 and np.array_equal(got.faces, out.faces)
+    assert not list(cache.dir.glob(".*"))  # no lock or temporary left
+
+
 def test_cache_modes():
     from scanreg.errors import ConfigError
     from scanreg.stages.repair.cache import cache_enabled

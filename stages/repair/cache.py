@@ -5,7 +5,9 @@ The key is a SHA-256 of the input mesh's arrays (vertices, faces, closure faces)
 repair parameter except the cache's own, the seed (the audit samples with it), the versions of scanreg,
 pymeshfix and pymeshlab, and a hash of the repair code's source files. An entry holds the repaired mesh and the repair's metrics (unprefixed), in one ``.npz``
 written to a temporary file and renamed into place, so concurrent jobs of a sweep never read a half-written entry
-(two jobs missing the same key at once both repair and the last rename wins; both entries are identical).
+While a job repairs a mesh it holds a lock file beside the entry (created exclusively); a parallel job that
+needs the same entry waits for it (up to ``WAIT_S``) instead of repairing the same scan again, and repairs it
+itself when none appears (the other job's repair failed, or a lock left by a killed job, older than ``STALE_S``).
 
 Only repairs that pass the guard (or run with ``check_only``) are stored; a failing repair fails again in every
 job. The metrics of a hit are those of the repair that made the entry (``repair_backend_time_s`` and
@@ -21,6 +23,7 @@ import io
 import json
 import os
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +33,12 @@ from scanreg.geometry import Mesh
 
 CACHE_FORMAT = 1
 """Bumped when the entry layout or the meaning of a stored metric changes."""
+
+WAIT_S = 900.0
+"""Longest wait, in seconds, for an entry that another job is making."""
+
+STALE_S = 3600.0
+"""A lock file older than this many seconds is left over from a killed job and ignored."""
 
 DEFAULT_DIR = "outputs/cache/repair"
 """Where entries go when ``repair.cache_dir`` is null: under the working directory's ``outputs/``, beside the
@@ -105,11 +114,38 @@ class RepairCache:
         try:
             with os.fdopen(fd, "wb") as f:
                 f.write(buf.getvalue())
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)  # as an ordinary file (mkstemp makes it private)
             os.replace(tmp, self.path(key))
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
         return self.path(key)
+
+    def lock(self, key: str) -> Path | None:
+        """Take the lock on ``key`` (the path to release), or None when another job holds it."""
+        self.dir.mkdir(parents=True, exist_ok=True)
+        path = self.dir / f".{key}.lock"
+        try:
+            os.close(os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+            return path
+        except FileExistsError:
+            try:
+                if time.time() - path.stat().st_mtime > STALE_S:  # left by a killed job: take it over
+                    path.touch()
+                    return path
+            except FileNotFoundError:
+                return self.lock(key)
+            return None
+
+    def wait(self, key: str, source: str, timeout: float = WAIT_S) -> tuple[Mesh, dict[str, float]] | None:
+        """The entry for ``key`` once the job holding its lock is done with it (None: it made none)."""
+        lock = self.dir / f".{key}.lock"
+        end = time.monotonic() + timeout
+        while lock.exists() and time.monotonic() < end:
+            time.sleep(0.1)
+        return self.load(key, source)
 
 
 def cache_enabled(mode: str, in_sweep: bool) -> bool:
@@ -127,6 +163,11 @@ def cached_repair(stage, mesh: Mesh, ctx: Context, prefix: str,
         return repair_with_audit(stage, mesh, ctx, prefix)
     key = cache_key(stage, mesh, ctx.seed)
     hit = cache.load(key, mesh.source)
+    lock = None
+    if hit is None:
+        lock = cache.lock(key)
+        if lock is None:  # another job of the sweep is repairing the same mesh: wait for its entry
+            hit = cache.wait(key, mesh.source)
     if hit is not None:
         out, m = hit
         print(f"note: repair={stage.name}: {mesh.source or 'mesh'}: the repaired mesh from the cache "
@@ -134,9 +175,13 @@ def cached_repair(stage, mesh: Mesh, ctx: Context, prefix: str,
         metrics = {prefix + k: v for k, v in m.items()}
         metrics[prefix + "cache_hit"] = 1.0
         return (mesh if stage.p.check_only else out), metrics
-    out, metrics = repair_with_audit(stage, mesh, ctx, prefix)
-    repaired = out
-    if stage.p.check_only:  # the audit ran on what the repair made; the mesh returned is the input
-        repaired = mesh
-    cache.store(key, repaired, {k[len(prefix):]: v for k, v in metrics.items() if k.startswith(prefix)})
+    try:
+        out, metrics = repair_with_audit(stage, mesh, ctx, prefix)
+        repaired = out
+        if stage.p.check_only:  # the audit ran on what the repair made; the mesh returned is the input
+            repaired = mesh
+        cache.store(key, repaired, {k[len(prefix):]: v for k, v in metrics.items() if k.startswith(prefix)})
+    finally:
+        if lock is not None:
+            lock.unlink(missing_ok=True)
     return out, {**metrics, prefix + "cache_hit": 0.0}
