@@ -154,7 +154,7 @@ def fold_counts(mesh: Mesh) -> np.ndarray:
 def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
     """:func:`fold_counts` of ``before`` and ``after`` (the same mesh before and after a local edit such as
     :func:`collapse_slivers`) where they differ: both restricted to the faces near a face that is in one mesh
-    and not in the other (centroids within the two faces' circumradii), so that the comparison costs a
+    and not in the other (centroids within the sum of the two faces' circumradii), so that the comparison costs a
     self-intersection test of that neighbourhood, not of the whole mesh. Faces elsewhere are the same in both
     and would add the same count to each. Both are zeros when no face differs."""
     from scipy.spatial import cKDTree
@@ -196,17 +196,37 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
         return c, np.sqrt(((P - c[:, None]) ** 2).sum(-1).max(axis=1))
 
     (xb, rb), (xa, ra) = centres(before), centres(after)
-    seeds = np.concatenate([xb[gone], xa[new]])
-    reach = np.concatenate([rb[gone], ra[new]]) + max(rb.max(), ra.max())
+    bound = max(np.quantile(rb, 0.99), np.quantile(ra, 0.99))  # most faces' circumradius is below it
+    # the changed faces as points with a reach: a small face its centroid and circumradius, a large one (a long
+    # sliver) a grid of points on it at most ``step`` apart, each reaching ``step`` (covering the face)
+    tris = np.concatenate([before.vertices[fb[gone]], after.vertices[fa[new]]])
+    radii = np.concatenate([rb[gone], ra[new]])
+    small = radii <= bound
+    seeds, reach = [tris[small].mean(axis=1)], [radii[small]]
+    for t in tris[~small]:
+        n = int(np.ceil(max(np.linalg.norm(t[1] - t[0]), np.linalg.norm(t[2] - t[1]),
+                            np.linalg.norm(t[0] - t[2])) / bound))
+        a, b = (g.ravel() for g in np.meshgrid(np.arange(n + 1), np.arange(n + 1)))
+        a, b = a[a + b <= n] / n, b[a + b <= n] / n
+        seeds.append(t[0] + a[:, None] * (t[1] - t[0]) + b[:, None] * (t[2] - t[0]))
+        reach.append(np.full(len(a), bound))
+    seeds, reach = np.concatenate(seeds), np.concatenate(reach)
+    seed_tree = cKDTree(seeds)
 
-    def near(x: np.ndarray) -> np.ndarray:
+    def near(x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Faces (centroids ``x``, circumradii ``r``) that can touch a changed face: centroids within the sum of
+        the two reaches; faces up to the common bound found around the seeds, the few larger ones (1 %)
+        looked up the other way."""
         mask = np.zeros(len(x), bool)
-        hits = cKDTree(x).query_ball_point(seeds, reach)
+        hits = cKDTree(x).query_ball_point(seeds, reach + bound)
         idx = np.concatenate([np.asarray(h, np.int64) for h in hits]) if len(hits) else np.zeros(0, np.int64)
         mask[idx] = True
+        big = np.flatnonzero(r > bound)
+        if len(big):  # every reach is at most the bound
+            mask[big[seed_tree.query_ball_point(x[big], r[big] + bound, return_length=True) > 0]] = True
         return mask
 
-    return fold_counts(submesh(before, near(xb))), fold_counts(submesh(after, near(xa)))
+    return fold_counts(submesh(before, near(xb, rb))), fold_counts(submesh(after, near(xa, ra)))
 
 
 def non_manifold_vertices(mesh: Mesh) -> int:
