@@ -14,29 +14,28 @@ from scanreg.geometry import Mesh, barycentric_sample, submesh, triangle_areas_n
 def _cached(mesh: Mesh, name: str, compute):
     """``compute()``, remembered on ``mesh`` for as long as its vertex and face arrays are the same objects
     (the repair's audit, border plan, component split and sliver check share one edge table, one component
-    labelling, one set of face angles per mesh)."""
-    key = (id(mesh.vertices), id(mesh.faces), mesh.vertices.shape, mesh.faces.shape)
-    cache = mesh.__dict__.setdefault("_topology_cache", {})
-    hit = cache.get(name)
-    if hit is not None and hit[0] == key:
-        return hit[1]
+    labelling, one set of face angles per mesh). Meshes are not edited in place anywhere; one that were would
+    need a new array to be measured again."""
+    hit = known(mesh, name)
+    if hit is not None:
+        return hit
     value = compute()
-    cache[name] = (key, value)
+    remember(mesh, name, value)
     return value
 
 
 def remember(mesh: Mesh, name: str, value) -> None:
     """Record a measurement of ``mesh`` made elsewhere (a backend that has just run the same test, e.g.
     ``self_intersecting_faces``) so that the audit does not repeat it."""
-    key = (id(mesh.vertices), id(mesh.faces), mesh.vertices.shape, mesh.faces.shape)
-    mesh.__dict__.setdefault("_topology_cache", {})[name] = (key, value)
+    mesh.__dict__.setdefault("_topology_cache", {})[name] = ((mesh.vertices, mesh.faces), value)
 
 
 def known(mesh: Mesh, name: str):
     """A measurement :func:`remember`-ed (or cached) for ``mesh`` as it is now, or None."""
-    key = (id(mesh.vertices), id(mesh.faces), mesh.vertices.shape, mesh.faces.shape)
     hit = mesh.__dict__.get("_topology_cache", {}).get(name)
-    return hit[1] if hit is not None and hit[0] == key else None
+    if hit is None or hit[0][0] is not mesh.vertices or hit[0][1] is not mesh.faces:
+        return None  # never measured, or the mesh was given new arrays since
+    return hit[1]
 
 
 SLIVER_ANGLE_DEG = 1.0
