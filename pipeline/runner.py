@@ -98,11 +98,12 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
     with timer("repair"):
         if cfg.repair.name != "none":
             apply_to = getattr(st["repair"].p, "apply_to", "both")
+            sweep = _in_sweep()  # repair.cache=auto: the repaired meshes are cached in -m sweeps
             for role, g in geoms.items():
                 if isinstance(g, Mesh) and apply_to in (role, "both"):
                     try:
                         geoms[role], rm = st["repair"].repair(g, ctx, "repair_" if role == "source"
-                                                              else "target_repair_")
+                                                              else "target_repair_", sweep=sweep)
                     except ScanregError as e:
                         e.metrics = {**m, **e.metrics}
                         raise
@@ -197,6 +198,17 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
     res.artifacts = (dev_paths if ev.deviation_map or ev.view_html else []) + kp_paths + write_outputs(run_dir, res, transform_geometry(T, src), tgt if inputs.T_gt is not None and
                                   cfg.data.name != "files" else None)
     return res
+
+
+def _in_sweep() -> bool:
+    """True inside a job of a Hydra multirun sweep (``-m``; any launcher)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    except Exception:  # noqa: BLE001: no Hydra context (the Python API): not a sweep
+        return False
 
 
 def pose_uncertainty(icp, src: Cloud, T: np.ndarray, aligned: np.ndarray, on_points, on_surface, mesh_target: bool,

@@ -8,7 +8,34 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from scanreg.geometry import Mesh, barycentric_sample, triangle_areas_normals
+from scanreg.geometry import Mesh, barycentric_sample, submesh, triangle_areas_normals
+
+
+def _cached(mesh: Mesh, name: str, compute):
+    """``compute()``, remembered on ``mesh`` for as long as its vertex and face arrays are the same objects
+    (the repair's audit, border plan, component split and sliver check share one edge table, one component
+    labelling, one set of face angles per mesh). Meshes are not edited in place anywhere; one that were would
+    need a new array to be measured again."""
+    hit = known(mesh, name)
+    if hit is not None:
+        return hit
+    value = compute()
+    remember(mesh, name, value)
+    return value
+
+
+def remember(mesh: Mesh, name: str, value) -> None:
+    """Record a measurement of ``mesh`` made elsewhere (a backend that has just run the same test, e.g.
+    ``self_intersecting_faces``) so that the audit does not repeat it."""
+    mesh.__dict__.setdefault("_topology_cache", {})[name] = ((mesh.vertices, mesh.faces), value)
+
+
+def known(mesh: Mesh, name: str):
+    """A measurement :func:`remember`-ed (or cached) for ``mesh`` as it is now, or None."""
+    hit = mesh.__dict__.get("_topology_cache", {}).get(name)
+    if hit is None or hit[0][0] is not mesh.vertices or hit[0][1] is not mesh.faces:
+        return None  # never measured, or the mesh was given new arrays since
+    return hit[1]
 
 
 SLIVER_ANGLE_DEG = 1.0
@@ -18,6 +45,10 @@ or a needle, with one edge near zero length)."""
 
 def min_angles_deg(mesh: Mesh) -> np.ndarray:
     """The smallest interior angle of each face, in degrees (0 for a face with a repeated or coincident vertex)."""
+    return _cached(mesh, "min_angles", lambda: _min_angles_deg(mesh))
+
+
+def _min_angles_deg(mesh: Mesh) -> np.ndarray:
     P = mesh.vertices[mesh.faces]
     e = [P[:, (i + 1) % 3] - P[:, i] for i in range(3)]  # edge i runs from corner i to corner i+1
     L = [np.sqrt(np.einsum("ij,ij->i", x, x)) for x in e]
@@ -67,11 +98,13 @@ def mesh_stats(mesh: Mesh) -> dict[str, float]:
     """
     f = mesh.faces
     nv, nf = len(mesh.vertices), len(f)
-    areas, _ = triangle_areas_normals(mesh)
-    directed, edge, counts = _edge_table(f)
-    _, dcounts = np.unique(_edge_keys(directed), return_counts=True)
+    areas = _face_areas(mesh)
+    directed, edge, counts = _mesh_edges(mesh)
+    # two faces traversing an edge in the same direction: the same (edge, direction) twice
+    forward = directed[:, 0] < directed[:, 1]
+    dcounts = np.bincount(2 * edge + forward, minlength=2 * len(counts))
     bnd = directed[counts[edge] == 1]
-    used = np.unique(f)
+    used = np.flatnonzero(np.bincount(f.ravel(), minlength=nv)) if nf else np.zeros(0, np.int64)
     n_comp = int(_face_components(mesh).max()) + 1 if nf else 0
     loops = len(_loop_sizes(bnd))
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
@@ -105,34 +138,174 @@ def _meshset(mesh: Mesh):
 
 def fold_count(mesh: Mesh) -> int:
     """Self-intersecting faces plus non-manifold edges and vertices (MeshLab): what an edge collapse can add."""
+    return int(fold_counts(mesh).sum())
+
+
+def fold_counts(mesh: Mesh) -> np.ndarray:
+    """``[self-intersecting faces, non-manifold edges, non-manifold vertices]`` (MeshLab's counts)."""
     ms = _meshset(mesh)
     topo = ms.get_topological_measures()
     ms.compute_selection_by_self_intersections_per_face()
-    return (int(ms.current_mesh().selected_face_number()) + int(topo["non_two_manifold_edges"])
-            + int(topo["non_two_manifold_vertices"]))
+    return np.array([int(ms.current_mesh().selected_face_number()), int(topo["non_two_manifold_edges"]),
+                     int(topo["non_two_manifold_vertices"])])
+
+
+def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`fold_counts` of ``before`` and ``after`` (the same mesh before and after a local edit such as
+    :func:`collapse_slivers`) where they differ: both restricted to the faces near a face that is in one mesh
+    and not in the other (centroids within the sum of the two faces' circumradii), so that the comparison costs a
+    self-intersection test of that neighbourhood, not of the whole mesh. Faces elsewhere are the same in both
+    and would add the same count to each. Both are zeros when no face differs."""
+    from scipy.spatial import cKDTree
+
+    def coords(m: Mesh) -> np.ndarray:  # each vertex's coordinates hashed into one int64
+        b = np.ascontiguousarray(m.vertices, dtype=np.float64).view(np.int64)
+        return b[:, 0] * np.int64(-7046029254386353131) + b[:, 1] * np.int64(-4658895280553007687) + b[:, 2]
+
+    cb, fb = coords(before), before.faces
+    ca, fa = coords(after), after.faces
+    # faces compared by their vertices' coordinates (vertex indices differ after a collapse), any corner order;
+    # vertices at the same coordinates (a backend's duplicates) told apart by their order, which the edit keeps
+    _, inv = np.unique(np.concatenate([cb, ca]), return_inverse=True)
+    inv = inv.ravel().astype(np.int64)
+
+    def ranked(ids: np.ndarray) -> np.ndarray:
+        order = np.argsort(ids, kind="stable")
+        s = ids[order]
+        start = np.r_[0, np.flatnonzero(s[1:] != s[:-1]) + 1]
+        rank = np.empty(len(ids), np.int64)
+        rank[order] = np.arange(len(ids)) - np.repeat(start, np.diff(np.r_[start, len(ids)]))
+        return ids * 4 + np.minimum(rank, 3)
+
+    vb, va = ranked(inv[:len(cb)]), ranked(inv[len(cb):])
+    n = int(max(vb.max(), va.max())) + 1
+
+    def face_keys(ids: np.ndarray) -> np.ndarray:
+        s = np.sort(ids, axis=1)
+        return (s[:, 0] * n + s[:, 1]) * n + s[:, 2]  # wraps around for huge meshes: a hash, collisions rare
+
+    kb, ka = face_keys(vb[fb]), face_keys(va[fa])
+    gone, new = ~np.isin(kb, ka), ~np.isin(ka, kb)
+    if not gone.any() and not new.any():
+        return np.zeros(3, np.int64), np.zeros(3, np.int64)
+
+    def centres(m: Mesh) -> tuple[np.ndarray, np.ndarray]:
+        P = m.vertices[m.faces]
+        c = P.mean(axis=1)
+        return c, np.sqrt(((P - c[:, None]) ** 2).sum(-1).max(axis=1))
+
+    (xb, rb), (xa, ra) = centres(before), centres(after)
+    bound = max(np.quantile(rb, 0.99), np.quantile(ra, 0.99))  # most faces' circumradius is below it
+    # the changed faces as points with a reach: a small face its centroid and circumradius, a large one (a long
+    # sliver) a grid of points on it at most ``step`` apart, each reaching ``step`` (covering the face)
+    tris = np.concatenate([before.vertices[fb[gone]], after.vertices[fa[new]]])
+    radii = np.concatenate([rb[gone], ra[new]])
+    small = radii <= bound
+    seeds, reach = [tris[small].mean(axis=1)], [radii[small]]
+    for t in tris[~small]:
+        n = int(np.ceil(max(np.linalg.norm(t[1] - t[0]), np.linalg.norm(t[2] - t[1]),
+                            np.linalg.norm(t[0] - t[2])) / bound))
+        a, b = (g.ravel() for g in np.meshgrid(np.arange(n + 1), np.arange(n + 1)))
+        a, b = a[a + b <= n] / n, b[a + b <= n] / n
+        seeds.append(t[0] + a[:, None] * (t[1] - t[0]) + b[:, None] * (t[2] - t[0]))
+        reach.append(np.full(len(a), bound))
+    seeds, reach = np.concatenate(seeds), np.concatenate(reach)
+    seed_tree = cKDTree(seeds)
+
+    def near(x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Faces (centroids ``x``, circumradii ``r``) that can touch a changed face: centroids within the sum of
+        the two reaches; faces up to the common bound found around the seeds, the few larger ones (1 %)
+        looked up the other way."""
+        mask = np.zeros(len(x), bool)
+        hits = cKDTree(x).query_ball_point(seeds, reach + bound)
+        idx = np.concatenate([np.asarray(h, np.int64) for h in hits]) if len(hits) else np.zeros(0, np.int64)
+        mask[idx] = True
+        big = np.flatnonzero(r > bound)
+        if len(big):  # every reach is at most the bound
+            mask[big[seed_tree.query_ball_point(x[big], r[big] + bound, return_length=True) > 0]] = True
+        return mask
+
+    return fold_counts(submesh(before, near(xb, rb))), fold_counts(submesh(after, near(xa, ra)))
+
+
+def non_manifold_vertices(mesh: Mesh) -> int:
+    """Vertices whose faces do not form one fan (two cones meeting at a point), not counting the vertices of
+    non-manifold edges: MeshLab's ``non_two_manifold_vertices`` (vcg's CountNonManifoldVertexFF), in NumPy.
+    The corners of a vertex are joined across each edge with two faces; a vertex whose corners fall into
+    more than one group is non-manifold."""
+    f = mesh.faces
+    nf = len(f)
+    if not nf:
+        return 0
+    directed, edge, counts = _mesh_edges(mesh)
+    rows = np.flatnonzero(counts[edge] == 2)
+    rows = rows[np.argsort(edge[rows], kind="stable")]
+    r1, r2 = rows[0::2], rows[1::2]  # the two faces' directed copies of each two-face edge
+    j1, j2 = r1 // nf, r2 // nf  # local edge j runs from corner j to corner j + 1 of face r % nf
+    c1s, c1e = 3 * (r1 % nf) + j1, 3 * (r1 % nf) + (j1 + 1) % 3
+    c2s, c2e = 3 * (r2 % nf) + j2, 3 * (r2 % nf) + (j2 + 1) % 3
+    same = directed[r1, 0] == directed[r2, 0]  # traversed the same way (inconsistent orientation)
+    a = np.concatenate([c1s, c1e])
+    b = np.concatenate([np.where(same, c2s, c2e), np.where(same, c2e, c2s)])
+    g = coo_matrix((np.ones(len(a)), (a, b)), shape=(3 * nf, 3 * nf))
+    fan = connected_components(g, directed=False)[1]
+    vert = f.ravel()  # corner 3 * face + k is vertex f[face, k]
+    nv = max(len(mesh.vertices), int(vert.max()) + 1)
+    one = np.empty(nv, fan.dtype)
+    one[vert] = fan  # one of each vertex's groups; a corner in another group makes the vertex non-manifold
+    several = np.zeros(nv, bool)
+    several[vert[fan != one[vert]]] = True
+    several[directed[counts[edge] > 2].ravel()] = False
+    return int(several.sum())
 
 
 def audit_mesh(mesh: Mesh) -> dict[str, float]:
-    """:func:`mesh_stats` plus MeshLab's counts: ``non_manifold_vertices`` and ``self_intersecting_faces``
-    (faces that intersect a face they do not share a vertex with)."""
+    """:func:`mesh_stats` plus MeshLab's counts: ``non_manifold_vertices`` (:func:`non_manifold_vertices`) and
+    ``self_intersecting_faces`` (faces that intersect a face they do not share a vertex with). The self-intersection test, the costly
+    part, is skipped when a backend has just made it on this very mesh (:func:`remember`)."""
     out = mesh_stats(mesh)
-    ms = _meshset(mesh)
-    out["non_manifold_vertices"] = int(ms.get_topological_measures()["non_two_manifold_vertices"])
-    ms.compute_selection_by_self_intersections_per_face()
-    out["self_intersecting_faces"] = int(ms.current_mesh().selected_face_number())
+    out["non_manifold_vertices"] = non_manifold_vertices(mesh)
+    si = known(mesh, "self_intersecting_faces")
+    if si is None:
+        ms = _meshset(mesh)
+        ms.compute_selection_by_self_intersections_per_face()
+        si = int(ms.current_mesh().selected_face_number())
+        remember(mesh, "self_intersecting_faces", si)
+    out["self_intersecting_faces"] = int(si)
     return out
 
 
-def surface_distances(a: Mesh, b: Mesh, n: int, seed: int) -> np.ndarray:
-    """Distances from ``n`` area-weighted random points on ``a`` to the surface of ``b`` (exact point-to-
-    triangle distances, Open3D's raycasting scene)."""
+def raycasting_scene(mesh: Mesh):
+    """Open3D's raycasting scene of ``mesh``'s triangles (exact point-to-triangle distances)."""
     import open3d as o3d
 
-    pts, _, _ = barycentric_sample(a, n, np.random.default_rng([seed, 77]))
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(b.vertices.astype(np.float32)), o3d.core.Tensor(b.faces.astype(np.uint32)))
-    return scene.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy().astype(np.float64)
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                        o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    return scene
 
+
+def point_distances(scene, points: np.ndarray) -> np.ndarray:
+    """Distances from ``points`` to the surface in ``scene`` (:func:`raycasting_scene`)."""
+    import open3d as o3d
+
+    return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy().astype(np.float64)
+
+
+def surface_distances(a: Mesh, b: Mesh, n: int, seed: int, scene=None) -> np.ndarray:
+    """Distances from ``n`` area-weighted random points on ``a`` to the surface of ``b`` (exact point-to-
+    triangle distances, Open3D's raycasting scene; ``scene``: :func:`raycasting_scene` of ``b`` when built)."""
+    pts, _, _ = barycentric_sample(a, n, np.random.default_rng([seed, 77]))
+    return point_distances(raycasting_scene(b) if scene is None else scene, pts)
+
+
+def _face_areas(mesh: Mesh) -> np.ndarray:
+    return _cached(mesh, "areas", lambda: triangle_areas_normals(mesh)[0])
+
+
+def _mesh_edges(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_edge_table` of ``mesh``'s faces, computed once per mesh."""
+    return _cached(mesh, "edges", lambda: _edge_table(mesh.faces))
 
 
 def _edge_table(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -164,7 +337,7 @@ def _loop_sizes(bnd: np.ndarray) -> np.ndarray:
 
 def boundary_edges(mesh: Mesh, with_faces: bool = False):
     """Directed boundary edges (a, b), as their one face traverses them (and that face's index)."""
-    directed, edge, counts = _edge_table(mesh.faces)
+    directed, edge, counts = _mesh_edges(mesh)
     on = counts[edge] == 1
     return (directed[on], np.flatnonzero(on) % max(len(mesh.faces), 1)) if with_faces else directed[on]
 
@@ -176,11 +349,25 @@ def boundary_loop_sizes(mesh: Mesh) -> np.ndarray:
 
 
 def _face_components(mesh: Mesh) -> np.ndarray:
-    """The connected component of each face (faces sharing a vertex are connected), labelled from 0."""
+    """The connected component of each face (faces sharing a vertex are connected), labelled from 0 in the
+    order of each component's first face."""
+    return _cached(mesh, "components", lambda: _face_components_uncached(mesh))
+
+
+def _face_components_uncached(mesh: Mesh) -> np.ndarray:
     f = mesh.faces
-    nf, nv = len(f), len(mesh.vertices)
-    adj = coo_matrix((np.ones(3 * nf), (np.repeat(np.arange(nf), 3), f.ravel())), shape=(nf, nv)).tocsr()
-    return connected_components(adj @ adj.T, directed=False)[1]
+    if not len(f):
+        return np.zeros(0, np.int32)
+    # the vertices joined along the faces' edges (cheaper than the face-face graph), then relabelled so that the
+    # labels count up in the order of each component's first face
+    nv = max(len(mesh.vertices), int(f.max()) + 1)
+    g = coo_matrix((np.ones(2 * len(f)), (np.concatenate([f[:, 0], f[:, 1]]), np.concatenate([f[:, 1], f[:, 2]]))),
+                   shape=(nv, nv))
+    lab = connected_components(g, directed=False)[1][f[:, 0]]
+    uniq, first = np.unique(lab, return_index=True)
+    relabel = np.empty(int(uniq.max()) + 1, np.int32)
+    relabel[uniq[np.argsort(first)]] = np.arange(len(uniq), dtype=np.int32)
+    return relabel[lab]
 
 
 
@@ -190,8 +377,7 @@ def component_areas(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     if not len(mesh.faces):
         return np.zeros(0, np.int64), np.zeros(0)
     lab = _face_components(mesh)
-    areas, _ = triangle_areas_normals(mesh)
-    return lab, np.bincount(lab, areas)
+    return lab, np.bincount(lab, _face_areas(mesh))
 
 
 def large_components(mesh: Mesh, min_share: float) -> np.ndarray:

@@ -33,7 +33,7 @@ from scanreg.config import Context
 from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.shell import close_as_shell
-from scanreg.topology import collapse_slivers, fold_count, audit_mesh, border_loops, component_areas, open_scan_borders, surface_distances
+from scanreg.topology import collapse_folds, collapse_slivers, audit_mesh, known, remember, point_distances, raycasting_scene, border_loops, component_areas, open_scan_borders, surface_distances
 
 
 @dataclass
@@ -100,7 +100,18 @@ class GuardParams:
     """``open_border=shell``: distance of the back side behind the surface, as a share of the bounding-box
     diagonal (less where the space behind the surface is narrower, see :func:`close_as_shell`)."""
 
+    cache: str = "auto"
+    """Keep the repaired mesh and its audit in a cache keyed by content (the input mesh's arrays, the
+    backend and these parameters, the seed, the versions of scanreg and the backends) and reuse it: ``auto``
+    in Hydra multirun sweeps (``-m``), so that a sweep over registration parameters repairs each scan once;
+    ``on`` always; ``off`` never. A hit logs ``repair_cache_hit`` 1 (see :mod:`scanreg.stages.repair.cache`)."""
+    cache_dir: str | None = None
+    """The cache's directory (null: ``outputs/cache/repair`` under the working directory); entries are a few
+    MB per scan and may be deleted at any time."""
+
     def check(self):
+        if self.cache not in ("auto", "on", "off"):
+            raise ValueError(f"cache must be auto, on or off, got '{self.cache}'")
         if self.apply_to not in ("source", "target", "both"):
             raise ValueError(f"apply_to must be source, target or both, got '{self.apply_to}'")
         if self.open_border not in ("auto", "cap", "open", "shell"):
@@ -111,6 +122,11 @@ class GuardParams:
             raise ValueError(f"min_component_share must be in [0, 1], got {self.min_component_share}")
         if not 0 < self.displacement_quantile <= 1:
             raise ValueError(f"displacement_quantile must be in (0, 1], got {self.displacement_quantile}")
+
+
+VERTICES_PER_PART = 2000
+"""The audit tells a part that is gone (most of its vertices farther than ``removed_tolerance`` from the
+output) on at most this many of its vertices."""
 
 
 def _median_edge(mesh: Mesh) -> float:
@@ -176,20 +192,28 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
               + " (repair.open_border=auto; set cap, open or shell to choose)")
     t1 = time.perf_counter()
     out = _run_backend(run, mesh, ctx)
+    t_folds = 0.0
     if p.remove_slivers:  # kept only where the collapse folds nothing (a raw scan's ragged border can)
         collapsed = collapse_slivers(out, p.sliver_angle_deg)
-        if collapsed is not out and fold_count(collapsed) <= fold_count(out):
-            out = collapsed
+        if collapsed is not out:
+            tf = time.perf_counter()
+            folds_out, folds_collapsed = collapse_folds(out, collapsed)  # the neighbourhood of the collapse only
+            t_folds = time.perf_counter() - tf
+            if (folds_collapsed <= folds_out).all():  # no kind of fold added
+                si = known(out, "self_intersecting_faces")
+                if si is not None:  # the collapse's own change to it, measured where it happened
+                    remember(collapsed, "self_intersecting_faces", si + int(folds_collapsed[0] - folds_out[0]))
+                out = collapsed
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
     t2 = time.perf_counter()
-    after = audit_mesh(out)
+    after = audit_mesh(out)  # the output's one self-intersection pass
     m = {f"{prefix}before_{k}": v for k, v in before.items()}
     m.update({f"{prefix}after_{k}": v for k, v in after.items()})
     m[f"{prefix}open_border_open"] = float(mode in ("open", "shell"))
     m.update(_audit_distances(p, mesh, out, ctx, prefix, m))
-    m[f"{prefix}backend_time_s"] = t2 - t1  # the repair itself (and the shell)
-    m[f"{prefix}audit_time_s"] = (t1 - t0) + (time.perf_counter() - t2)  # the audit's cost, before and after
+    m[f"{prefix}backend_time_s"] = t2 - t1 - t_folds  # the repair itself (slivers collapsed, the shell)
+    m[f"{prefix}audit_time_s"] = (t1 - t0) + t_folds + (time.perf_counter() - t2)  # the audit and the guard
     problems, hints = [], []
     removed, lost = m[f"{prefix}removed_area_share"], m[f"{prefix}removed_kept_components"]
     if removed > p.max_removed_area:
@@ -227,24 +251,26 @@ def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ctx: Context, prefix
     surface and the output (see the module docstring)."""
     lab, ca = component_areas(mesh)
     large = ca >= p.min_component_share * ca.max()  # as large_components
-    kept_in = submesh(mesh, large[lab])
+    kept_in = mesh if large.all() else submesh(mesh, large[lab])
     diag = bbox_diagonal(kept_in.vertices)
     edge = _median_edge(kept_in)
     tol = p.removed_tolerance * diag
-    # a part is gone when most of its vertices are farther than the tolerance from the output
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(out.vertices.astype(np.float32)),
-                        o3d.core.Tensor(out.faces.astype(np.uint32)))
-    used = np.unique(mesh.faces)
-    dv = np.full(len(mesh.vertices), np.inf)
-    dv[used] = scene.compute_distance(o3d.core.Tensor(mesh.vertices[used].astype(np.float32))).numpy()
-    vcomp = np.zeros(len(mesh.vertices), np.int64)
+    # one raycasting scene of the output for both of its uses (the input's vertices, the input's samples)
+    scene_out = raycasting_scene(out)
+    # a part is gone when most of its vertices are farther than the tolerance from the output; "most" is
+    # judged on up to VERTICES_PER_PART of each part's vertices (every k-th, in index order)
+    vcomp = np.full(len(mesh.vertices), -1, np.int64)
     vcomp[mesh.faces.ravel()] = np.repeat(lab, 3)
-    far = np.bincount(vcomp[used], dv[used] > tol, minlength=len(ca)) / np.bincount(vcomp[used], minlength=len(ca))
+    used = np.flatnonzero(vcomp >= 0)
+    per = np.bincount(vcomp[used], minlength=len(ca))
+    order = used[np.argsort(vcomp[used], kind="stable")]  # grouped by part, index order within
+    rank = np.arange(len(order)) - np.repeat(np.cumsum(per) - per, per)
+    stride = np.maximum(1, -(-per // VERTICES_PER_PART))
+    probe = order[rank % stride[vcomp[order]] == 0]
+    far = np.bincount(vcomp[probe], point_distances(scene_out, mesh.vertices[probe]) > tol,
+                      minlength=len(ca)) / np.bincount(vcomp[probe], minlength=len(ca))
     gone = far > 0.5
-    d_in = surface_distances(kept_in, out, p.audit_samples, ctx.seed)
+    d_in = surface_distances(kept_in, out, p.audit_samples, ctx.seed, scene=scene_out)
     d_out = surface_distances(out, mesh, p.audit_samples, ctx.seed + 1)
     limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
     return {
@@ -271,6 +297,10 @@ class AuditedRepair:
 
     p: GuardParams
 
-    def repair(self, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mesh, dict[str, float]]:
-        """The backend on ``mesh`` with the audit and the guard (:func:`repair_with_audit`)."""
-        return repair_with_audit(self, mesh, ctx, prefix)
+    def repair(self, mesh: Mesh, ctx: Context, prefix: str, sweep: bool = False) -> tuple[Mesh, dict[str, float]]:
+        """The backend on ``mesh`` with the audit and the guard (:func:`repair_with_audit`), through the cache
+        when ``cache`` is ``on``, or ``auto`` and ``sweep`` (the run is a job of a multirun sweep)."""
+        from scanreg.stages.repair.cache import DEFAULT_DIR, RepairCache, cache_enabled, cached_repair
+
+        cache = RepairCache(self.p.cache_dir or DEFAULT_DIR) if cache_enabled(self.p.cache, sweep) else None
+        return cached_repair(self, mesh, ctx, prefix, cache)

@@ -11,7 +11,7 @@ from scanreg.errors import StageError
 from scanreg.geometry import Mesh, submesh
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
-from scanreg.topology import _face_components, _meshset, large_components, mesh_stats
+from scanreg.topology import _face_components, _meshset, large_components, mesh_stats, remember
 
 
 @REPAIR.register("meshfix")
@@ -19,7 +19,9 @@ class MeshFix(AuditedRepair):
     """MeshFix (Attene 2010) through pymeshfix. It removes the parts below ``min_component_share`` of the
     largest part's area and repairs every other part on its own (MeshFix itself keeps one component, and its
     intersection removal between touching parts, a head and its eyes, can eat them whole): it fixes
-    connectivity and orientation, removes degenerate and self-intersecting triangles, and fills holes."""
+    connectivity and orientation, removes degenerate and self-intersecting triangles, and fills holes. When
+    MeshFix's cleaning reports success (its own exact intersection test), or the loop that keeps the border open
+    ended on MeshLab's test finding none, the audit takes that count instead of testing again."""
 
     @dataclass
     class Params(GuardParams):
@@ -77,23 +79,32 @@ class MeshFix(AuditedRepair):
         tin.remove_smallest_components()  # one part here (or the joined ones): bits MeshFix splits off
         if p.fill_holes:
             tin.fill_small_boundaries(nbe=p.max_hole_edges, refine=p.refine)
+        clean = False  # True: the result is known to be free of self-intersections
         if p.clean_iterations > 0 and not (p.fill_holes and p.max_hole_edges > 0):
-            tin.clean(max_iters=p.clean_iterations, inner_loops=3)
+            clean = bool(tin.clean(max_iters=p.clean_iterations, inner_loops=3))
         v, f = tin.return_arrays()
         if p.clean_iterations > 0 and p.fill_holes and p.max_hole_edges > 0:
             # MeshFix's clean() fills every boundary while it removes intersections, capping the outer border
             # that max_hole_edges keeps open; remove intersections here and refill only holes under the limit.
-            v, f = self._clean_keeping_borders(np.asarray(v), np.asarray(f), ctx)
-        return Mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), mesh.source)
+            v, f, clean = self._clean_keeping_borders(np.asarray(v), np.asarray(f), ctx)
+        out = Mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), mesh.source)
+        if clean:  # the audit need not test it again (its one self-intersection pass is this one)
+            remember(out, "self_intersecting_faces", 0)
+        return out
 
-    def _clean_keeping_borders(self, v: np.ndarray, f: np.ndarray, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
+    def _clean_keeping_borders(self, v: np.ndarray, f: np.ndarray,
+                               ctx: Context) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Intersections removed, holes under the limit refilled; and whether MeshLab's test found the result
+        free of self-intersections."""
         import pymeshfix
         import pymeshlab
 
+        clean = False
         for _ in range(self.p.clean_iterations):
             ms = _meshset(Mesh(v, f))
             ms.compute_selection_by_self_intersections_per_face()
             if ms.current_mesh().selected_face_number() == 0:
+                clean = True
                 break
             ms.apply_selection_dilatation()
             ms.meshing_remove_selected_faces()
@@ -115,5 +126,5 @@ class MeshFix(AuditedRepair):
             tin.strong_degeneracy_removal(3)
             v2, f2 = (np.asarray(a) for a in tin.return_arrays())
             if mesh_stats(Mesh(v2, f2))["boundary_loops"] <= mesh_stats(Mesh(v, f))["boundary_loops"]:
-                v, f = v2, f2
-        return v, f
+                v, f, clean = v2, f2, False  # changed after the test
+        return v, f, clean

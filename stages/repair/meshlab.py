@@ -11,7 +11,7 @@ from scanreg.errors import StageError
 from scanreg.geometry import Mesh, submesh
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
-from scanreg.topology import _meshset, large_components, mesh_stats
+from scanreg.topology import _meshset, boundary_loop_sizes, large_components, mesh_stats
 
 
 @REPAIR.register("meshlab")
@@ -77,7 +77,13 @@ class MeshLab(AuditedRepair):
     def _close(self, ms, prevent: bool) -> None:
         import pymeshlab
 
-        if ms.current_mesh().face_number() == 0:
+        cm = ms.current_mesh()
+        if cm.face_number() == 0:
+            return
+        # MeshLab's hole closing costs seconds on a large mesh even with nothing to close (its refinement
+        # visits the whole mesh): skip it when no boundary loop is within the limit
+        loops = boundary_loop_sizes(Mesh(cm.vertex_matrix(), cm.face_matrix()))
+        if not (loops <= (self.p.max_hole_edges or 10**9)).any():
             return
         try:
             ms.meshing_close_holes(maxholesize=self.p.max_hole_edges or 10**9, selfintersection=prevent,

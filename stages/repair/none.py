@@ -23,5 +23,5 @@ class NoRepair:
     def run(self, mesh: Mesh, ctx: Context) -> Mesh:
         return mesh
 
-    def repair(self, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mesh, dict[str, float]]:
+    def repair(self, mesh: Mesh, ctx: Context, prefix: str, sweep: bool = False) -> tuple[Mesh, dict[str, float]]:
         return mesh, {}

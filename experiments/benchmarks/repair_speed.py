@@ -1,0 +1,135 @@
+"""Benchmark: the audited repair's speed against pymeshfix alone, and the repair cache (issue #16), in one run.
+
+    .venv/bin/python experiments/benchmarks/repair_speed.py [--repeat 5] [--out experiments/benchmarks/repair_speed.md]
+
+Rows, each round interleaved (every method once per round, so that a slow spell of the shared machine hits all of
+them); the table gives the median with the min-max range over the rounds, ratios taken within each round:
+
+- pymeshfix's StanfordBunny.ply (100k faces, a closed model with holes): pymeshfix's stock
+  ``MeshFix(v, f).repair()`` (the anchor) against ``repair=meshfix`` with its audit and guard (defaults), and
+  ``repair=meshlab``;
+- the raw Stanford scan bun000 (80k faces, an open range scan; ../shared/data): ``repair=meshfix`` (the default
+  repair, no override) and ``repair=meshlab``;
+- a cache hit (``repair.cache=on``, the entry made before the rounds): the time to hash the input and read the
+  repaired mesh and its metrics back.
+
+Every repair runs in this process after one warm-up (imports of open3d, pymeshlab and pymeshfix excluded: a run
+of the pipeline pays them once, for every stage). ``backend`` is the backend itself (with the sliver collapse),
+``audit`` the before/after audit and the guard (``repair_backend_time_s``, ``repair_audit_time_s``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from scanreg.config import Context, shared_data_dir
+from scanreg.io import read_mesh
+from scanreg.registry import REPAIR, load_all, make_params
+
+
+def spread(values, fmt: str) -> str:
+    v = np.asarray(values, float)
+    return f"{np.median(v):{fmt}} ({v.min():{fmt}}-{v.max():{fmt}})"
+
+
+def stage(name: str, **kw):
+    cls = REPAIR.get(name)
+    return cls(make_params(cls.Params, kw, name))
+
+
+def timed_repair(st, mesh, ctx) -> tuple[float, dict]:
+    t0 = time.perf_counter_ns()
+    with contextlib.redirect_stdout(io.StringIO()):
+        _, m = st.repair(mesh, ctx, "r_")
+    return (time.perf_counter_ns() - t0) / 1e9, m
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--out", default=None, help="also write the table to this markdown file")
+    args = ap.parse_args()
+    import pymeshfix
+
+    load_all()
+    ctx = Context(seed=0, run_dir=None)
+    bunny = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    bun000_path = shared_data_dir() / "stanford_bunny" / "bun000.ply"
+    bun000 = read_mesh(str(bun000_path)) if bun000_path.exists() else None
+    meshfix, meshlab = stage("meshfix", cache="off"), stage("meshlab", cache="off")
+    timed_repair(meshfix, read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj"), ctx)  # warm-up: imports
+    cache_dir = tempfile.mkdtemp(prefix="scanreg-repair-cache-")
+    cached = stage("meshfix", cache="on", cache_dir=cache_dir)
+    if bun000 is not None:
+        timed_repair(cached, bun000, ctx)  # makes the entry
+
+    t = {k: [] for k in ("anchor", "bunny_meshfix", "bunny_meshlab", "bun000_meshfix", "bun000_meshlab", "hit")}
+    parts = {k: [] for k in ("bunny_backend", "bunny_audit", "bun000_backend", "bun000_audit")}
+    for _ in range(args.repeat):
+        t0 = time.perf_counter_ns()
+        pymeshfix.MeshFix(bunny.vertices, bunny.faces.astype(np.int32)).repair()
+        t["anchor"].append((time.perf_counter_ns() - t0) / 1e9)
+        s, m = timed_repair(meshfix, bunny, ctx)
+        t["bunny_meshfix"].append(s)
+        parts["bunny_backend"].append(m["r_backend_time_s"])
+        parts["bunny_audit"].append(m["r_audit_time_s"])
+        t["bunny_meshlab"].append(timed_repair(meshlab, bunny, ctx)[0])
+        if bun000 is not None:
+            s, m = timed_repair(meshfix, bun000, ctx)
+            t["bun000_meshfix"].append(s)
+            parts["bun000_backend"].append(m["r_backend_time_s"])
+            parts["bun000_audit"].append(m["r_audit_time_s"])
+            t["bun000_meshlab"].append(timed_repair(meshlab, bun000, ctx)[0])
+            s, m = timed_repair(cached, bun000, ctx)
+            assert m["r_cache_hit"] == 1.0
+            t["hit"].append(s)
+
+    def ratio(a, b):
+        return spread([x / y for x, y in zip(t[a], t[b])], ".2f")
+
+    def share(a, b):
+        return spread([x / y for x, y in zip(parts[a], parts[b])], ".2f")
+
+    rows = [
+        "| mesh | method | time [s] | ratio | ratio to |",
+        "|---|---|---|---|---|",
+        f"| StanfordBunny.ply (100k faces) | pymeshfix MeshFix.repair() alone (anchor) | {spread(t['anchor'], '.2f')} "
+        "| 1.00 | anchor |",
+        f"| StanfordBunny.ply | scanreg repair=meshfix with audit and guard | {spread(t['bunny_meshfix'], '.2f')} | "
+        f"{ratio('bunny_meshfix', 'anchor')} | anchor (target <= 1.2) |",
+        f"| StanfordBunny.ply | ... of which the audit and guard | {spread(parts['bunny_audit'], '.2f')} | "
+        f"{share('bunny_audit', 'bunny_backend')} | its backend (target <= 0.2) |",
+        f"| StanfordBunny.ply | scanreg repair=meshlab with audit and guard | {spread(t['bunny_meshlab'], '.2f')} | "
+        f"{ratio('bunny_meshlab', 'bunny_meshfix')} | repair=meshfix (target <= 3) |",
+    ]
+    if bun000 is not None:
+        rows += [
+            f"| bun000.ply (80k faces, raw scan) | scanreg default repair (meshfix, open_border=auto) | "
+            f"{spread(t['bun000_meshfix'], '.2f')} | - | target < 2 s |",
+            f"| bun000.ply | ... of which the audit and guard | {spread(parts['bun000_audit'], '.2f')} | "
+            f"{share('bun000_audit', 'bun000_backend')} | its backend |",
+            f"| bun000.ply | scanreg repair=meshlab | {spread(t['bun000_meshlab'], '.2f')} | "
+            f"{ratio('bun000_meshlab', 'bun000_meshfix')} | repair=meshfix (target <= 3) |",
+            f"| bun000.ply | cache hit (repair.cache=on) | {spread(t['hit'], '.3f')} | "
+            f"{ratio('hit', 'bun000_meshfix')} | the default repair |",
+        ]
+    else:
+        rows.append("| bun000.ply | (not run: ../shared/data absent) | - | - | - |")
+    head = [f"Repair speed: median (min-max) of {args.repeat} interleaved rounds, one process after a warm-up "
+            "(imports excluded), 2 shared cores", ""]
+    text = "\n".join(head + rows)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(f"# Repair speed (`experiments/benchmarks/repair_speed.py --repeat {args.repeat}`)"
+                                  f"\n\n{text}\n")
+
+
+if __name__ == "__main__":
+    main()

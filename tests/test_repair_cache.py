@@ -1,0 +1,147 @@
+"""The repair cache (repair.cache) and the audit's shared measurements: a sweep repairs each scan once, a cached
+repair gives the same transform bit for bit, entries are written atomically; the NumPy non-manifold vertex
+count agrees with MeshLab's."""
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import build, run_cli, shared
+from scanreg.config import Context
+from scanreg.geometry import Mesh, submesh
+from scanreg.io import read_mesh
+from scanreg.registry import REPAIR, load_all
+
+COW = "pkg:pymeshlab/tests/sample_meshes/cow.obj"  # closed, 5804 faces
+
+
+def holed_cow() -> Mesh:
+    m = read_mesh(COW)
+    keep = np.ones(len(m.faces), bool)
+    keep[[10, 11, 12, 2000, 4000]] = False  # three holes to fill
+    return submesh(m, keep)
+
+
+def write_off(path, mesh: Mesh) -> None:
+    lines = ["OFF", f"{len(mesh.vertices)} {len(mesh.faces)} 0"]
+    lines += [" ".join(repr(float(x)) for x in v) for v in mesh.vertices]
+    lines += ["3 " + " ".join(str(int(i)) for i in f) for f in mesh.faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_cache_round_trip_key_and_atomic_write(tmp_path, capsys):
+    from scanreg.stages.repair.cache import RepairCache, cache_key, cached_repair
+
+    load_all()
+    st = build(REPAIR, "meshfix")
+    mesh, ctx, cache = holed_cow(), Context(seed=0, run_dir=None), RepairCache(tmp_path / "c")
+    out1, m1 = cached_repair(st, mesh, ctx, "repair_", cache)
+    out2, m2 = cached_repair(st, holed_cow(), ctx, "repair_", cache)  # a new object with the same content
+    assert (m1["repair_cache_hit"], m2["repair_cache_hit"]) == (0.0, 1.0)
+    assert np.array_equal(out1.vertices, out2.vertices) and np.array_equal(out1.faces, out2.faces)
+    assert out2.vertices.dtype == np.float64 and out2.faces.dtype == np.int64
+    assert {k: v for k, v in m1.items() if k != "repair_cache_hit"} == \
+           {k: v for k, v in m2.items() if k != "repair_cache_hit"}
+    assert m1["repair_before_boundary_loops"] == 3 and m1["repair_after_boundary_loops"] == 0
+    assert len(list(cache.dir.glob("*.npz"))) == 1 and not list(cache.dir.glob(".*"))  # no temporary left
+    # the key follows the content, the parameters and the seed, not the cache's own settings
+    k = cache_key(st, mesh, 0)
+    assert cache_key(build(REPAIR, "meshfix", cache="on", cache_dir="x"), mesh, 0) == k
+    assert cache_key(build(REPAIR, "meshfix", refine=False), mesh, 0) != k
+    assert cache_key(st, mesh, 1) != k
+    moved = Mesh(mesh.vertices + 1e-9, mesh.faces)
+    assert cache_key(st, moved, 0) != k
+    # an unreadable entry is a miss, and is replaced
+    cache.path(k).write_bytes(b"not an npz")
+    _, m3 = cached_repair(st, mesh, ctx, "repair_", cache)
+    assert m3["repair_cache_hit"] == 0.0 and cache.load(k, "") is not None
+
+
+def test_a_job_waits_for_the_entry_another_job_is_making(tmp_path):
+    import threading
+
+    from scanreg.stages.repair.cache import RepairCache, cache_key, cached_repair
+
+    load_all()
+    st = build(REPAIR, "meshfix")
+    mesh, ctx = holed_cow(), Context(seed=0, run_dir=None)
+    made = RepairCache(tmp_path / "made")
+    out, _ = cached_repair(st, mesh, ctx, "repair_", made)
+    key = cache_key(st, mesh, 0)
+    cache = RepairCache(tmp_path / "c")
+    lock = cache.lock(key)  # "another job" holds the lock and stores its entry a little later
+    assert lock is not None and cache.lock(key) is None
+
+    def other_job():
+        cache.store(key, *made.load(key, ""))
+        lock.unlink()
+
+    timer = threading.Timer(0.5, other_job)
+    timer.start()
+    got, m = cached_repair(st, mesh, ctx, "repair_", cache)
+    timer.join()
+    assert m["repair_cache_hit"] == 1.0 and np.array_equal(got.faces, out.faces)
+    assert not list(cache.dir.glob(".*"))  # no lock or temporary left
+
+
+def test_cache_modes():
+    from scanreg.errors import ConfigError
+    from scanreg.stages.repair.cache import cache_enabled
+
+    assert cache_enabled("auto", True) and not cache_enabled("auto", False)
+    assert cache_enabled("on", False) and not cache_enabled("off", True)
+    with pytest.raises(ConfigError, match="cache must be auto, on or off"):
+        build(REPAIR, "meshfix", cache="sometimes")
+
+
+def test_non_manifold_vertices_agree_with_meshlab():
+    from scanreg.topology import _meshset, non_manifold_vertices
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0.0], [0, 0, 1.0]])
+    bowtie = Mesh(v, np.array([[0, 1, 2], [0, 3, 4]]))
+    fan = Mesh(v, np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4]]))  # one fan: manifold
+    fin = Mesh(v, np.array([[0, 1, 2], [0, 1, 4], [0, 1, 5]]))  # a non-manifold edge: its vertices not counted
+    assert [non_manifold_vertices(m) for m in (bowtie, fan, fin)] == [1, 0, 0]
+    m = holed_cow()
+    two = Mesh(np.vstack([m.vertices, m.vertices + 5.0]), np.vstack([m.faces, m.faces + len(m.vertices)]))
+    weld = Mesh(two.vertices, np.where(two.faces == len(m.vertices) + 7, 7, two.faces))  # two cows touch at one vertex
+    for mesh in (m, two, weld):
+        assert non_manifold_vertices(mesh) == _meshset(mesh).get_topological_measures()["non_two_manifold_vertices"]
+    assert non_manifold_vertices(weld) > non_manifold_vertices(two)
+
+
+def test_non_manifold_vertices_on_raw_scans():
+    from scanreg.topology import _meshset, non_manifold_vertices
+
+    for rel in ("meshlab_defects/many_small_holes.ply", "stanford_bunny/bun045.ply"):
+        mesh = read_mesh(str(shared(rel)))
+        assert non_manifold_vertices(mesh) == _meshset(mesh).get_topological_measures()["non_two_manifold_vertices"] > 0
+
+
+@pytest.mark.slow
+def test_sweep_repairs_each_scan_once_and_cached_runs_match_uncached(tmp_path):
+    target = holed_cow()
+    a = np.radians(8.0)
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    write_off(tmp_path / "target.off", target)
+    write_off(tmp_path / "source.off", Mesh(target.vertices @ R.T + [0.02, -0.01, 0.0], target.faces))
+    common = ["data=files", "data.source=source.off", "data.target=target.off", "tracking=none",
+              "sampler.n_points=3000", "evaluate.view_html=false", "evaluate.pose_uncertainty=false",
+              f"repair.cache_dir={tmp_path / 'cache'}"]
+    iters = list(range(10, 18))
+    r = run_cli(["-m", *common, "launch=serial", f"icp.max_iterations={','.join(map(str, iters))}",
+                 f"hydra.sweep.dir={tmp_path / 'sweep'}"], tmp_path)
+    assert r.returncode == 0, r.stderr + r.stdout
+    res = [json.loads((tmp_path / "sweep" / str(j) / "result.json").read_text()) for j in range(len(iters))]
+    for role in ("repair_", "target_repair_"):  # each scan repaired once in 8 jobs, then taken from the cache
+        assert [x[f"{role}cache_hit"] for x in res] == [0.0] + [1.0] * (len(iters) - 1)
+        assert len({x[f"{role}after_faces"] for x in res}) == 1
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == 2 and not list((tmp_path / "cache").glob(".*"))
+    # a single run without the cache (cache=auto is off outside sweeps) gives the cached job's transform bit for bit
+    j = 5
+    r = run_cli([*common, f"icp.max_iterations={iters[j]}", f"hydra.run.dir={tmp_path / 'single'}"], tmp_path)
+    assert r.returncode == 0, r.stderr + r.stdout
+    single = json.loads((tmp_path / "single" / "result.json").read_text())
+    assert "repair_cache_hit" not in single and res[j]["repair_cache_hit"] == 1.0
+    assert single["T_target_source"] == res[j]["T_target_source"]
