@@ -88,6 +88,10 @@ class Context:
     step_metrics: dict[str, list[float]] = field(default_factory=dict)
     """Per-iteration metrics (e.g. ``icp_rms``), logged as MLflow step metrics."""
     verbose: bool = False
+    coarse_trace: Any = None
+    """What the coarse stage compared, for the evaluation (``scanreg.metrics.field_metrics``): ``keypoints_target``,
+    ``keypoints_source`` (positions, own frames), ``matches_target``, ``matches_source`` (descriptor matches'
+    points, before RANSAC) and ``ransac_inliers`` (mask over the matches); each only when the stage has it."""
 
     def rng(self, salt: int = 0) -> np.random.Generator:
         return np.random.default_rng([self.seed, salt])

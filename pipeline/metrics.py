@@ -9,7 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from scanreg.config import Distances, to_abs
-from scanreg.geometry import transform_errors
+from scanreg.geometry import apply_T, transform_errors
 
 
 @dataclass
@@ -64,12 +64,45 @@ class EvalParams:
     ``deviation_confidence`` given the pose uncertainty (|deviation| - z sigma > tolerance)."""
     deviation_confidence: float = 0.95
     """One-sided confidence (0..1) of the ``_sure_share`` above (0.95: z = 1.645)."""
+    repeatability_distance: float = 2.0
+    """epsilon of ``keypoint_repeatability`` (see ``distances``): a source keypoint, moved by the true transform,
+    is repeatable when a target keypoint lies within this distance (Tombari et al. 2013)."""
+    overlap_distance: float = 3.0
+    """A source point (or keypoint), moved by the true transform, is in the overlap when a sampled target point
+    lies within this distance (see ``distances``); used by ``keypoint_repeatability`` and ``gt_rmse``."""
+    match_inlier_distance: float = 8.0
+    """tau1 of ``inlier_ratio`` (see ``distances``): a descriptor match is correct when its source point, moved by
+    the true transform, lies within this distance of its target point. 3DMatch's 10 cm is 4 voxels of 2.5 cm,
+    and 8.3 spacings of the shared 3DMatch pair (median nearest-neighbour distance 1.2 cm): 8 spacings."""
+    match_recall_ratio: float = 0.05
+    """tau2 of ``feature_match_recall`` (share, 0..1): a pair's matching succeeds when its inlier ratio exceeds
+    this (3DMatch: 5 %)."""
+    recall_rotation_deg: float = 15.0
+    """``registration_recall``: rotation error below this (degrees; 3DMatch: 15) ..."""
+    recall_translation: float = 0.07
+    """... and translation error below this share of the target's bounding-box diagonal: 3DMatch's 30 cm over
+    its fragments' diagonal (4.45 m for the shared 3DMatch pair: 6.7 %), so the rule carries to objects of any
+    size and unit. Ignored when ``recall_translation_abs`` is set."""
+    recall_translation_abs: Optional[float] = None
+    """Absolute translation threshold of ``registration_recall`` (input units, e.g. 0.3 for metric indoor data
+    as in 3DMatch); null: ``recall_translation`` times the diagonal."""
+    write_keypoints: bool = True
+    """Write ``keypoints_target.ply``, ``keypoints_source.ply`` and ``matches.ply`` (coloured; see the README's
+    Metrics section) when the coarse stage exposes keypoints and matches. Cheap: a few thousand points."""
 
     def check(self):
         if not 0.5 <= self.deviation_confidence < 1:
             raise ValueError(f"deviation_confidence must be in [0.5, 1), got {self.deviation_confidence}")
         if self.pose_bootstrap < 0:
             raise ValueError(f"pose_bootstrap must be >= 0, got {self.pose_bootstrap}")
+        if not 0 <= self.match_recall_ratio <= 1:
+            raise ValueError(f"match_recall_ratio must be in [0, 1], got {self.match_recall_ratio}")
+        for name in ("repeatability_distance", "overlap_distance", "match_inlier_distance", "recall_rotation_deg",
+                     "recall_translation"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.recall_translation_abs is not None and not self.recall_translation_abs > 0:
+            raise ValueError(f"recall_translation_abs must be > 0 or null, got {self.recall_translation_abs}")
         if not self.pose_condition_warn >= 0:
             raise ValueError(f"pose_condition_warn must be >= 0, got {self.pose_condition_warn}")
 
@@ -103,7 +136,141 @@ def gt_metrics(T: np.ndarray, T_gt: np.ndarray, diagonal: float, p: EvalParams, 
     }
     if not prefix:
         out["success"] = float(rot < p.success_rotation_deg and trans < p.success_translation * diagonal)
+    out[f"{prefix}registration_recall"] = registration_recall(rot, trans, diagonal, p)
     return out
+
+
+# ------------------------------------------------------------------------------- the field's registration metrics
+
+
+def registration_recall(rotation_error_deg: float, translation_error: float, diagonal: float, p: EvalParams) -> float:
+    """1.0 when the pose is within 3DMatch's thresholds (Zeng et al. 2017; RRE/RTE form of Huang et al. 2021):
+    rotation error below ``recall_rotation_deg`` and translation error (input units) below
+    ``recall_translation_abs``, or when that is null below ``recall_translation`` times ``diagonal``; else 0.0."""
+    lim = p.recall_translation_abs if p.recall_translation_abs is not None else p.recall_translation * diagonal
+    return float(rotation_error_deg < p.recall_rotation_deg and translation_error < lim)
+
+
+def overlap_mask(points: np.ndarray, target_points: np.ndarray, T_gt: np.ndarray, radius: float) -> np.ndarray:
+    """Which of ``points`` (source frame) lie, after ``T_gt``, within ``radius`` of some ``target_points``."""
+    if not len(points) or not len(target_points):
+        return np.zeros(len(points), bool)
+    d, _ = cKDTree(target_points).query(apply_T(T_gt, points), distance_upper_bound=np.nextafter(radius, np.inf))
+    return d <= radius
+
+
+@dataclass
+class Repeatability:
+    """Keypoint repeatability of one pair and the per-keypoint masks behind it."""
+
+    repeatability: float
+    """Repeatable source keypoints over source keypoints in the overlap (NaN when none is in it)."""
+    source_in_overlap: np.ndarray
+    """Per source keypoint: moved by the true transform, it lies within the overlap radius of the target."""
+    source_repeatable: np.ndarray
+    """Per source keypoint: in the overlap and a target keypoint lies within epsilon of it."""
+    target_repeatable: np.ndarray
+    """Per target keypoint: a source keypoint of the overlap, moved by the true transform, lies within epsilon."""
+
+    def metrics(self, prefix: str = "") -> dict[str, float]:
+        return {f"{prefix}keypoint_repeatability": self.repeatability,
+                f"{prefix}n_keypoints_overlap": int(self.source_in_overlap.sum()),
+                f"{prefix}n_keypoints_repeatable": int(self.source_repeatable.sum())}
+
+
+def keypoint_repeatability(kp_target: np.ndarray, kp_source: np.ndarray, T_gt: np.ndarray, eps: float,
+                           overlap_radius: float, target_points: np.ndarray | None = None) -> Repeatability:
+    """Relative repeatability of Tombari et al. 2013 (IJCV, "Performance evaluation of 3D keypoint detectors").
+
+    ``kp_target`` (K, 3) and ``kp_source`` (L, 3) are keypoint positions in their own frames, ``T_gt`` the true
+    ``T_target_source``. A source keypoint is *in the overlap* when, moved by ``T_gt``, it lies within
+    ``overlap_radius`` of a point of ``target_points`` (the sampled target cloud; the target keypoints when not
+    given). It is *repeatable* when it is in the overlap and a target keypoint lies within ``eps`` of it. The
+    repeatability is the share of repeatable keypoints among the source keypoints in the overlap (NaN when
+    none is). Distances in input units."""
+    kp_target, kp_source = np.asarray(kp_target, float).reshape(-1, 3), np.asarray(kp_source, float).reshape(-1, 3)
+    ref = kp_target if target_points is None else target_points
+    inside = overlap_mask(kp_source, ref, T_gt, overlap_radius)
+    rep = np.zeros(len(kp_source), bool)
+    trep = np.zeros(len(kp_target), bool)
+    if len(kp_target) and inside.any():
+        moved = apply_T(T_gt, kp_source[inside])
+        d, _ = cKDTree(kp_target).query(moved, distance_upper_bound=np.nextafter(eps, np.inf))
+        rep[np.flatnonzero(inside)] = d <= eps
+        d, _ = cKDTree(moved).query(kp_target, distance_upper_bound=np.nextafter(eps, np.inf))
+        trep = d <= eps
+    ratio = float(rep.sum() / inside.sum()) if inside.any() else float("nan")
+    return Repeatability(ratio, inside, rep, trep)
+
+
+def match_inliers(P_target: np.ndarray, P_source: np.ndarray, T_gt: np.ndarray, tau1: float) -> np.ndarray:
+    """Per match (row of ``P_target`` (M, 3) and ``P_source`` (M, 3)): the source point moved by ``T_gt`` lies
+    within ``tau1`` (input units) of its target point."""
+    P_target, P_source = np.asarray(P_target, float).reshape(-1, 3), np.asarray(P_source, float).reshape(-1, 3)
+    if not len(P_source):
+        return np.zeros(0, bool)
+    return np.linalg.norm(apply_T(T_gt, P_source) - P_target, axis=1) <= tau1
+
+
+def inlier_ratio(P_target: np.ndarray, P_source: np.ndarray, T_gt: np.ndarray, tau1: float) -> float:
+    """Share of descriptor matches (before any RANSAC) that are correct under the true transform: the source
+    point moved by ``T_gt`` lies within ``tau1`` of its target point (Choy et al. 2019, Huang et al. 2021).
+    NaN without matches."""
+    inl = match_inliers(P_target, P_source, T_gt, tau1)
+    return float(inl.mean()) if len(inl) else float("nan")
+
+
+def feature_match_recall(ratio: float, tau2: float = 0.05) -> float:
+    """3DMatch's feature-match recall of one pair (Deng et al. 2018, Choy et al. 2019): 1.0 when the inlier
+    ratio exceeds ``tau2``, else 0.0 (NaN when the ratio is)."""
+    return float("nan") if np.isnan(ratio) else float(ratio > tau2)
+
+
+def gt_rmse(T: np.ndarray, T_gt: np.ndarray, source_points: np.ndarray, in_overlap: np.ndarray | None = None) -> float:
+    """RMSE of the ground-truth correspondences (3DMatch, Zeng et al. 2017): over the source points in the
+    overlap (``in_overlap``; all when None), the RMS distance between each point moved by ``T`` and the same
+    point moved by ``T_gt`` (input units; NaN when no point is in the overlap)."""
+    pts = np.asarray(source_points, float).reshape(-1, 3)
+    if in_overlap is not None:
+        pts = pts[in_overlap]
+    if not len(pts):
+        return float("nan")
+    r = apply_T(T, pts) - apply_T(T_gt, pts)
+    return float(np.sqrt(np.mean(np.einsum("ij,ij->i", r, r))))
+
+
+def field_metrics(trace: dict | None, T0: np.ndarray, T: np.ndarray, T_gt: np.ndarray, source_points: np.ndarray,
+                  target_points: np.ndarray, p: EvalParams, spacing: float) -> tuple[dict[str, float], dict]:
+    """The field's metrics of one run with ground truth, and the per-keypoint / per-match masks for the PLYs.
+
+    ``trace`` is what the coarse stage exposes (``Context.coarse_trace``): ``keypoints_target`` and
+    ``keypoints_source`` (positions in their own frames), ``matches_target`` and ``matches_source`` (the
+    descriptor matches' points), ``ransac_inliers`` (mask over the matches); any may be missing, and the metrics
+    that need it are then absent. ``gt_rmse`` and ``coarse_gt_rmse`` are always given."""
+    to = lambda v: to_abs(v, p.distances, spacing)
+    inside = overlap_mask(source_points, target_points, T_gt, to(p.overlap_distance))
+    out = {"gt_rmse": gt_rmse(T, T_gt, source_points, inside), "coarse_gt_rmse": gt_rmse(T0, T_gt, source_points, inside),
+           "overlap_share_gt": float(inside.mean())}
+    masks: dict = {}
+    trace = trace or {}
+    kt, ks = trace.get("keypoints_target"), trace.get("keypoints_source")
+    if kt is not None and ks is not None:
+        out["n_keypoints_target"], out["n_keypoints_source"] = len(kt), len(ks)
+        rep = keypoint_repeatability(kt, ks, T_gt, to(p.repeatability_distance), to(p.overlap_distance), target_points)
+        out.update(rep.metrics())
+        masks["repeatability"] = rep
+    P0, P1 = trace.get("matches_target"), trace.get("matches_source")
+    if P0 is not None and P1 is not None:
+        inl = match_inliers(P0, P1, T_gt, to(p.match_inlier_distance))
+        ratio = float(inl.mean()) if len(inl) else float("nan")
+        out["n_matches"] = len(inl)
+        out["inlier_ratio"] = ratio
+        out["feature_match_recall"] = feature_match_recall(ratio, p.match_recall_ratio)
+        masks["match_inliers"] = inl
+        acc = trace.get("ransac_inliers")
+        if acc is not None and len(acc) == len(inl) and acc.any():  # how many of the accepted matches are right
+            out["ransac_inlier_precision"] = float(inl[acc].mean())
+    return out, masks
 
 
 def surface_deviation(aligned: np.ndarray, closest: tuple, p: EvalParams, spacing: float) -> dict[str, float]:

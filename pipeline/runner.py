@@ -21,7 +21,8 @@ from scanreg.config import Context
 from scanreg.errors import InputError, ScanregError
 from scanreg.geometry import Cloud, Mesh, apply_T, bbox_diagonal, transform_geometry
 from scanreg.io import write_ply, write_transform
-from scanreg.metrics import EvalParams, alignment_metrics, estimate_spacing, gt_metrics, surface_deviation
+from scanreg.metrics import (EvalParams, alignment_metrics, estimate_spacing, field_metrics, gt_metrics,
+                             surface_deviation)
 from scanreg.registry import COARSE, DATA, ICP, REPAIR, SAMPLER, load_all, make_params, REGISTRIES
 from scanreg.closest import ClosestPoints
 from scanreg.config import to_abs
@@ -145,6 +146,7 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
 
     with timer("evaluate"):
         ev: EvalParams = st["evaluate"]
+        kp_paths: list[Path] = []
         aligned = apply_T(T, src.points)
         on_points = ClosestPoints(tgt)(aligned)
         m.update(alignment_metrics(on_points[1], ev, spacing))
@@ -154,6 +156,11 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
         if inputs.T_gt is not None:
             m.update(gt_metrics(T0, inputs.T_gt, ctx.diagonal, ev, prefix="coarse_"))
             m.update(gt_metrics(T, inputs.T_gt, ctx.diagonal, ev))
+            fm, field_masks = field_metrics(ctx.coarse_trace, T0, T, inputs.T_gt, src.points, tgt.points, ev, spacing)
+            m.update(fm)
+        if ev.write_keypoints and ctx.coarse_trace:
+            kp_paths = write_keypoints(run_dir, ctx.coarse_trace, field_masks if inputs.T_gt is not None else None,
+                                       inputs.T_gt if inputs.T_gt is not None else T)
         if inputs.landmarks is not None:  # how well the picks agree before and after the fine stage
             lt, ls = inputs.landmarks
             for name, TT in (("coarse", T0), ("final", T)):
@@ -187,7 +194,7 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
 
     res.T_target_source = T
     res.step_metrics = dict(ctx.step_metrics)
-    res.artifacts = (dev_paths if ev.deviation_map or ev.view_html else []) + write_outputs(run_dir, res, transform_geometry(T, src), tgt if inputs.T_gt is not None and
+    res.artifacts = (dev_paths if ev.deviation_map or ev.view_html else []) + kp_paths + write_outputs(run_dir, res, transform_geometry(T, src), tgt if inputs.T_gt is not None and
                                   cfg.data.name != "files" else None)
     return res
 
@@ -243,6 +250,46 @@ def write_outputs(run_dir: Path, res: Result, aligned: Cloud, generated_target: 
     if generated_target is not None:  # a made-up target (synthetic/stanford) is kept beside the result
         paths.append(run_dir / "target.ply")
         write_ply(paths[-1], generated_target)
+    return paths
+
+
+GOOD, BAD, OUTSIDE = (0, 170, 0), (220, 0, 0), (150, 150, 150)
+"""Colours of the keypoint and match PLYs: repeatable / correct, not, outside the overlap (RGB)."""
+
+
+def write_keypoints(run_dir: Path, trace: dict, masks: dict | None, T_frame: np.ndarray) -> list[Path]:
+    """``keypoints_target.ply``, ``keypoints_source.ply`` and ``matches.ply`` from the coarse stage's trace, all
+    in the target frame: the source keypoints moved by ``T_frame`` (the true transform when known, else the
+    estimate). With ground truth (``masks`` from :func:`scanreg.metrics.field_metrics`) keypoints are green
+    when repeatable, red when not, grey outside the overlap (source) or unmatched by any overlap keypoint
+    (target), and matches green when correct under the true transform, red when not; without it all grey,
+    matches green when RANSAC accepted them. ``matches.ply`` holds each match's target point (vertex 2i) and
+    moved source point (2i + 1) joined by a coloured edge, with the scalar ``ransac_inlier`` (0/1)."""
+    paths = []
+    kt, ks = trace.get("keypoints_target"), trace.get("keypoints_source")
+    rep = (masks or {}).get("repeatability")
+    if kt is not None and ks is not None:
+        ct = np.tile(OUTSIDE, (len(kt), 1))
+        cs = np.tile(OUTSIDE, (len(ks), 1))
+        if rep is not None:
+            ct[rep.target_repeatable] = GOOD
+            cs[rep.source_in_overlap] = BAD
+            cs[rep.source_repeatable] = GOOD
+        for name, pts, col in (("target", kt, ct), ("source", apply_T(T_frame, ks) if len(ks) else ks, cs)):
+            paths.append(run_dir / f"keypoints_{name}.ply")
+            write_ply(paths[-1], Cloud(np.asarray(pts, float).reshape(-1, 3), None, f"keypoints_{name}"), colors=col)
+    P0, P1 = trace.get("matches_target"), trace.get("matches_source")
+    if P0 is not None and P1 is not None and len(P0):
+        acc = trace.get("ransac_inliers")
+        acc = np.zeros(len(P0), bool) if acc is None or len(acc) != len(P0) else np.asarray(acc, bool)
+        good = (masks or {}).get("match_inliers", acc)
+        col = np.where(good[:, None], GOOD, BAD).astype(np.uint8)
+        pts = np.empty((2 * len(P0), 3))
+        pts[0::2], pts[1::2] = P0, apply_T(T_frame, P1)
+        paths.append(run_dir / "matches.ply")
+        write_ply(paths[-1], Cloud(pts, None, "matches"), colors=np.repeat(col, 2, axis=0),
+                  scalars={"ransac_inlier": np.repeat(acc.astype(np.float32), 2)},
+                  edges=np.arange(2 * len(P0)).reshape(-1, 2), edge_colors=col)
     return paths
 
 

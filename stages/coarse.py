@@ -100,6 +100,7 @@ class Open3dFpfhRansac:
              reg.CorrespondenceCheckerBasedOnDistance(dist)],
             reg.RANSACConvergenceCriteria(p.max_iterations, p.confidence),
         )
+        ctx.coarse_trace = _open3d_trace(tgt, src, ft, fs, p.mutual_filter, res)
         metrics = {
             "coarse_keypoints_target": len(tgt.points),
             "coarse_keypoints_source": len(src.points),
@@ -108,6 +109,24 @@ class Open3dFpfhRansac:
             "coarse_inliers": len(res.correspondence_set),
         }
         return np.asarray(res.transformation).copy(), metrics
+
+
+def _open3d_trace(tgt, src, ft, fs, mutual: bool, res) -> dict:
+    """What Open3D's feature RANSAC compared, for the evaluation: its downsampled points as keypoints, and the
+    matches it draws from (each source point's nearest target feature, mutual when ``mutual``), recomputed
+    here since Open3D returns only the final inliers (``ransac_inliers``: a match among them)."""
+    from scipy.spatial import cKDTree
+
+    F0, F1 = np.asarray(ft.data).T, np.asarray(fs.data).T
+    pt, ps = np.asarray(tgt.points), np.asarray(src.points)
+    j = cKDTree(F0).query(F1)[1]
+    i = np.arange(len(F1))
+    if mutual:
+        keep = cKDTree(F1).query(F0[j])[1] == i
+        i, j = i[keep], j[keep]
+    acc = {(int(a), int(b)) for b, a in np.asarray(res.correspondence_set)}  # rows are (source, target)
+    return {"keypoints_target": pt, "keypoints_source": ps, "matches_target": pt[j], "matches_source": ps[i],
+            "ransac_inliers": np.array([(int(a), int(b)) in acc for a, b in zip(j, i)], bool)}
 
 
 @COARSE.register("lo_ransac")
@@ -215,6 +234,8 @@ class LoRansac:
         N0 = None if target.normals is None else target.normals[kt[pairs[:, 0]]]
         N1 = None if source.normals is None else source.normals[ks[pairs[:, 1]]]
         T, inl, iters = self.estimate(P0, P1, N0, N1, to_abs(self.p.distance_threshold, self.p.distances, ctx.spacing))
+        ctx.coarse_trace = {"keypoints_target": target.points[kt], "keypoints_source": source.points[ks],
+                            "matches_target": P0, "matches_source": P1, "ransac_inliers": inl}  # for the evaluation
         metrics.update({"coarse_ransac_iterations": iters, "coarse_inliers": int(inl.sum()),
                         "coarse_inlier_ratio": float(inl.mean())})
         if inl.sum() < self.p.min_inliers:
@@ -454,6 +475,7 @@ class Open3dFGR(Open3dFpfhRansac):
             maximum_correspondence_distance=to_abs(p.distance_threshold, p.distances, ctx.spacing),
             iteration_number=p.iterations)
         res = reg.registration_fgr_based_on_feature_matching(src, tgt, fs, ft, opt)
+        ctx.coarse_trace = {"keypoints_target": np.asarray(tgt.points), "keypoints_source": np.asarray(src.points)}
         return np.asarray(res.transformation).copy(), {
             "coarse_keypoints_target": len(tgt.points), "coarse_keypoints_source": len(src.points),
             "coarse_fitness": float(res.fitness), "coarse_inlier_rmse": float(res.inlier_rmse)}
