@@ -670,8 +670,10 @@ def plot_curves(ct: pd.DataFrame, x: str, curves: list[str], out: Path, how: str
             d = d.sort_values(x)
             line = ax.plot(d[x], d[col] * scale, "o-", label=g)[0]
             ax.fill_between(d[x], d[lo] * scale, d[hi] * scale, color=line.get_color(), alpha=0.15)
+        if m == "success":
+            ax.set_ylim(0, 105)
         ax.set_xlabel(x)
-        ax.set_ylabel("success [%] (Wilson 95 %)" if m == "success" else f"{m} (median, {interval_name(how)})",
+        ax.set_ylabel("success [%] (Wilson 95 %)" if m == "success" else f"{m}\n(median, {interval_name(how)})",
                       fontsize=8)
         ax.set_xticks(sorted(ct[x].unique()), [canonical(v) for v in sorted(ct[x].unique())], fontsize=7)
         ax.legend(fontsize=7)
