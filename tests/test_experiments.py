@@ -302,9 +302,9 @@ def test_outliers_are_the_stated_share_in_the_bbox():
     out = _perturb(_plane_inputs(), add_outliers=0.3, cloud_points=7000, perturb_seed=1)
     pts = out.source.points
     assert len(pts) == 10000 and out.info["perturb_source_outliers"] == 3000  # 3000 / 10000 = 30 %
-    off = np.abs(pts[:, 2]) > 0  # the surface is z = 0 exactly; the bbox is z = 0 too: outliers stay in it
-    assert np.all((pts[:, :2] >= 0) & (pts[:, :2] <= 10))
-    assert off.sum() == 0  # a flat bbox: uniform outliers lie in its plane as well
+    assert np.all((pts[:, :2] >= 0) & (pts[:, :2] <= 10)) and np.all(pts[:, 2] == 0)  # inside the (flat) bbox
+    out_xy = pts[7000:, :2]  # the outliers come last: uniform over the 10 x 10 box (std 10 / sqrt(12) = 2.89)
+    assert np.allclose(out_xy.mean(0), 5, atol=0.2) and np.allclose(out_xy.std(0), 10 / np.sqrt(12), atol=0.1)
     out = _perturb(_plane_inputs(), add_outliers=0.5, cloud_points=1000, perturb=("both"), perturb_seed=1)
     assert out.source.n_points == 2000 and out.target.n_points == 8000
 
