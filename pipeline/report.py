@@ -583,7 +583,8 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
             bottom += v
         ticks(axes[1], names)
         axes[1].set_ylabel("median time per stage [s]")
-        axes[1].legend(fontsize=7)
+        if bottom.any():  # no stage times logged: no legend to draw
+            axes[1].legend(fontsize=7)
         fig.tight_layout()
         paths.append(out / "errors_times.png")
         fig.savefig(paths[-1], dpi=110)
