@@ -43,6 +43,67 @@ MD_COLUMNS = ["runs", "failed", "success_rate", "rotation_error_deg_median", "ro
 COMPARE_COLUMNS = ["runs", "success_rate", "rotation_error_deg_median", "translation_error_median",
                    "time_coarse_s_median", "time_total_s_median"]
 
+CI_LEVEL = 0.95
+"""Confidence level of every interval in the reports."""
+BOOTSTRAP_RESAMPLES = 2000
+"""Resamples of the bootstrap percentile interval of a median (seeded: a report is reproducible)."""
+
+
+def bootstrap_median_ci(x, level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES,
+                        seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval of the median of ``x`` (NaNs dropped): the ``(1 - level) / 2`` and
+    ``(1 + level) / 2`` quantiles of the medians of ``resamples`` resamples with replacement (seeded). One value:
+    that value twice; none: NaN twice."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    if len(x) == 0:
+        return float("nan"), float("nan")
+    if len(x) == 1 or np.all(x == x[0]):
+        return float(x[0]), float(x[0])
+    idx = np.random.default_rng(seed).integers(0, len(x), size=(resamples, len(x)))
+    med = np.median(x[idx], axis=1)
+    lo, hi = np.quantile(med, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
+def iqr_interval(x) -> tuple[float, float]:
+    """The interquartile range of ``x`` (NaNs dropped): its 25th and 75th percentiles (linear interpolation)."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    if len(x) == 0:
+        return float("nan"), float("nan")
+    lo, hi = np.quantile(x, [0.25, 0.75])
+    return float(lo), float(hi)
+
+
+def wilson_interval(k: float, n: int, level: float = CI_LEVEL) -> tuple[float, float]:
+    """Wilson score interval of a success rate ``k / n`` at ``level`` (z = 1.96 for 95 %): centre
+    ``(p + z^2 / 2n) / (1 + z^2 / n)``, half-width ``z sqrt(p (1 - p) / n + z^2 / 4n^2) / (1 + z^2 / n)``.
+    No runs: NaN twice."""
+    from statistics import NormalDist
+
+    if n <= 0:
+        return float("nan"), float("nan")
+    z = NormalDist().inv_cdf((1 + level) / 2)
+    p = k / n
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
+
+
+def interval(x, how: str = "bootstrap") -> tuple[float, float]:
+    """The interval of the median of ``x`` named by ``how`` (``bootstrap`` or ``iqr``)."""
+    if how == "bootstrap":
+        return bootstrap_median_ci(x)
+    if how == "iqr":
+        return iqr_interval(x)
+    raise ValueError(f"report.interval must be bootstrap or iqr, got '{how}'")
+
+
+def interval_name(how: str) -> str:
+    return "95 % bootstrap CI of the median" if how == "bootstrap" else "interquartile range"
+
 
 @dataclass
 class ReportParams:
@@ -67,6 +128,20 @@ class ReportParams:
     """A paragraph put under the heading (what the experiment asks, how to read it)."""
     metrics: list[str] = field(default_factory=list)
     """Further metrics whose median per group the table shows (e.g. ``dev_rms_um``, ``landmark_coarse_rms``)."""
+    interval: str = "bootstrap"
+    """The interval shown beside every median: ``bootstrap`` (percentile 95 % confidence interval of the median,
+    2000 seeded resamples of the group's runs) or ``iqr`` (interquartile range, 25th to 75th percentile). Success
+    rates always get the Wilson 95 % score interval."""
+    bin_by: Optional[str] = None
+    """A per-run metric (e.g. ``gt_overlap``, a share 0..1) whose bins get their own success table and plot; null:
+    none."""
+    bin_edges: list[float] = field(default_factory=lambda: [0.0, 0.1, 0.2, 0.4, 0.6, 0.8, 1.0])
+    """Edges of the ``bin_by`` bins (left-closed, the last also right-closed), in that metric's unit."""
+    bin_metrics: list[str] = field(default_factory=list)
+    """Metrics whose median (with its interval) per bin and group the report also tabulates."""
+    curves: list[str] = field(default_factory=list)
+    """Metrics plotted against ``x`` (robustness curves), one panel each: ``success`` as a rate with its Wilson
+    band, any other as the median with its interval band (e.g. ``[success, keypoint_repeatability]``)."""
     showcase: Optional[dict[str, Any]] = None
     """Config values selecting one run to show in detail (e.g. ``{data.noise: 0.02, data.pick_error: 0.3}``):
     its key metrics, its per-part table and its PNG pictures are copied into the report; null: none."""
@@ -193,9 +268,10 @@ def group_labels(df: pd.DataFrame, group_by: list[str]) -> pd.Series:
                      dtype=object)
 
 
-def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = ()) -> pd.DataFrame:
-    """One row per group: runs, failed, success rate, error quantiles, median stage times (and the median of
-    each ``extra`` metric)."""
+def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = (), how: str = "bootstrap") -> pd.DataFrame:
+    """One row per group: runs, failed, success rate with its Wilson interval (``success_lo``, ``success_hi``),
+    error quantiles, median stage times (and the median of each ``extra`` metric); every median ``M_median``
+    with its interval ``M_lo``, ``M_hi`` (``how``: see :func:`interval`)."""
     cols = [column_for(k, df) for k in group_by]
     work = df.copy()
     for c in cols:
@@ -209,12 +285,17 @@ def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = ()) -> p
         row["runs"] = len(g)
         row["failed"] = int((g["status"] != "FINISHED").sum())
         if "metrics.success" in g and ok["metrics.success"].notna().any():
-            row["success_rate"] = float(ok["metrics.success"].fillna(0).sum() / len(g))
-        for m, how in [*AGG_METRICS, *[(e, "median") for e in extra]]:
+            k = float((ok["metrics.success"].fillna(0) > 0.5).sum())
+            row["successes"] = int(k)
+            row["success_rate"] = k / len(g)
+            row["success_lo"], row["success_hi"] = wilson_interval(k, len(g))
+        for m, agg in [*AGG_METRICS, *[(e, "median") for e in extra if (e, "median") not in AGG_METRICS]]:
             c = f"metrics.{m}"
             if c in ok and ok[c].notna().any():
                 s = ok[c].dropna()
-                row[f"{m}_{how}"] = float(s.median() if how == "median" else s.quantile(0.9))
+                row[f"{m}_{agg}"] = float(s.median() if agg == "median" else s.quantile(0.9))
+                if agg == "median":
+                    row[f"{m}_lo"], row[f"{m}_hi"] = interval(s.values, how)
         row["_label"] = " / ".join(canonical(v) for v in key) if group_by else "all"
         rows.append(row)
     return pd.DataFrame(rows)
@@ -229,6 +310,115 @@ def per_table(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame:
     t = work.pivot_table(index="_per", columns="_grp", values="_ok", aggfunc="mean")
     t.index.name, t.columns.name = per, None
     return t
+
+
+def fmt_interval(v, lo, hi) -> str:
+    """``median [lo, hi]`` (``–`` when missing)."""
+    if v is None or (isinstance(v, float) and np.isnan(v)):
+        return "–"
+    if lo is None or (isinstance(lo, float) and np.isnan(lo)):
+        return fmt_value(v)
+    return f"{fmt_value(v)} [{fmt_value(lo)}, {fmt_value(hi)}]"
+
+
+def fmt_success(k, n, lo, hi) -> str:
+    """``k/n = rate % [lo, hi]`` with the Wilson interval in percent."""
+    if n is None or not n or k is None or (isinstance(k, float) and np.isnan(k)):
+        return "–"
+    return f"{int(k)}/{int(n)} = {100 * k / n:.0f} % [{100 * lo:.0f}, {100 * hi:.0f}]"
+
+
+TABLE_MEDIANS = ["rotation_error_deg", "translation_error", "coarse_rotation_error_deg"]
+TABLE_TIMES = ["time_coarse_s", "time_icp_s", "time_total_s"]
+
+
+def display_table(table: pd.DataFrame, group_by: list[str], metrics: list[str]) -> pd.DataFrame:
+    """The Markdown table: the group keys, runs, failed, success with its Wilson interval, then every median with
+    its interval (errors, ``metrics``, stage times)."""
+    out = pd.DataFrame({k: table[k] for k in group_by})
+    out["runs"] = table["runs"]
+    out["failed"] = table["failed"]
+    if "success_rate" in table:
+        out["success [Wilson 95 %]"] = [fmt_success(r.get("successes"), r["runs"], r.get("success_lo"),
+                                                    r.get("success_hi")) for _, r in table.iterrows()]
+    for m in [*TABLE_MEDIANS, *[m for m in metrics if m not in TABLE_MEDIANS], *TABLE_TIMES]:
+        if f"{m}_median" in table:
+            out[m] = [fmt_interval(r[f"{m}_median"], r.get(f"{m}_lo"), r.get(f"{m}_hi")) for _, r in table.iterrows()]
+    return out
+
+
+def bin_labels(edges: list[float]) -> list[str]:
+    return [f"[{canonical(a)}, {canonical(b)}{']' if i == len(edges) - 2 else ')'}"
+            for i, (a, b) in enumerate(zip(edges[:-1], edges[1:]))]
+
+
+def assign_bins(values: pd.Series, edges: list[float]) -> pd.Series:
+    """The bin label of each value: left-closed bins, the last right-closed too; outside or NaN: None."""
+    labels = bin_labels(edges)
+    v = pd.to_numeric(values, errors="coerce").to_numpy(float)
+    i = np.searchsorted(np.asarray(edges, float), v, side="right") - 1
+    i = np.where(v == edges[-1], len(edges) - 2, i)
+    ok = np.isfinite(v) & (i >= 0) & (i < len(labels))
+    return pd.Series([labels[j] if o else None for j, o in zip(i, ok)], index=values.index, dtype=object)
+
+
+def bin_table(df: pd.DataFrame, group_by: list[str], bin_by: str, edges: list[float], metrics: list[str] = (),
+              per: str | None = None, how: str = "bootstrap") -> pd.DataFrame:
+    """One row per (bin of the metric ``bin_by``, group): runs, successes, success rate with its Wilson interval,
+    and the median with its interval of each of ``metrics``. A run that lacks ``bin_by`` (a failed run) takes the
+    value of another run of the same ``per`` value (the same scan pair has the same overlap)."""
+    col = f"metrics.{bin_by}"
+    if col not in df:
+        raise SystemExit(f"error: report.bin_by: no metric '{bin_by}' in the runs")
+    work = df.copy()
+    v = pd.to_numeric(work[col], errors="coerce")
+    if per and v.isna().any():
+        key = work[column_for(per, work)].astype(str)
+        v = v.fillna(v.groupby(key).transform("first"))
+    work["_bin"] = assign_bins(v, edges)
+    work["_grp"] = group_labels(work, group_by)
+    rows = []
+    for b in bin_labels(edges):
+        for g in sorted(set(work["_grp"])):
+            d = work[(work["_bin"] == b) & (work["_grp"] == g)]
+            if d.empty:
+                continue
+            ok = d[d["status"] == "FINISHED"]
+            k = int((ok.get("metrics.success", pd.Series(dtype=float)).fillna(0) > 0.5).sum())
+            lo, hi = wilson_interval(k, len(d))
+            row = {bin_by: b, "group": g, "runs": len(d), "successes": k, "success_rate": k / len(d),
+                   "success_lo": lo, "success_hi": hi}
+            for m in metrics:
+                c = f"metrics.{m}"
+                if c in ok and ok[c].notna().any():
+                    x = ok[c].dropna().values
+                    row[f"{m}_median"] = float(np.median(x))
+                    row[f"{m}_lo"], row[f"{m}_hi"] = interval(x, how)
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def bin_markdown(bt: pd.DataFrame, bin_by: str, metrics: list[str]) -> list[str]:
+    """Success (and each metric's median) per bin (rows) and group (columns)."""
+    groups = list(dict.fromkeys(bt["group"]))
+    lines = []
+    for what in ["success", *[m for m in metrics if f"{m}_median" in bt]]:
+        head = f"{bin_by} | " + " | ".join(groups)
+        body = []
+        for b, d in bt.groupby(bin_by, sort=False):
+            cells = []
+            for g in groups:
+                r = d[d["group"] == g]
+                if r.empty:
+                    cells.append("–")
+                    continue
+                r = r.iloc[0]
+                cells.append(fmt_success(r["successes"], r["runs"], r["success_lo"], r["success_hi"])
+                             if what == "success" else fmt_interval(r.get(f"{what}_median"), r.get(f"{what}_lo"),
+                                                                    r.get(f"{what}_hi")))
+            body.append(f"| {b} | " + " | ".join(cells) + " |")
+        lines += [f"### {what} per {bin_by} bin", "", f"| {head} |", "|" + "---|" * (len(groups) + 1), *body, ""]
+    return lines
 
 
 def fmt_value(v) -> str:
@@ -393,7 +583,8 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
             bottom += v
         ticks(axes[1], names)
         axes[1].set_ylabel("median time per stage [s]")
-        axes[1].legend(fontsize=7)
+        if bottom.any():  # no stage times logged: no legend to draw
+            axes[1].legend(fontsize=7)
         fig.tight_layout()
         paths.append(out / "errors_times.png")
         fig.savefig(paths[-1], dpi=110)
@@ -414,18 +605,141 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
     return paths
 
 
+def plot_bins(bt: pd.DataFrame, bin_by: str, out: Path) -> Path:
+    """Success per bin, one bar per group, with the Wilson interval as error bars."""
+    plt = _plt()
+    bins = list(dict.fromkeys(bt[bin_by]))
+    groups = list(dict.fromkeys(bt["group"]))
+    w = 0.8 / max(1, len(groups))
+    fig, ax = plt.subplots(figsize=(max(5.0, 0.35 * len(bins) * len(groups) + 2.5), 3.6))
+    for j, g in enumerate(groups):
+        d = bt[bt["group"] == g].set_index(bin_by).reindex(bins)
+        xs = np.arange(len(bins)) + (j - (len(groups) - 1) / 2) * w
+        r = d["success_rate"].to_numpy(float) * 100
+        err = np.vstack([r - d["success_lo"].to_numpy(float) * 100, d["success_hi"].to_numpy(float) * 100 - r])
+        ax.bar(xs, np.nan_to_num(r), w, yerr=np.nan_to_num(err), capsize=2, label=g)
+    ax.set_xticks(range(len(bins)), [f"{b}\n(n={int(bt[bt[bin_by] == b]['runs'].iloc[0])})" for b in bins],
+                  fontsize=7)
+    ax.set_xlabel(bin_by)
+    ax.set_ylabel("success [%] (Wilson 95 %)")
+    ax.set_ylim(0, 105)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = out / f"success_by_{_slug(bin_by)}.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def curve_table(df: pd.DataFrame, group_by: list[str], x: str, curves: list[str], how: str) -> pd.DataFrame:
+    """One row per (group without ``x``, value of ``x``): runs and, per curve metric, the success rate with its
+    Wilson interval or the median with its interval."""
+    xc = column_for(x, df)
+    others = [k for k in group_by if k != x]
+    work = df.copy()
+    work["_x"] = pd.to_numeric(work[xc], errors="coerce")
+    work["_g"] = group_labels(work, others)
+    rows = []
+    for (g, xv), d in work.dropna(subset=["_x"]).groupby(["_g", "_x"], sort=True):
+        ok = d[d["status"] == "FINISHED"]
+        row = {"group": g, x: xv, "runs": len(d)}
+        for m in curves:
+            if m == "success":
+                k = int((ok.get("metrics.success", pd.Series(dtype=float)).fillna(0) > 0.5).sum())
+                row["successes"], row["success_rate"] = k, k / len(d)
+                row["success_lo"], row["success_hi"] = wilson_interval(k, len(d))
+            elif f"metrics.{m}" in ok and ok[f"metrics.{m}"].notna().any():
+                v = ok[f"metrics.{m}"].dropna().values
+                row[f"{m}_median"] = float(np.median(v))
+                row[f"{m}_lo"], row[f"{m}_hi"] = interval(v, how)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def plot_curves(ct: pd.DataFrame, x: str, curves: list[str], out: Path, how: str) -> Path:
+    """Robustness curves: each metric of ``curves`` against ``x``, one line per group, its interval as a band."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.6), squeeze=False)
+    for ax, m in zip(axes[0], curves):
+        col, lo, hi = ("success_rate", "success_lo", "success_hi") if m == "success" else \
+            (f"{m}_median", f"{m}_lo", f"{m}_hi")
+        if col not in ct:
+            ax.set_title(f"{m}: not logged", fontsize=8)
+            continue
+        scale = 100 if m == "success" else 1
+        for g, d in ct.groupby("group", sort=True):
+            d = d.sort_values(x)
+            line = ax.plot(d[x], d[col] * scale, "o-", label=g)[0]
+            ax.fill_between(d[x], d[lo] * scale, d[hi] * scale, color=line.get_color(), alpha=0.15)
+        if m == "success":
+            ax.set_ylim(0, 105)
+        ax.set_xlabel(x)
+        ax.set_ylabel("success [%] (Wilson 95 %)" if m == "success" else f"{m}\n(median, {interval_name(how)})",
+                      fontsize=8)
+        ax.set_xticks(sorted(ct[x].unique()), [canonical(v) for v in sorted(ct[x].unique())], fontsize=7)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = out / f"robustness_vs_{_slug(x)}.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def curve_display(ct: pd.DataFrame, x: str, curves: list[str]) -> pd.DataFrame:
+    out = pd.DataFrame({"group": ct["group"], x: ct[x], "runs": ct["runs"]})
+    for m in curves:
+        if m == "success" and "success_rate" in ct:
+            out["success [Wilson 95 %]"] = [fmt_success(r["successes"], r["runs"], r["success_lo"],
+                                                        r["success_hi"]) for _, r in ct.iterrows()]
+        elif f"{m}_median" in ct:
+            out[m] = [fmt_interval(r[f"{m}_median"], r[f"{m}_lo"], r[f"{m}_hi"]) for _, r in ct.iterrows()]
+    return out
+
+
+def run_time_line(df: pd.DataFrame) -> str:
+    """Wall-clock time of the sweep (first start to last end) and the sum of the runs' pipeline times."""
+    t0 = pd.to_datetime(df["start_time"]).min()
+    t1 = pd.to_datetime(df["end_time"]).max() if "end_time" in df else pd.NaT
+    wall = (t1 - t0).total_seconds() if pd.notna(t1) and pd.notna(t0) else float("nan")
+    busy = float(df["metrics.time_total_s"].sum()) if "metrics.time_total_s" in df else float("nan")
+    return (f"- run time: {wall / 60:.1f} min wall clock for {len(df)} runs (first start to last end); the runs' "
+            f"own pipeline times sum to {busy / 60:.1f} min")
+
+
+def configuration_line(df: pd.DataFrame) -> str:
+    """The stage choices of the runs (``tags.group.*``): one value, or the values compared."""
+    parts = []
+    for c in sorted(c for c in df.columns if c.startswith("tags.group.")):
+        vals = sorted(set(df[c].dropna().astype(str)))
+        if vals:
+            parts.append(f"{c[len('tags.group.'):]}={'|'.join(vals)}")
+    return "- stages: " + (", ".join(parts) or "unknown") + " (the defaults of that commit unless overridden above)"
+
+
 # --------------------------------------------------------------------------------------------------- report
 def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.DataFrame | None = None,
                  plots: bool = True) -> dict:
     """Write report.md, report.csv (and per.csv, compare.csv) and PNG plots into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     group_by = list(p.group_by) or varying_keys(df)
-    table = summarize(df, group_by, list(p.metrics))
+    how = p.interval
+    interval(np.array([0.0, 1.0]), how)  # a bad name fails before any table is written
+    table = summarize(df, group_by, list(p.metrics), how)
     table.drop(columns="_label").to_csv(out / "report.csv", index=False)
     per_t = per_table(df, group_by, p.per) if p.per else None
     if per_t is not None:
         per_t.to_csv(out / "per.csv")
     figs = make_plots(df, table, group_by, out, p.x, per_t) if plots else []
+    bt = bin_table(df, group_by, p.bin_by, list(p.bin_edges), list(p.bin_metrics), p.per, how) if p.bin_by else None
+    if bt is not None:
+        bt.to_csv(out / f"by_{_slug(p.bin_by)}.csv", index=False)
+        if plots:
+            figs.append(plot_bins(bt, p.bin_by, out))
+    ct = curve_table(df, group_by, p.x, list(p.curves), how) if p.x and p.curves else None
+    if ct is not None:
+        ct.to_csv(out / f"curves_vs_{_slug(p.x)}.csv", index=False)
+        if plots:
+            figs.append(plot_curves(ct, p.x, list(p.curves), out, how))
 
     exp = df.attrs.get("experiment", "?")
     ptags = df.attrs.get("parent_tags", {})
@@ -433,7 +747,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     command = ptags.get("scanreg.command") or (f"scanreg -m {ptags['scanreg.overrides']}" if "scanreg.overrides" in ptags else None)
     when = pd.to_datetime(df["start_time"]).min()
     n_fail = int((df["status"] != "FINISHED").sum())
-    how, warn = concurrency_note(df)
+    jobs, warn = concurrency_note(df)
     lines = [f"# {p.title or 'Experiment ' + exp}", ""]
     if p.notes:
         lines += [" ".join(p.notes.split()), ""]
@@ -443,7 +757,9 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         f"- commit: {', '.join(commits) or 'unknown'}",
         f"- runs: {len(df)} ({n_fail} failed), started {when:%Y-%m-%d %H:%M} UTC"
         + (f", sweep parent run `{df.attrs['parent']}`" if df.attrs.get("parent") else ""),
-        f"- jobs: {how}",
+        run_time_line(df),
+        configuration_line(df),
+        f"- jobs: {jobs}",
         f"- tracking store: `{df.attrs.get('uri')}` (experiment `{exp}`)",
         f"- report: `scanreg-report --experiment {exp}" + (f" --group-by {','.join(group_by)}" if group_by else "")
         + (f" --x {p.x}" if p.x else "") + (f" --per {p.per}" if p.per else "") + "`, "
@@ -455,10 +771,21 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         "",
         *([f"**Warning: {warn}.**", ""] if warn else []),
         f"## Results by {', '.join(group_by) or 'run'}", "",
-        "Medians unless marked p90; every column (more errors, fitness, each stage's time) is in report.csv.", "",
-        to_markdown(table[[c for c in [*group_by, *MD_COLUMNS, *[f"{m}_median" for m in p.metrics]]
-                           if c in table.columns]]), "",
+        f"Each cell: the median over the group's runs (seeds, poses, pairs) [{interval_name(how)}]; success: "
+        "successes/runs = rate [Wilson 95 % score interval]. Two groups differ only where their intervals do not "
+        "overlap. Every column (p90 errors, fitness, each stage's time) is in report.csv.", "",
+        to_markdown(display_table(table, group_by, list(p.metrics))), "",
     ]
+    if bt is not None:
+        lines += [f"## Success by {p.bin_by}", "",
+                  f"Runs binned by `{p.bin_by}`; cells: successes/runs = rate [Wilson 95 %]"
+                  + (f", and medians [{interval_name(how)}]" if p.bin_metrics else "") + f". by_{_slug(p.bin_by)}.csv "
+                  "has the numbers.", "", *bin_markdown(bt, p.bin_by, list(p.bin_metrics))]
+    if ct is not None:
+        lines += [f"## Robustness against {p.x}", "",
+                  f"Per value of `{p.x}`: success [Wilson 95 %] and medians [{interval_name(how)}]; "
+                  f"curves_vs_{_slug(p.x)}.csv has the numbers.", "",
+                  to_markdown(curve_display(ct, p.x, list(p.curves))), ""]
     if per_t is not None:
         lines += [f"## Success per {p.per}", "", to_markdown((per_t * 100).round(0), index=True), ""]
     if compare_to is not None:

@@ -36,7 +36,7 @@ from scanreg.geometry import (Mesh, apply_T, bbox_diagonal, invert_T, submesh, t
                                vertex_normals)
 from scanreg.io import read_mesh
 from scanreg.registry import DATA
-from scanreg.stages.data import Inputs, PoseParams
+from scanreg.stages.data import Inputs, PerturbParams, perturb_inputs
 
 
 @dataclass
@@ -98,7 +98,7 @@ class Dental:
     the same teeth, with ground truth and picked cusp-tip landmarks. See :mod:`scanreg.stages.dental`."""
 
     @dataclass
-    class Params(PoseParams):
+    class Params(PerturbParams):
         folder: str = "shared:open_full_jaw_p26"
         """Folder of the Open-Full-Jaw patient (``shared:NAME`` = ../shared/data/NAME)."""
         arch: str = "mandible"
@@ -171,7 +171,8 @@ class Dental:
         lm = self.pick_landmarks(erupted, tips, target, source, P, rng) if p.landmarks else None
         info = {"dental_teeth": len(teeth), "dental_crowns": len(erupted), "dental_cast_faces": n_before,
                 "dental_gum_share": float(np.mean(cast_labels == 0))}
-        return Inputs(source, target, invert_T(P), lm, info, target_labels=labels, label_name="tooth")
+        return perturb_inputs(Inputs(source, target, invert_T(P), lm, info, target_labels=labels,
+                                     label_name="tooth"), p)
 
     # ------------------------------------------------------------------------------------------------ cast
     def cast(self, teeth: list[Tooth], rng) -> tuple[Mesh, np.ndarray, dict[int, np.ndarray]]:

@@ -258,3 +258,100 @@ def test_optuna_sweep_tunes_against_the_registration_error(tmp_path, mlflow_uri)
     children = df[df["tags.mlflow.parentRunId"] == parent["run_id"]]
     assert len(children) == 3 and parent["status"] == "FINISHED"
     assert res["best_value"] == pytest.approx(children["metrics.rotation_error_deg"].min())
+
+
+# ------------------------------------------------------------------------------------------- harder cases
+def _plane_inputs(n: int = 4000, seed: int = 0):
+    """A flat 10 x 10 square source mesh (2 triangles) and a cloud target on the same square: diagonal known."""
+    from scanreg.stages.data import Inputs
+
+    v = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0]], float)
+    mesh = Mesh(v, np.array([[0, 1, 2], [0, 2, 3]]), "square")
+    rng = np.random.default_rng(seed)
+    tgt = Cloud(np.c_[rng.uniform(0, 10, (n, 2)), np.zeros(n)], np.tile([0.0, 0, 1], (n, 1)), "target")
+    return Inputs(mesh, tgt, np.eye(4), None, {"gt_overlap": 1.0})
+
+
+def _perturb(inputs, **kw):
+    from scanreg.stages.data import PerturbParams, perturb_inputs
+
+    p = PerturbParams(**kw)
+    p.check()
+    return perturb_inputs(inputs, p)
+
+
+def test_perturbations_off_keep_the_inputs():
+    inp = _plane_inputs()
+    assert _perturb(inp) is inp
+
+
+def test_noise_has_the_stated_std():
+    """add_noise is a share of the target's diagonal (about 10 sqrt(2)); the plane's z is pure noise."""
+    out = _perturb(_plane_inputs(), add_noise=0.005, cloud_points=20000, perturb_seed=3)
+    z = out.source.points[:, 2]
+    assert out.source.n_points == 20000 and isinstance(out.source, Cloud)
+    assert np.std(z) == pytest.approx(0.005 * 10 * np.sqrt(2), rel=0.03)
+    diag = np.linalg.norm(np.ptp(out.target.points, axis=0))
+    assert out.info["perturb_noise_std"] == pytest.approx(0.005 * diag, rel=1e-12)
+    assert out.target.n_points == 4000 and np.all(out.target.points[:, 2] == 0)  # the target untouched
+    nz = out.source.normals[:, 2]  # re-estimated from the noisy points, oriented like the face's +z
+    assert np.all(nz >= 0) and np.median(nz) > 0.8 and np.mean(nz > 0.999) < 0.5
+
+
+def test_outliers_are_the_stated_share_in_the_bbox():
+    out = _perturb(_plane_inputs(), add_outliers=0.3, cloud_points=7000, perturb_seed=1)
+    pts = out.source.points
+    assert len(pts) == 10000 and out.info["perturb_source_outliers"] == 3000  # 3000 / 10000 = 30 %
+    assert np.all((pts[:, :2] >= 0) & (pts[:, :2] <= 10)) and np.all(pts[:, 2] == 0)  # inside the (flat) bbox
+    out_xy = pts[7000:, :2]  # the outliers come last: uniform over the 10 x 10 box (std 10 / sqrt(12) = 2.89)
+    assert np.allclose(out_xy.mean(0), 5, atol=0.2) and np.allclose(out_xy.std(0), 10 / np.sqrt(12), atol=0.1)
+    out = _perturb(_plane_inputs(), add_outliers=0.5, cloud_points=1000, perturb=("both"), perturb_seed=1)
+    assert out.source.n_points == 2000 and out.target.n_points == 8000
+
+
+def test_density_ratio_and_crop_counts():
+    out = _perturb(_plane_inputs(), density_ratio=8, cloud_points=16000)
+    assert out.source.n_points == 2000 and out.target.n_points == 4000  # target not perturbed: as it was
+    out = _perturb(_plane_inputs(), crop=0.6, cloud_points=10000, perturb_seed=5)
+    assert out.source.n_points == 6000 and out.info["perturb_source_crop_kept"] == pytest.approx(0.6)
+    # by hand: the same seeded stream draws the 10000 points, then the plane's normal; the kept 6000 are the
+    # ones lowest along it (one side of a plane)
+    from scanreg.geometry import barycentric_sample
+
+    rng = np.random.default_rng([5, 909, 0])
+    full, _, _ = barycentric_sample(_plane_inputs().source, 10000, rng)
+    d = rng.normal(size=3)
+    h = full @ d
+    low = np.sort(np.argsort(h, kind="stable")[:6000])
+    assert np.array_equal(out.source.points, full[low]) and h[low].max() <= np.delete(h, low).min()
+    # a cloud source keeps 1/ratio of its points
+    from scanreg.stages.data import Inputs
+
+    inp = _plane_inputs()
+    swapped = Inputs(inp.target, inp.source, np.eye(4), None, {})
+    assert _perturb(swapped, density_ratio=8).source.n_points == 500
+
+
+def test_perturbations_are_deterministic_per_seed():
+    kw = dict(add_noise=0.002, add_outliers=0.2, crop=0.8, density_ratio=2, cloud_points=3000)
+    a = _perturb(_plane_inputs(), perturb_seed=7, **kw)
+    b = _perturb(_plane_inputs(), perturb_seed=7, **kw)
+    c = _perturb(_plane_inputs(), perturb_seed=8, **kw)
+    assert np.array_equal(a.source.points, b.source.points) and np.array_equal(a.source.normals, b.source.normals)
+    assert not np.array_equal(a.source.points, c.source.points)
+
+
+def test_stanford_perturbed_keeps_ground_truth():
+    """The bunny with noise, outliers and a crop on the source: the true pose still maps the clean part of the
+    source onto the target (within the noise)."""
+    shared("stanford_bunny/bun.conf")
+    from scipy.spatial import cKDTree
+
+    load_all()
+    cls = DATA.get("stanford")
+    inp = cls(cls.Params(pair="bun000:bun045", pose_seed=1, add_noise=0.002, add_outliers=0.2, crop=0.7,
+                         cloud_points=5000, perturb_seed=2)).load(Context(0, ROOT))
+    assert isinstance(inp.source, Cloud) and inp.source.n_points == round(3500 / 0.8)
+    d, _ = cKDTree(inp.target.vertices).query(apply_T(inp.T_gt, inp.source.points))
+    diag = np.linalg.norm(np.ptp(inp.target.vertices, axis=0))
+    assert np.median(d) < 3 * 0.002 * diag and inp.info["gt_overlap"] > 0.85

@@ -113,3 +113,94 @@ def test_canonical_labels_are_exact():
     df = pd.DataFrame({"params.k": ["12345", "12346"], "status": ["FINISHED"] * 2})
     assert list(group_labels(df, ["k"])) == ["12345", "12346"]
     assert len(summarize(df, ["k"])) == 2
+
+
+# ------------------------------------------------------------------------------------------------ intervals
+def test_wilson_interval_by_hand():
+    from scanreg.report import wilson_interval
+
+    # z = 1.959964; k = 5, n = 10: centre (0.5 + z^2/20) / (1 + z^2/10) = 0.5, half z sqrt(0.025 + z^2/400) / (1 + z^2/10)
+    z = 1.959963984540054
+    half = z * np.sqrt(0.25 / 10 + z * z / 400) / (1 + z * z / 10)
+    assert wilson_interval(5, 10) == pytest.approx((0.5 - half, 0.5 + half), abs=1e-12)
+    assert wilson_interval(5, 10) == pytest.approx((0.2366, 0.7634), abs=1e-4)  # the textbook values
+    # all or none: the interval reaches the bound; 10/10 -> [n / (n + z^2), 1]
+    assert wilson_interval(10, 10) == pytest.approx((10 / (10 + z * z), 1.0), abs=1e-12)
+    assert wilson_interval(0, 10) == pytest.approx((0.0, z * z / (10 + z * z)), abs=1e-12)
+    assert wilson_interval(80, 80)[0] == pytest.approx(0.9542, abs=1e-4)  # 80/80 is not "certainly 100 %"
+    assert all(np.isnan(wilson_interval(0, 0)))
+
+
+def test_bootstrap_median_ci_by_hand():
+    """Three values 1, 2, 10: a resample's median is 1 when at least two draws are 1 (7 of the 27 equally likely
+    resamples), 10 likewise (7/27), else 2 (13/27). The 2.5 % and 97.5 % quantiles are then 1 and 10; the 30 %
+    and 70 % quantiles (a 40 % interval) both 2."""
+    from scanreg.report import bootstrap_median_ci
+
+    assert bootstrap_median_ci([1, 2, 10]) == (1.0, 10.0)
+    assert bootstrap_median_ci([1, 2, 10], level=0.4) == (2.0, 2.0)
+    assert bootstrap_median_ci([10, np.nan, 1, 2], seed=0) == bootstrap_median_ci([1, 2, 10], seed=0)  # NaN dropped
+    assert bootstrap_median_ci([3.0]) == (3.0, 3.0) and all(np.isnan(bootstrap_median_ci([])))
+    # seeded: the same interval every time; a larger sample gives a narrower one around the median
+    x = np.random.default_rng(1).normal(size=400)
+    lo, hi = bootstrap_median_ci(x)
+    assert (lo, hi) == bootstrap_median_ci(x) and lo < np.median(x) < hi
+    # the median's standard error for a normal sample is about 1.2533 / sqrt(n): the 95 % interval ~ +-1.96 of it
+    assert hi - lo == pytest.approx(2 * 1.96 * 1.2533 / np.sqrt(400), rel=0.3)
+
+
+def test_iqr_by_hand():
+    from scanreg.report import iqr_interval
+
+    assert iqr_interval([1, 2, 3, 4, 5]) == (2.0, 4.0)
+    assert iqr_interval([1, 2, 3, 4]) == (1.75, 3.25)  # linear interpolation: positions 0.75 and 2.25
+
+
+def test_report_cells_have_intervals_and_bins(tmp_path, figures):
+    """Every median in report.md carries its interval, success its Wilson interval, named in the text; runs are
+    binned by overlap (a failed run takes its pair's overlap); robustness curves per x value."""
+    rows = []
+    for method in ("a", "b"):
+        for pair, ov in (("p1", 0.15), ("p2", 0.5), ("p3", 0.9)):
+            for seed in range(4):
+                ok = method == "a" or ov > 0.3
+                failed = method == "b" and pair == "p1" and seed == 0
+                rows.append({"run_id": f"{method}{pair}{seed}", "status": "FAILED" if failed else "FINISHED",
+                             "start_time": pd.Timestamp("2026-01-01 10:00", tz="UTC"),
+                             "end_time": pd.Timestamp("2026-01-01 10:05", tz="UTC"),
+                             "tags.group.method": method, "params.data.pair": pair, "params.seed": str(seed),
+                             "params.data.add_noise": str([0.0, 0.002, 0.005, 0.01][seed]),
+                             "metrics.gt_overlap": np.nan if failed else ov,
+                             "metrics.success": np.nan if failed else float(ok),
+                             "metrics.rotation_error_deg": np.nan if failed else 0.1 * (seed + 1),
+                             "metrics.keypoint_repeatability": np.nan if failed else 0.2 + 0.1 * seed,
+                             "metrics.time_total_s": 2.0})
+    df = pd.DataFrame(rows)
+    df.attrs.update(experiment="t", uri="sqlite:///x.db", parent=None, parent_tags={})
+    p = ReportParams(enabled=True, group_by=["group.method"], per="data.pair", bin_by="gt_overlap",
+                     bin_edges=[0.0, 0.4, 1.0], bin_metrics=["keypoint_repeatability"],
+                     metrics=["keypoint_repeatability"], x="data.add_noise", curves=["success", "keypoint_repeatability"])
+    res = write_report(df, p, tmp_path)
+    t = res["table"].set_index("_label")
+    assert t.loc["a", "successes"] == 12 and t.loc["b", "successes"] == 8 and t.loc["b", "runs"] == 12
+    from scanreg.report import bootstrap_median_ci, wilson_interval
+
+    assert (t.loc["b", "success_lo"], t.loc["b", "success_hi"]) == wilson_interval(8, 12)
+    assert (t.loc["a", "rotation_error_deg_lo"], t.loc["a", "rotation_error_deg_hi"]) == \
+        bootstrap_median_ci(0.1 * (np.arange(12) % 4 + 1))
+    md = (tmp_path / "report.md").read_text()
+    assert "95 % bootstrap CI of the median" in md and "Wilson 95 %" in md
+    assert "| a | 12 | 0 | 12/12 = 100 % [" in md and "run time: 5.0 min wall clock for 24 runs" in md
+    bins = pd.read_csv(tmp_path / "by_gt_overlap.csv").set_index(["gt_overlap", "group"])
+    assert bins.loc[("[0, 0.4)", "b"), "runs"] == 4 and bins.loc[("[0, 0.4)", "b"), "successes"] == 0
+    assert bins.loc[("[0.4, 1]", "b"), "runs"] == 8 and bins.loc[("[0.4, 1]", "b"), "success_rate"] == 1.0
+    assert bins.loc[("[0.4, 1]", "a"), "keypoint_repeatability_median"] == pytest.approx(0.35)
+    curves = pd.read_csv(tmp_path / "curves_vs_data.add_noise.csv")
+    assert list(curves.loc[curves["group"] == "a", "keypoint_repeatability_median"]) == pytest.approx([0.2, 0.3, 0.4, 0.5])
+    assert figures["success_by_gt_overlap.png"][0]["legend"] == ["a", "b"]
+    assert len(figures["robustness_vs_data.add_noise.png"]) == 2
+    with pytest.raises(ValueError, match="bootstrap or iqr"):
+        write_report(df, ReportParams(enabled=True, interval="sd"), tmp_path / "x")
+    iq = write_report(df, ReportParams(enabled=True, group_by=["group.method"], interval="iqr"), tmp_path / "i")
+    assert iq["table"].set_index("_label").loc["a", "rotation_error_deg_lo"] == pytest.approx(0.175)
+    assert "interquartile range" in (tmp_path / "i" / "report.md").read_text()
