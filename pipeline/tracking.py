@@ -112,6 +112,50 @@ class RunLog:
         self.client.set_terminated(self.run_id, status)
 
 
+class BackgroundRunLog:
+    """A :class:`RunLog` whose run is created in a background thread, so that importing MLflow (2-5 s: it
+    imports pandas, pyarrow, FastAPI...) and opening its store overlap the pipeline instead of preceding it.
+    Every method waits for the thread first and then logs as :class:`RunLog` does; an error of the creation
+    (a bad store) is raised by the first method called after it."""
+
+    def __init__(self, create):
+        import threading
+
+        self._log: RunLog | None = None
+        self._error: BaseException | None = None
+
+        def work():
+            try:
+                self._log = create()
+            except BaseException as e:  # noqa: BLE001: re-raised in the caller's thread by _wait
+                self._error = e
+
+        self._thread = threading.Thread(target=work, name="scanreg-mlflow", daemon=True)
+        self._thread.start()
+
+    def _wait(self) -> RunLog:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._log
+
+    @property
+    def run_id(self) -> str:
+        return self._wait().run_id
+
+    def log_metrics(self, metrics: dict[str, float], step_metrics: dict[str, list[float]] | None = None) -> None:
+        self._wait().log_metrics(metrics, step_metrics)
+
+    def log_artifacts(self, paths: list[Path]) -> None:
+        self._wait().log_artifacts(paths)
+
+    def set_tags(self, tags: dict[str, str]) -> None:
+        self._wait().set_tags(tags)
+
+    def end(self, status: str, reason: str | None = None) -> None:
+        self._wait().end(status, reason)
+
+
 @TRACKING.register("none")
 class NoTracking:
     """Track nothing (results stay in the run directory)."""
@@ -175,7 +219,17 @@ class MlflowTracking:
                 raise
             return client, exp.experiment_id
 
-    def start_run(self, run_name: str, params: dict[str, str], tags: dict[str, str]) -> RunLog:
+    def start_run(self, run_name: str, params: dict[str, str], tags: dict[str, str],
+                  background: bool = False) -> RunLog | BackgroundRunLog:
+        """Create the run (with its params and tags) and return its log; ``background``: in a background thread
+        (see :class:`BackgroundRunLog`), the run's recorded start time still the time of this call."""
+        if background:
+            start_ms = int(time.time() * 1000)
+            return BackgroundRunLog(lambda: self._start_run(run_name, params, tags, start_time=start_ms))
+        return self._start_run(run_name, params, tags)
+
+    def _start_run(self, run_name: str, params: dict[str, str], tags: dict[str, str],
+                   start_time: int | None = None) -> RunLog:
         sweep = sweep_info()
         # a sweep's jobs log where the launching process created the parent run, unless a job names another
         # store explicitly (workers of a cluster may not share the launching process's environment or cwd)
@@ -185,7 +239,7 @@ class MlflowTracking:
             tags = {**tags, "mlflow.parentRunId": sweep["parent_run_id"]}
         else:
             client, eid = self.prepare()
-        run = client.create_run(eid, run_name=run_name, tags=tags)
+        run = client.create_run(eid, run_name=run_name, tags=tags, start_time=start_time)
         log = RunLog(client, run.info.run_id)
         log.log_params(params)
         return log

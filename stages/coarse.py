@@ -161,7 +161,7 @@ class LoRansac:
         edge (in sampling spacings, whatever ``distances`` says): denser and detector-free, they still match
         where salient points are few or not repeatable (flat indoor scenes). Logged as ``coarse_fallback`` (0:
         the configured keypoints served, 1: the uniform ones). null: no fallback, fail at once."""
-        voxel: Optional[float] = None
+        voxel: Optional[float] = 4.0
         """Run the whole coarse stage (keypoints, descriptors, matching, RANSAC) on the clouds voxel-downsampled to
         this edge, in sampling spacings of the full clouds (one point per voxel, the one nearest the voxel's
         centroid); inside the stage the spacing is then the downsampled clouds' own (median nearest-neighbour
