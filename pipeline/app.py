@@ -30,13 +30,14 @@ def _err(msg: str) -> None:
     print(f"error: {msg}", file=sys.stderr, flush=True)
 
 
-def validate_config(cfg: DictConfig) -> dict:
-    """Build every stage of ``cfg`` and check the ``report`` block, without running anything: a bad name,
-    parameter or value fails here, before any work. Returns the built stages."""
+def validate_config(cfg: DictConfig, stages: bool = True) -> dict | None:
+    """Build every stage of ``cfg`` (unless ``stages`` is false: :func:`check_config` did) and check the
+    ``report`` block, without running anything: a bad name, parameter or value fails here, before any work.
+    Returns the built stages."""
     from scanreg.registry import make_params
     from scanreg.runner import build_stages
 
-    stages = build_stages(cfg)
+    stages = build_stages(cfg) if stages else None
     if cfg.get("report") is not None and cfg.report.get("enabled"):
         # only when a report will be written: scanreg.report imports pandas (about 1 s), which a run never uses
         from scanreg.report import ReportParams
@@ -90,7 +91,7 @@ def run_job(cfg: DictConfig) -> dict | None:
     try:
         if resolve_error:
             raise ScanregError(resolve_error)
-        validate_config(cfg)
+        validate_config(cfg, stages=multirun)  # a single run's stages were built by check_config above
         res = run_pipeline(cfg, run_dir)
     except KeyboardInterrupt:
         if run:
