@@ -173,15 +173,17 @@ class Histogram3P:
             spatial = [_two_bins((L[:, :, c] + R) / (2 * R / 3) - 0.5, 3, wrap=False) for c in range(3)]
             wr = w[rs][..., None]
             base = (np.arange(nb) * 216)[:, None, None, None, None]
-            idx, wts = [], []
+            idx = np.empty((3, nb, jj.shape[1], 2, 2, 2), np.int64)
+            wts = np.empty(idx.shape)
             for plane, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
                 (ia, sa), (ib, sb) = spatial[a], spatial[b]
                 io, so = _two_bins((np.arctan2(Ln[:, :, b], Ln[:, :, a]) + np.pi) / (2 * np.pi / 8) - 0.5, 8,
                                    wrap=True)
-                idx.append((base + plane * 72 + ia[..., :, None, None] * 24 + ib[..., None, :, None] * 8
-                            + io[..., None, None, :]).ravel())
-                wts.append(((wr * sa)[..., :, None, None] * sb[..., None, :, None] * so[..., None, None, :]).ravel())
-            out[rs] = np.bincount(np.concatenate(idx), np.concatenate(wts), minlength=nb * 216).reshape(nb, 216)
+                np.add(base + plane * 72 + ia[..., :, None, None] * 24 + ib[..., None, :, None] * 8,
+                       io[..., None, None, :], out=idx[plane])
+                np.multiply((wr * sa)[..., :, None, None] * sb[..., None, :, None], so[..., None, None, :],
+                            out=wts[plane])
+            out[rs] = np.bincount(idx.ravel(), wts.ravel(), minlength=nb * 216).reshape(nb, 216)
 
         # blocks of keypoints, independent of each other, on every core (NumPy releases the GIL in these loops)
         step = max(1, 2 ** 16 // max(j.shape[1], 1))

@@ -6,7 +6,7 @@
 Cases (every one with ground truth; the source under a seeded random pose of any angle):
 - bunny: ordered pairs of the raw Stanford scans (``../shared/data/stanford_bunny``, binary range-grid PLYs, the
   40 pairs of ``experiment=first_contact``), truth from ``bun.conf``; ``repair=none`` as in issue #16;
-- 3dmatch: the real 3DMatch fragment pair (``../shared/data/3dmatch_pair``), 3 poses;
+- 3dmatch: the real 3DMatch fragment pair (``../shared/data/3dmatch_pair``), 6 poses;
 - dental: the cast-scan-like arch against its CT dentition (``conf/data/dental.yaml``), default repair.
 
 Methods, each case in a fresh subprocess, the two methods alternating which runs first (interleaved, so that a
@@ -255,6 +255,60 @@ def worker_memory(method: str, stage: str, n: int) -> dict:
     return out
 
 
+def worker_descriptors(pairs: list[str]) -> list[dict]:
+    """The coarse stage (defaults, uniform keypoints) with ``fpfh``, ``histogram3p`` and histogram3p's
+    implementation before issue #16 (``tests/test_histogram3p.py``'s reference), interleaved per pair, in this
+    one warm process; the same keypoints for all three."""
+    import open3d  # noqa: F401
+    from omegaconf import OmegaConf
+
+    import scanreg
+    from scanreg.config import Context
+    from scanreg.metrics import estimate_spacing
+    from scanreg.runner import build_stages
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_histogram3p import reference_histogram3p
+
+    rows = []
+    for pair in pairs:
+        for variant in ("fpfh", "histogram3p", "histogram3p_before"):
+            desc = "fpfh" if variant == "fpfh" else "histogram3p"
+            cfg = scanreg.compose(["data=stanford", f"data.pair={pair}", "repair=none", "tracking=none",
+                                   "salience=uniform", f"descriptor={desc}"])
+            OmegaConf.resolve(cfg)
+            st = build_stages(cfg)
+            ctx = Context(seed=0, run_dir=Path(tempfile.gettempdir()))
+            ctx.stages = {k: st[k] for k in ("salience", "descriptor", "matcher")}
+            if variant == "histogram3p_before":
+                d = st["descriptor"]
+                d.compute = lambda cloud, kp, c, d=d: reference_histogram3p(d.p, cloud, kp, c.spacing)
+            inputs = st["data"].load(ctx)
+            tgt, src = st["sampler"].run(inputs.target, ctx), st["sampler"].run(inputs.source, ctx)
+            ctx.spacing = max(estimate_spacing(tgt.points, ctx.rng(1)), estimate_spacing(src.points, ctx.rng(2)))
+            t0 = time.perf_counter_ns()
+            T, m = st["coarse"].run(tgt, src, ctx)
+            rot, _ = transform_errors(T, inputs.T_gt)
+            rows.append({"pair": pair, "variant": variant, "time_coarse_s": (time.perf_counter_ns() - t0) / 1e9,
+                         "coarse_rotation_error_deg": rot, "keypoints": m["coarse_keypoints_target"]})
+    return rows
+
+
+def descriptor_table(pairs: list[str]) -> list[str]:
+    out, _, err = spawn(["--descriptors", ",".join(pairs)], timeout=1200)
+    if out is None:
+        return [f"descriptor comparison failed: {err}"]
+    lines = ["| descriptor (uniform keypoints) | coarse time [s] | ratio to fpfh | coarse rotation error [deg] |",
+             "|---|---|---|---|"]
+    med = {v: np.median([r["time_coarse_s"] for r in out if r["variant"] == v]) for v in
+           ("fpfh", "histogram3p", "histogram3p_before")}
+    for v in med:
+        lines.append(f"| {v} | {med_iqr([r['time_coarse_s'] for r in out if r['variant'] == v])} | "
+                     f"{med[v] / med['fpfh']:.2f} | "
+                     f"{med_iqr([r['coarse_rotation_error_deg'] for r in out if r['variant'] == v])} |")
+    return lines
+
+
 # ------------------------------------------------------------------------------------------------------ driver
 def spawn(args: list[str], timeout: float = 600) -> tuple[dict | None, float, str]:
     t0 = time.perf_counter_ns()
@@ -398,6 +452,8 @@ def main() -> None:
     ap.add_argument("--out", default=str(Path(__file__).with_suffix(".md")))
     ap.add_argument("--worker", nargs=2, metavar=("METHOD", "CASE"), help=argparse.SUPPRESS)
     ap.add_argument("--memory", nargs=3, metavar=("METHOD", "STAGE", "N"), help=argparse.SUPPRESS)
+    ap.add_argument("--descriptors", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--no-descriptors", action="store_true")
     a = ap.parse_args()
     extra = json.loads(a.extra) if a.extra else []
     if a.worker:
@@ -407,6 +463,9 @@ def main() -> None:
     if a.memory:
         print(json.dumps(worker_memory(a.memory[0], a.memory[1], int(a.memory[2]))))
         return
+    if a.descriptors:
+        print(json.dumps(worker_descriptors(a.descriptors.split(","))))
+        return
     from scanreg.config import shared_data_dir
 
     if not (shared_data_dir() / "stanford_bunny").is_dir():
@@ -414,7 +473,7 @@ def main() -> None:
     groups = a.only.split(",") if a.only else ["bunny", "3dmatch", "dental"]
     pairs, seeds = (PAIRS, (0, 1)) if a.all else (PAIRS[:a.pairs], (0,))
     cases = [{"group": "bunny", "pair": p, "seed": s} for s in seeds for p in pairs] if "bunny" in groups else []
-    cases += [{"group": "3dmatch", "seed": s} for s in (0, 1, 2)] if "3dmatch" in groups else []
+    cases += [{"group": "3dmatch", "seed": s} for s in range(6)] if "3dmatch" in groups else []
     cases += [{"group": "dental", "seed": s} for s in (0, 1)] if "dental" in groups else []
     t0 = time.time()
     rows = run_cases(cases, extra)
@@ -431,6 +490,12 @@ def main() -> None:
     if not a.no_memory:
         md += ["", f"Peak RSS at {a.points:,} points per scan (bun045 onto bun000), one subprocess per method and "
                "stage, `resource.getrusage` maximum RSS:", "", *memory_table(a.points)]
+    if not a.no_descriptors:
+        dt = descriptor_table(PAIRS[:4])
+        print("\n".join(dt), flush=True)
+        md += ["", "The paper's descriptor against FPFH in the default coarse stage (`salience=uniform`, the same "
+               "keypoints; 4 bunny pairs, one warm process, interleaved; `histogram3p_before`: the implementation "
+               "before issue #16):", "", *dt]
     if not a.no_startup:
         ov = overhead_table(16)
         print("\n".join(ov), flush=True)
