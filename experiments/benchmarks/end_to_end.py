@@ -315,7 +315,7 @@ def spawn(args: list[str], timeout: float = 600) -> tuple[dict | None, float, st
     r = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True, timeout=timeout,
                        cwd=ROOT)
     wall = (time.perf_counter_ns() - t0) / 1e9
-    lines = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
+    lines = [ln for ln in r.stdout.splitlines() if ln.startswith(("{", "["))]
     if r.returncode != 0 or not lines:
         err = (r.stderr.strip().splitlines() or ["?"])[-1]
         return None, wall, err
