@@ -155,11 +155,12 @@ class LoRansac:
         """Seed of the sampling; the same seed gives the same transform."""
         distances: Distances = Distances.spacing
         """Unit of ``distance_threshold``: multiples of the sampling spacing, or input units."""
-        fallback_voxel: Optional[float] = 4.0
+        fallback_voxel: Optional[float] = 2.0
         """When the configured keypoints fail (fewer than 3, fewer than 3 descriptor matches, or a best model
         with fewer than ``min_inliers`` inliers), try again once with uniform keypoints, one per voxel of this
-        edge (in sampling spacings, whatever ``distances`` says): denser and detector-free, they still match
-        where salient points are few or not repeatable (flat indoor scenes). Logged as ``coarse_fallback`` (0:
+        edge (in sampling spacings, whatever ``distances`` says; with ``voxel`` those of the downsampled clouds):
+        denser and detector-free, they still match where salient points are few or not repeatable (flat indoor
+        scenes). Logged as ``coarse_fallback`` (0:
         the configured keypoints served, 1: the uniform ones). null: no fallback, fail at once."""
         voxel: Optional[float] = 4.0
         """Run the whole coarse stage (keypoints, descriptors, matching, RANSAC) on the clouds voxel-downsampled to
