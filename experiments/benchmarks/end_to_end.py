@@ -257,7 +257,7 @@ def worker_memory(method: str, stage: str, n: int) -> dict:
 
 def worker_descriptors(pairs: list[str]) -> list[dict]:
     """The coarse stage (defaults, uniform keypoints) with ``fpfh``, ``histogram3p`` and histogram3p's
-    implementation before issue #16 (``tests/test_histogram3p.py``'s reference), interleaved per pair, in this
+    implementation before issue #16 (``tests/test_fast_paths.py``'s reference), interleaved per pair, in this
     one warm process; the same keypoints for all three."""
     import open3d  # noqa: F401
     from omegaconf import OmegaConf
@@ -268,7 +268,7 @@ def worker_descriptors(pairs: list[str]) -> list[dict]:
     from scanreg.runner import build_stages
 
     sys.path.insert(0, str(ROOT / "tests"))
-    from test_histogram3p import reference_histogram3p
+    from test_fast_paths import reference_histogram3p
 
     rows = []
     for pair in pairs:

@@ -1,5 +1,6 @@
-"""histogram3p's fast implementation (one batched product per plane, issue #16) against the straightforward one it
-replaced (a scatter of every vote, kept here verbatim as the reference): the same descriptors to 1e-12."""
+"""Fast paths of issue #16 against the straightforward code they replaced (kept here verbatim as references):
+histogram3p's votes (one bincount per block of keypoints) to 1e-12, and voxel_representatives (one int64 key
+per voxel, bincount sums) bit for bit."""
 
 import numpy as np
 import pytest
@@ -85,3 +86,31 @@ def test_histogram3p_equals_the_reference_without_normals(case):
     bare = Cloud(cloud.points)
     st = DESCRIPTOR.build({"name": "histogram3p", "radius": 10.0})
     assert np.abs(st.compute(bare, kp[:80], ctx) - reference_histogram3p(st.p, bare, kp[:80], ctx.spacing)).max() < 1e-12
+
+
+def reference_voxel_representatives(points: np.ndarray, voxel: float) -> np.ndarray:
+    """The implementation before issue #16 (np.unique over rows, np.add.at), unchanged."""
+    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inv, points)
+    centroids = sums / counts[:, None]
+    d = np.linalg.norm(points - centroids[inv], axis=1)
+    order = np.lexsort((d, inv))
+    first = np.ones(len(order), bool)
+    first[1:] = inv[order][1:] != inv[order][:-1]
+    return np.sort(order[first])
+
+
+@pytest.mark.parametrize("n, voxel", [(20000, 0.05), (3000, 0.7), (7, 10.0)])
+def test_voxel_representatives_equal_the_reference(n, voxel):
+    from scanreg.stages.salience import voxel_representatives
+
+    rng = np.random.default_rng(n)
+    pts = rng.normal(size=(n, 3)) * [1.0, 3.0, 0.2] + [5.0, -2.0, 0.0]
+    got, want = voxel_representatives(pts, voxel), reference_voxel_representatives(pts, voxel)
+    assert len(want) > (1 if n > 7 else 0) and np.array_equal(got, want)
+    # centroid ties broken the same way: a grid of duplicated points
+    grid = np.repeat(np.stack(np.meshgrid(*[np.arange(4.0)] * 3), -1).reshape(-1, 3), 2, axis=0)
+    assert np.array_equal(voxel_representatives(grid, 2.0), reference_voxel_representatives(grid, 2.0))
