@@ -78,7 +78,9 @@ def run_job(cfg: DictConfig) -> dict | None:
             params=flatten(resolved),
             tags={**choices, "scanreg.run_dir": str(run_dir), "scanreg.overrides": overrides,
                   "scanreg.git_commit": git_revision()},
-            background=True,  # MLflow's import and store open while the pipeline runs (tracking.BackgroundRunLog)
+            # a single run: MLflow's import and store open while the pipeline runs (tracking.BackgroundRunLog); a
+            # sweep's jobs log in their own process, which imports MLflow once for all its jobs
+            background=not multirun,
         )
     except Exception as e:  # noqa: BLE001: a bad tracking setup is reported like any other error
         _err(str(e) if isinstance(e, ScanregError) else f"tracking: {type(e).__name__}: {e}".splitlines()[0])
