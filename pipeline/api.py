@@ -163,7 +163,8 @@ def register(source: Any, target: Any, *, gt: Any = None, landmarks: Any = None,
         load_all()
         run = TRACKING.build(cfg.tracking).start_run(
             run_name="api " + " ".join(user)[:240], params=flatten(OmegaConf.to_container(cfg)),
-            tags={"scanreg.run_dir": str(run_dir), "scanreg.overrides": " ".join(user), "scanreg.api": "1"})
+            tags={"scanreg.run_dir": str(run_dir), "scanreg.overrides": " ".join(user), "scanreg.api": "1"},
+            background=True)  # MLflow's import and store open while the pipeline runs
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
     try:
         res = run_pipeline(cfg, run_dir)

@@ -30,15 +30,18 @@ def _err(msg: str) -> None:
     print(f"error: {msg}", file=sys.stderr, flush=True)
 
 
-def validate_config(cfg: DictConfig) -> dict:
-    """Build every stage of ``cfg`` and check the ``report`` block, without running anything: a bad name,
-    parameter or value fails here, before any work. Returns the built stages."""
+def validate_config(cfg: DictConfig, stages: bool = True) -> dict | None:
+    """Build every stage of ``cfg`` (unless ``stages`` is false: :func:`check_config` did) and check the
+    ``report`` block, without running anything: a bad name, parameter or value fails here, before any work.
+    Returns the built stages."""
     from scanreg.registry import make_params
-    from scanreg.report import ReportParams
     from scanreg.runner import build_stages
 
-    stages = build_stages(cfg)
-    if cfg.get("report") is not None:
+    stages = build_stages(cfg) if stages else None
+    if cfg.get("report") is not None and cfg.report.get("enabled"):
+        # only when a report will be written: scanreg.report imports pandas (about 1 s), which a run never uses
+        from scanreg.report import ReportParams
+
         make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
     return stages
 
@@ -75,6 +78,9 @@ def run_job(cfg: DictConfig) -> dict | None:
             params=flatten(resolved),
             tags={**choices, "scanreg.run_dir": str(run_dir), "scanreg.overrides": overrides,
                   "scanreg.git_commit": git_revision()},
+            # a single run: MLflow's import and store open while the pipeline runs (tracking.BackgroundRunLog); a
+            # sweep's jobs log in their own process, which imports MLflow once for all its jobs
+            background=not multirun,
         )
     except Exception as e:  # noqa: BLE001: a bad tracking setup is reported like any other error
         _err(str(e) if isinstance(e, ScanregError) else f"tracking: {type(e).__name__}: {e}".splitlines()[0])
@@ -87,7 +93,7 @@ def run_job(cfg: DictConfig) -> dict | None:
     try:
         if resolve_error:
             raise ScanregError(resolve_error)
-        validate_config(cfg)
+        validate_config(cfg, stages=multirun)  # a single run's stages were built by check_config above
         res = run_pipeline(cfg, run_dir)
     except KeyboardInterrupt:
         if run:
@@ -108,9 +114,12 @@ def run_job(cfg: DictConfig) -> dict | None:
             else:
                 reason += " (run with verbose=true for the traceback)"
         if run:
-            run.log_metrics(getattr(e, "metrics", {}) or {})
-            run.log_artifacts([run_dir / "config.yaml"])
-            run.end("FAILED", reason)
+            try:
+                run.log_metrics(getattr(e, "metrics", {}) or {})
+                run.log_artifacts([run_dir / "config.yaml"])
+                run.end("FAILED", reason)
+            except Exception as te:  # noqa: BLE001: the tracking failed too; the job's own error is the one
+                _err(_tracking_error(te))
         if getattr(e, "metrics", None):
             from scanreg.runner import repair_table
 
@@ -127,9 +136,16 @@ def run_job(cfg: DictConfig) -> dict | None:
         raise SystemExit(code)
 
     if run:
-        run.log_metrics(res.metrics, res.step_metrics)
-        run.log_artifacts([run_dir / "config.yaml", *res.artifacts])
-        run.end("FINISHED")
+        try:
+            run.log_metrics(res.metrics, res.step_metrics)
+            run.log_artifacts([run_dir / "config.yaml", *res.artifacts])
+            run.end("FINISHED")
+        except Exception as e:  # noqa: BLE001: a bad store, found by the background thread
+            _err(_tracking_error(e))
+            if multirun:
+                report_progress("FAILED", _tracking_error(e))
+                return _failed_objective(cfg)
+            raise SystemExit(EXIT_FAILED)
     where = f"results: {run_dir}" + (f"  (MLflow run {run.run_id})" if run else "")
     if multirun:  # one line per job on the console; the full table in the job's folder
         (run_dir / "summary.txt").write_text("\n".join([*summary_lines(res), "", where]) + "\n")
@@ -144,6 +160,10 @@ def run_job(cfg: DictConfig) -> dict | None:
             return float("inf")
         return float(res.metrics[objective])
     return res.to_json()
+
+
+def _tracking_error(e: BaseException) -> str:
+    return (str(e) if isinstance(e, ScanregError) else f"tracking: {type(e).__name__}: {e}").splitlines()[0]
 
 
 def check_config(cfg: DictConfig) -> None:

@@ -112,6 +112,116 @@ class RunLog:
         self.client.set_terminated(self.run_id, status)
 
 
+class BackgroundRunLog:
+    """A :class:`RunLog` kept by a helper process (``python -m scanreg.tracking``), so that importing MLflow (2-5 s:
+    it imports pandas, pyarrow, FastAPI...) and opening its store overlap the pipeline instead of preceding it. A
+    process, not a thread: two threads importing overlapping module trees can see each other's half-imported
+    modules. The helper creates the run at once (its start time the time of the request) and then does what it
+    is sent, in order, answering each request; every method here waits for the answer, and raises the helper's
+    error (a bad store) as a ``RuntimeError``. The helper ignores Ctrl-C, so that an interrupted run can still
+    be ended KILLED, and exits when this process closes its input."""
+
+    def __init__(self, start: dict):
+        import subprocess
+        import sys
+
+        self._proc = subprocess.Popen([sys.executable, "-m", "scanreg.tracking"], stdin=subprocess.PIPE,
+                                      stdout=subprocess.PIPE, text=True)
+        self._run_id: str | None = None
+        self._send({"op": "start", **start})
+
+    def _send(self, msg: dict) -> None:
+        try:
+            self._proc.stdin.write(json.dumps(msg) + "\n")
+            self._proc.stdin.flush()
+        except (BrokenPipeError, OSError):
+            pass  # the helper is gone: _reply says so
+
+    def _reply(self) -> dict:
+        while True:
+            line = self._proc.stdout.readline()
+            if not line:
+                raise RuntimeError(f"the MLflow logging process ended (exit {self._proc.wait()})")
+            if line.startswith(_REPLY):  # anything else a library printed is not an answer
+                r = json.loads(line[len(_REPLY):])
+                if "error" in r:
+                    raise RuntimeError(r["error"])
+                return r
+
+    def _call(self, op: str, **kw) -> dict:
+        self.run_id  # noqa: B018 (the start's answer comes first)
+        self._send({"op": op, **kw})
+        return self._reply()
+
+    @property
+    def run_id(self) -> str:
+        if self._run_id is None:
+            self._run_id = self._reply()["run_id"]
+        return self._run_id
+
+    def log_metrics(self, metrics: dict[str, float], step_metrics: dict[str, list[float]] | None = None) -> None:
+        self._call("metrics", metrics={k: float(v) for k, v in metrics.items() if isinstance(v, (int, float))},
+                   step_metrics={k: [float(x) for x in v] for k, v in (step_metrics or {}).items()})
+
+    def log_artifacts(self, paths: list[Path]) -> None:
+        self._call("artifacts", paths=[str(Path(p).resolve()) for p in paths])
+
+    def set_tags(self, tags: dict[str, str]) -> None:
+        self._call("tags", tags={k: str(v) for k, v in tags.items()})
+
+    def end(self, status: str, reason: str | None = None) -> None:
+        try:
+            self._call("end", status=status, reason=reason)
+        finally:
+            try:
+                self._proc.stdin.close()
+            except OSError:
+                pass
+            self._proc.wait(timeout=60)
+
+
+_REPLY = "@scanreg-tracking "
+"""Prefix of the helper process's answers on its standard output."""
+
+
+def _helper() -> None:
+    """The loop of ``python -m scanreg.tracking`` (see :class:`BackgroundRunLog`): JSON requests on standard input,
+    one answer each on standard output."""
+    import signal
+    import sys
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    log = None
+    for line in sys.stdin:
+        msg = json.loads(line)
+        try:
+            op = msg["op"]
+            if op == "start":
+                if msg.get("sweep"):
+                    os.environ[SWEEP_ENV] = json.dumps(msg["sweep"])
+                tr = MlflowTracking(MlflowTracking.Params(uri=msg["uri"], experiment=msg["experiment"]))
+                tr.uri = msg["resolved_uri"]
+                log = tr._start_run(msg["run_name"], msg["params"], msg["tags"], start_time=msg["start_time"])
+                reply = {"run_id": log.run_id}
+            elif op == "metrics":
+                log.log_metrics(msg["metrics"], msg["step_metrics"])
+                reply = {}
+            elif op == "artifacts":
+                log.log_artifacts([Path(p) for p in msg["paths"]])
+                reply = {}
+            elif op == "tags":
+                log.set_tags(msg["tags"])
+                reply = {}
+            elif op == "end":
+                log.end(msg["status"], msg.get("reason"))
+                reply = {}
+            else:
+                reply = {"error": f"unknown request {op!r}"}
+        except Exception as e:  # noqa: BLE001: the caller reports it
+            reply = {"error": f"{type(e).__name__}: {e}".splitlines()[0] if str(e) else type(e).__name__}
+        print(_REPLY + json.dumps(reply), flush=True)
+
+
 @TRACKING.register("none")
 class NoTracking:
     """Track nothing (results stay in the run directory)."""
@@ -175,7 +285,20 @@ class MlflowTracking:
                 raise
             return client, exp.experiment_id
 
-    def start_run(self, run_name: str, params: dict[str, str], tags: dict[str, str]) -> RunLog:
+    def start_run(self, run_name: str, params: dict[str, str], tags: dict[str, str],
+                  background: bool = False) -> RunLog | BackgroundRunLog:
+        """Create the run (with its params and tags) and return its log; ``background``: by a helper process (see
+        :class:`BackgroundRunLog`) unless MLflow is imported in this process already."""
+        import sys
+
+        if background and "mlflow" not in sys.modules:  # once imported here (a sweep's process), log here
+            return BackgroundRunLog({"uri": self.p.uri, "resolved_uri": self.uri, "experiment": self.p.experiment,
+                                     "sweep": sweep_info(), "run_name": run_name, "params": params, "tags": tags,
+                                     "start_time": int(time.time() * 1000)})
+        return self._start_run(run_name, params, tags)
+
+    def _start_run(self, run_name: str, params: dict[str, str], tags: dict[str, str],
+                   start_time: int | None = None) -> RunLog:
         sweep = sweep_info()
         # a sweep's jobs log where the launching process created the parent run, unless a job names another
         # store explicitly (workers of a cluster may not share the launching process's environment or cwd)
@@ -185,7 +308,7 @@ class MlflowTracking:
             tags = {**tags, "mlflow.parentRunId": sweep["parent_run_id"]}
         else:
             client, eid = self.prepare()
-        run = client.create_run(eid, run_name=run_name, tags=tags)
+        run = client.create_run(eid, run_name=run_name, tags=tags, start_time=start_time)
         log = RunLog(client, run.info.run_id)
         log.log_params(params)
         return log
@@ -343,3 +466,7 @@ def report_progress(status: str, what: str = "") -> None:
 def _hms(sec: float) -> str:
     sec = int(round(sec))
     return f"{sec // 3600}:{sec // 60 % 60:02d}:{sec % 60:02d}"
+
+
+if __name__ == "__main__":
+    _helper()

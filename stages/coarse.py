@@ -174,14 +174,32 @@ class LoRansac:
         """Seed of the sampling; the same seed gives the same transform."""
         distances: Distances = Distances.spacing
         """Unit of ``distance_threshold``: multiples of the sampling spacing, or input units."""
-        fallback_voxel: Optional[float] = 4.0
+        fallback_voxel: Optional[float] = 2.0
         """When the configured keypoints fail (fewer than 3, fewer than 3 descriptor matches, or a best model
         with fewer than ``min_inliers`` inliers), try again once with uniform keypoints, one per voxel of this
-        edge (in sampling spacings, whatever ``distances`` says): denser and detector-free, they still match
-        where salient points are few or not repeatable (flat indoor scenes). Logged as ``coarse_fallback`` (0:
+        edge (in sampling spacings, whatever ``distances`` says; with ``voxel`` those of the downsampled clouds):
+        denser and detector-free, they still match where salient points are few or not repeatable (flat indoor
+        scenes). Logged as ``coarse_fallback`` (0:
         the configured keypoints served, 1: the uniform ones). null: no fallback, fail at once."""
+        voxel: Optional[float] = 4.0
+        """Run the whole coarse stage (keypoints, descriptors, matching, RANSAC) on the clouds voxel-downsampled to
+        this edge, in sampling spacings of the full clouds (one point per voxel, the one nearest the voxel's
+        centroid); inside the stage the spacing is then the downsampled clouds' own (median nearest-neighbour
+        distance), so that every radius in spacings (salience, descriptor, ``distance_threshold``,
+        ``fallback_voxel``) scales with it, as Open3D's recipe scales its radii with its voxel. The fine stage
+        still sees every point. null: every sampled point."""
+        max_points: Optional[int] = 12000
+        """With ``voxel``: when a downsampled cloud still has more points than this (dense sampling, e.g.
+        ``sampler.n_points=1000000``), the voxel grows by sqrt(points / max_points) (a surface's count falls with
+        the square of the voxel), up to 3 times, so that the coarse stage's cost stays bounded as Open3D's recipe
+        bounds it with a voxel of 1 % of the diagonal. null: no bound. The default sampling (20 000 points) gives
+        about 6 500, below it."""
 
         def check(self):
+            if self.max_points is not None and self.max_points < 10:
+                raise ValueError(f"max_points must be >= 10 or null, got {self.max_points}")
+            if self.voxel is not None and not self.voxel > 0:
+                raise ValueError(f"voxel must be > 0 or null, got {self.voxel}")
             if self.fallback_voxel is not None and not self.fallback_voxel > 0:
                 raise ValueError(f"fallback_voxel must be > 0 or null, got {self.fallback_voxel}")
             if not 0 < self.miss_probability < 1:
@@ -196,7 +214,13 @@ class LoRansac:
 
     def run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
         with blas_single_thread():  # small products between OpenMP calls (Open3D, k-d trees): see its note
-            return self._run(target, source, ctx)
+            if self.p.voxel is None:
+                return self._run(target, source, ctx)
+            target, source, cctx = downsampled(target, source, ctx, self.p.voxel * ctx.spacing, self.p.max_points)
+            T, metrics = self._run(target, source, cctx)
+            metrics.update({"coarse_points_target": target.n_points, "coarse_points_source": source.n_points,
+                            "coarse_spacing": cctx.spacing})
+            return T, metrics
 
     def _run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
         try:
@@ -385,6 +409,30 @@ class LoRansac:
             if inliers(T).sum() >= best_inl.sum():  # the final fit may not lose the model's support
                 best_T, best_inl = T, inliers(T)
         return best_T, best_inl, drawn
+
+
+def downsampled(target: Cloud, source: Cloud, ctx: Context, voxel: float,
+                max_points: int | None = None) -> tuple[Cloud, Cloud, Context]:
+    """Both clouds voxel-downsampled (edge ``voxel``, input units; one point per voxel, the one nearest its
+    centroid; the voxel grown as :class:`LoRansac.Params` ``max_points`` says) and a copy of ``ctx`` whose
+    ``spacing`` is theirs (the larger median nearest-neighbour distance, as the runner measures the full
+    clouds' spacing)."""
+    from dataclasses import replace
+
+    from scanreg.metrics import estimate_spacing
+    from scanreg.stages.salience import voxel_representatives
+
+    for _ in range(4):
+        ti, si = voxel_representatives(target.points, voxel), voxel_representatives(source.points, voxel)
+        n = max(len(ti), len(si))
+        if max_points is None or n <= max_points:
+            break
+        voxel *= float(np.sqrt(n / max_points))
+    tgt, src = target.subset(ti), source.subset(si)
+    spacing = max(estimate_spacing(tgt.points, ctx.rng(1)), estimate_spacing(src.points, ctx.rng(2)))
+    if not spacing > 0:
+        spacing = ctx.spacing
+    return tgt, src, replace(ctx, spacing=spacing)
 
 
 def _padded_members(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

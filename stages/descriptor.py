@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,7 +69,7 @@ class FPFH:
 
 
 def local_frames(points: np.ndarray, normals: np.ndarray | None, keypoints: np.ndarray, radius: float,
-                 max_neighbors: int = 128) -> np.ndarray:
+                 max_neighbors: int = 128, neighbours: tuple | None = None) -> np.ndarray:
     """Local reference frames (K, 3, 3), rows x, y, z, from the eigenvectors of the point covariance of each
     keypoint's neighbours within ``radius``, weighted by (radius - distance) as in SHOT.
 
@@ -77,11 +78,22 @@ def local_frames(points: np.ndarray, normals: np.ndarray | None, keypoints: np.n
       has (oriented) normals, else along the weighted mean neighbour offset; x points along the weighted mean
       neighbour offset (a continuous variant of SHOT's majority rule, which flips on ties); y = z x x. Where
       l2 ~ l3 the x axis itself is ill-defined, and the frame cannot repeat exactly.
+
+    ``neighbours``: the keypoints' ``(indices, distances, valid)`` from
+    :func:`scanreg.stages.salience.neighbourhoods` with a radius of at least ``radius`` and at least
+    ``max_neighbors`` columns (nearest first), reused instead of a new search: its first ``max_neighbors``
+    columns closer than ``radius`` are the same neighbours.
     """
     from scanreg.stages.salience import neighbourhoods
 
     kp = points[keypoints]
-    j, d, valid = neighbourhoods(points, radius, max_neighbors, kp)
+    k = min(max_neighbors, len(points))
+    if neighbours is not None and neighbours[0].shape[1] >= k:
+        j, d, valid = (a[:, :k] for a in neighbours)
+        valid = valid & (d < radius)  # neighbourhoods' bound is strict too
+        j, d = np.where(valid, j, 0), np.where(valid, d, np.inf)
+    else:
+        j, d, valid = neighbourhoods(points, radius, max_neighbors, kp)
     w = np.where(valid, radius - np.minimum(d, radius), 0.0)
     X = points[j] - kp[:, None, :]
     C = np.einsum("nk,nki,nkj->nij", w, X, X) / np.maximum(w.sum(axis=1), 1e-300)[:, None, None]
@@ -138,36 +150,66 @@ class Histogram3P:
         R = to_abs(p.radius, u, s)
         pts = cloud.points
         nrm = cloud.normals if cloud.normals is not None else estimate_normals(pts)
-        frames = local_frames(pts, cloud.normals, keypoints, to_abs(p.frame_radius, u, s))
         j, d, valid = neighbourhoods(pts, R, p.max_neighbors, pts[keypoints])
+        fr = to_abs(p.frame_radius, u, s)
+        frames = local_frames(pts, cloud.normals, keypoints, fr, neighbours=(j, d, valid) if fr <= R else None)
         # inverse local density of every neighbour that votes
         used = np.unique(j[valid])
         _, _, vd = neighbourhoods(pts, to_abs(p.density_radius, u, s), 64, pts[used])
         dens = np.zeros(len(pts))
         dens[used] = vd.sum(axis=1)
         w = np.where(valid, (1.0 - np.minimum(d, R) / R) / np.maximum(dens[j], 1.0), 0.0)
-        L = np.einsum("nkj,nij->nki", pts[j] - pts[keypoints][:, None, :], frames)   # local coordinates
-        Ln = np.einsum("nkj,nij->nki", nrm[j], frames)                               # local normals
         n = len(keypoints)
-        hist = np.zeros(n * 216)
-        rows = np.repeat(np.arange(n), j.shape[1]).reshape(j.shape)
-        for plane, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
-            ua = (L[:, :, a] + R) / (2 * R / 3) - 0.5
-            ub = (L[:, :, b] + R) / (2 * R / 3) - 0.5
-            ang = np.arctan2(Ln[:, :, b], Ln[:, :, a])
-            uo = (ang + np.pi) / (2 * np.pi / 8) - 0.5
-            ia, ib, io = np.floor(ua).astype(int), np.floor(ub).astype(int), np.floor(uo).astype(int)
-            fa, fb, fo = ua - ia, ub - ib, uo - io
-            for da, wa in ((0, 1 - fa), (1, fa)):
-                for db, wb in ((0, 1 - fb), (1, fb)):
-                    ca, cb = ia + da, ib + db
-                    inside = valid & (ca >= 0) & (ca < 3) & (cb >= 0) & (cb < 3)
-                    for do, wo in ((0, 1 - fo), (1, fo)):
-                        co = (io + do) % 8
-                        wt = w * wa * wb * wo
-                        m = inside & (wt > 0)
-                        flat = (((rows[m] * 3 + plane) * 3 + ca[m]) * 3 + cb[m]) * 8 + co[m]
-                        hist += np.bincount(flat, weights=wt[m], minlength=n * 216)
-        out = hist.reshape(n, 216)
+        out = np.empty((n, 216))
+        # Every neighbour votes into 2 x 2 spatial x 2 orientation bins per plane with weight w * share_a *
+        # share_b * share_o (multiplied in that order); all votes of a block of keypoints go into one bincount
+        # (a share outside the grid is a vote of weight 0). In blocks of keypoints, to bound memory.
+        def block(r0):
+            rs = slice(r0, r0 + step)
+            jj, F = j[rs], frames[rs].transpose(0, 2, 1)
+            nb = len(jj)
+            L = np.matmul(pts[jj] - pts[keypoints[rs]][:, None, :], F)   # local coordinates
+            Ln = np.matmul(nrm[jj], F)                                 # local normals
+            spatial = [_two_bins((L[:, :, c] + R) / (2 * R / 3) - 0.5, 3, wrap=False) for c in range(3)]
+            wr = w[rs][..., None]
+            base = (np.arange(nb) * 216)[:, None, None, None, None]
+            idx = np.empty((3, nb, jj.shape[1], 2, 2, 2), np.int64)
+            wts = np.empty(idx.shape)
+            for plane, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
+                (ia, sa), (ib, sb) = spatial[a], spatial[b]
+                io, so = _two_bins((np.arctan2(Ln[:, :, b], Ln[:, :, a]) + np.pi) / (2 * np.pi / 8) - 0.5, 8,
+                                   wrap=True)
+                np.add(base + plane * 72 + ia[..., :, None, None] * 24 + ib[..., None, :, None] * 8,
+                       io[..., None, None, :], out=idx[plane])
+                np.multiply((wr * sa)[..., :, None, None] * sb[..., None, :, None], so[..., None, None, :],
+                            out=wts[plane])
+            out[rs] = np.bincount(idx.ravel(), wts.ravel(), minlength=nb * 216).reshape(nb, 216)
+
+        # blocks of keypoints, independent of each other, on every core (NumPy releases the GIL in these loops)
+        step = max(1, 2 ** 16 // max(j.shape[1], 1))
+        starts = range(0, n, step)
+        if len(starts) > 1 and (os.cpu_count() or 1) > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(min(os.cpu_count() or 1, len(starts))) as pool:
+                list(pool.map(block, starts))
+        else:
+            for r0 in starts:
+                block(r0)
         norm = np.linalg.norm(out, axis=1, keepdims=True)
         return out / np.where(norm > 0, norm, 1.0)
+
+
+def _two_bins(u: np.ndarray, nbins: int, wrap: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The two nearest bins (..., 2) of bin coordinates ``u`` (bin i centred at u = i) and their bilinear shares
+    (1 - f, f), f = u - floor(u); with ``wrap`` the bins close into a circle, else a share that falls outside
+    0..nbins-1 becomes 0 (into bin 0: dropped)."""
+    i = np.floor(u)
+    f = u - i
+    lo = i.astype(np.int64)
+    idx = np.stack([lo, lo + 1], axis=-1)
+    share = np.stack([1 - f, f], axis=-1)
+    if wrap:
+        return idx % nbins, share
+    outside = (idx < 0) | (idx >= nbins)
+    return np.where(outside, 0, idx), np.where(outside, 0.0, share)

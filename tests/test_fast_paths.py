@@ -1,0 +1,116 @@
+"""Fast paths of issue #16 against the straightforward code they replaced (kept here verbatim as references):
+histogram3p's votes (one bincount per block of keypoints) to 1e-12, and voxel_representatives (one int64 key
+per voxel, bincount sums) bit for bit."""
+
+import numpy as np
+import pytest
+
+from scanreg.config import Context, to_abs
+from scanreg.geometry import Cloud, barycentric_sample
+from scanreg.io import read_mesh
+from scanreg.metrics import estimate_spacing
+from scanreg.registry import DESCRIPTOR, SALIENCE, load_all
+
+load_all()
+
+
+def reference_histogram3p(p, cloud: Cloud, keypoints: np.ndarray, spacing: float) -> np.ndarray:
+    """The implementation before issue #16 (24 bincount scatters over every vote), unchanged."""
+    from scanreg.closest import estimate_normals
+    from scanreg.stages.descriptor import local_frames
+    from scanreg.stages.salience import neighbourhoods
+
+    u, s = p.distances, spacing
+    R = to_abs(p.radius, u, s)
+    pts = cloud.points
+    nrm = cloud.normals if cloud.normals is not None else estimate_normals(pts)
+    frames = local_frames(pts, cloud.normals, keypoints, to_abs(p.frame_radius, u, s))
+    j, d, valid = neighbourhoods(pts, R, p.max_neighbors, pts[keypoints])
+    used = np.unique(j[valid])
+    _, _, vd = neighbourhoods(pts, to_abs(p.density_radius, u, s), 64, pts[used])
+    dens = np.zeros(len(pts))
+    dens[used] = vd.sum(axis=1)
+    w = np.where(valid, (1.0 - np.minimum(d, R) / R) / np.maximum(dens[j], 1.0), 0.0)
+    L = np.einsum("nkj,nij->nki", pts[j] - pts[keypoints][:, None, :], frames)
+    Ln = np.einsum("nkj,nij->nki", nrm[j], frames)
+    n = len(keypoints)
+    hist = np.zeros(n * 216)
+    rows = np.repeat(np.arange(n), j.shape[1]).reshape(j.shape)
+    for plane, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
+        ua = (L[:, :, a] + R) / (2 * R / 3) - 0.5
+        ub = (L[:, :, b] + R) / (2 * R / 3) - 0.5
+        ang = np.arctan2(Ln[:, :, b], Ln[:, :, a])
+        uo = (ang + np.pi) / (2 * np.pi / 8) - 0.5
+        ia, ib, io = np.floor(ua).astype(int), np.floor(ub).astype(int), np.floor(uo).astype(int)
+        fa, fb, fo = ua - ia, ub - ib, uo - io
+        for da, wa in ((0, 1 - fa), (1, fa)):
+            for db, wb in ((0, 1 - fb), (1, fb)):
+                ca, cb = ia + da, ib + db
+                inside = valid & (ca >= 0) & (ca < 3) & (cb >= 0) & (cb < 3)
+                for do, wo in ((0, 1 - fo), (1, fo)):
+                    co = (io + do) % 8
+                    wt = w * wa * wb * wo
+                    m = inside & (wt > 0)
+                    flat = (((rows[m] * 3 + plane) * 3 + ca[m]) * 3 + cb[m]) * 8 + co[m]
+                    hist += np.bincount(flat, weights=wt[m], minlength=n * 216)
+    out = hist.reshape(n, 216)
+    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    return out / np.where(norm > 0, norm, 1.0)
+
+
+@pytest.fixture(scope="module")
+def case():
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    p, n, _ = barycentric_sample(m, 6000, np.random.default_rng(5))
+    cloud = Cloud(p, n)
+    sp = estimate_spacing(p, np.random.default_rng(0))
+    ctx = Context(seed=0, run_dir=".", spacing=sp)
+    kp = SALIENCE.build({"name": "uniform", "voxel": 6.0}).keypoints(cloud, ctx)
+    return cloud, kp, ctx
+
+
+@pytest.mark.parametrize("params", [{}, {"radius": 8.0, "max_neighbors": 64, "frame_radius": 5.0}])
+def test_histogram3p_equals_the_reference_implementation(case, params):
+    cloud, kp, ctx = case
+    st = DESCRIPTOR.build({"name": "histogram3p", **params})
+    got = st.compute(cloud, kp, ctx)
+    want = reference_histogram3p(st.p, cloud, kp, ctx.spacing)
+    assert len(kp) > 100 and got.shape == want.shape == (len(kp), 216)
+    assert np.count_nonzero(want) > 0.3 * want.size  # real histograms, not mostly empty ones
+    assert np.abs(got - want).max() < 1e-12
+
+
+def test_histogram3p_equals_the_reference_without_normals(case):
+    """Estimated normals (and frames oriented by the mean offset) take the same path in both."""
+    cloud, kp, ctx = case
+    bare = Cloud(cloud.points)
+    st = DESCRIPTOR.build({"name": "histogram3p", "radius": 10.0})
+    assert np.abs(st.compute(bare, kp[:80], ctx) - reference_histogram3p(st.p, bare, kp[:80], ctx.spacing)).max() < 1e-12
+
+
+def reference_voxel_representatives(points: np.ndarray, voxel: float) -> np.ndarray:
+    """The implementation before issue #16 (np.unique over rows, np.add.at), unchanged."""
+    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inv, points)
+    centroids = sums / counts[:, None]
+    d = np.linalg.norm(points - centroids[inv], axis=1)
+    order = np.lexsort((d, inv))
+    first = np.ones(len(order), bool)
+    first[1:] = inv[order][1:] != inv[order][:-1]
+    return np.sort(order[first])
+
+
+@pytest.mark.parametrize("n, voxel", [(20000, 0.05), (3000, 0.7), (7, 10.0)])
+def test_voxel_representatives_equal_the_reference(n, voxel):
+    from scanreg.stages.salience import voxel_representatives
+
+    rng = np.random.default_rng(n)
+    pts = rng.normal(size=(n, 3)) * [1.0, 3.0, 0.2] + [5.0, -2.0, 0.0]
+    got, want = voxel_representatives(pts, voxel), reference_voxel_representatives(pts, voxel)
+    assert len(want) > (1 if n > 7 else 0) and np.array_equal(got, want)
+    # centroid ties broken the same way: a grid of duplicated points
+    grid = np.repeat(np.stack(np.meshgrid(*[np.arange(4.0)] * 3), -1).reshape(-1, 3), 2, axis=0)
+    assert np.array_equal(voxel_representatives(grid, 2.0), reference_voxel_representatives(grid, 2.0))
