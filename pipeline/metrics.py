@@ -66,7 +66,9 @@ class EvalParams:
     """One-sided confidence (0..1) of the ``_sure_share`` above (0.95: z = 1.645)."""
     repeatability_distance: float = 2.0
     """epsilon of ``keypoint_repeatability`` (see ``distances``): a source keypoint, moved by the true transform,
-    is repeatable when a target keypoint lies within this distance (Tombari et al. 2013)."""
+    is repeatable when a target keypoint lies within this distance (Tombari et al. 2013). In spacings it counts
+    the spacing of the clouds the detector ran on: those of the coarse stage when it thins the clouds
+    (``coarse.voxel``), so that the tolerance follows the keypoints' own resolution."""
     overlap_distance: float = 3.0
     """A source point (or keypoint), moved by the true transform, is in the overlap when a sampled target point
     lies within this distance (see ``distances``); used by ``keypoint_repeatability`` and ``gt_rmse``."""
@@ -256,7 +258,8 @@ def field_metrics(trace: dict | None, T0: np.ndarray, T: np.ndarray, T_gt: np.nd
     kt, ks = trace.get("keypoints_target"), trace.get("keypoints_source")
     if kt is not None and ks is not None:
         out["n_keypoints_target"], out["n_keypoints_source"] = len(kt), len(ks)
-        rep = keypoint_repeatability(kt, ks, T_gt, to(p.repeatability_distance), to(p.overlap_distance), target_points)
+        eps = to_abs(p.repeatability_distance, p.distances, trace.get("spacing", spacing))  # the detector's spacing
+        rep = keypoint_repeatability(kt, ks, T_gt, eps, to(p.overlap_distance), target_points)
         out.update(rep.metrics())
         masks["repeatability"] = rep
     P0, P1 = trace.get("matches_target"), trace.get("matches_source")

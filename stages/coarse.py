@@ -217,7 +217,11 @@ class LoRansac:
             if self.p.voxel is None:
                 return self._run(target, source, ctx)
             target, source, cctx = downsampled(target, source, ctx, self.p.voxel * ctx.spacing, self.p.max_points)
-            T, metrics = self._run(target, source, cctx)
+            try:
+                T, metrics = self._run(target, source, cctx)
+            finally:
+                # keypoints and matches (positions) for the evaluation, with the spacing the detector saw
+                ctx.coarse_trace = None if cctx.coarse_trace is None else {**cctx.coarse_trace, "spacing": cctx.spacing}
             metrics.update({"coarse_points_target": target.n_points, "coarse_points_source": source.n_points,
                             "coarse_spacing": cctx.spacing})
             return T, metrics

@@ -115,6 +115,9 @@ def test_field_metrics_from_a_trace():
     # spacings: tolerances scale with the spacing (eps 0.1 spacings of 6 = 0.6: the 0.5-away keypoint counts)
     m, _ = field_metrics(trace, T_GT, T_GT, T_GT, KS, dense, p, spacing=6.0)
     assert m["keypoint_repeatability"] == pytest.approx(1.0)
+    # eps counts the spacing the detector ran on (the coarse stage's thinned clouds) when the trace names it
+    m, _ = field_metrics({**trace, "spacing": 6.0}, T_GT, T_GT, T_GT, KS, dense, p, spacing=1.0)
+    assert m["keypoint_repeatability"] == pytest.approx(1.0)
 
 
 def test_write_ply_edges_read_back_as_a_line_set(tmp_path):
