@@ -68,7 +68,14 @@ def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: in
     vertices. The mesh is returned unchanged when it has no sliver."""
     if not (min_angles_deg(mesh) < angle_deg).any():
         return mesh
-    ms = _meshset(mesh)
+    import pymeshlab
+
+    # each vertex and face carries its index in ``mesh`` as its quality through the collapse, so that the faces
+    # the collapse changed are known without comparing the meshes (see :func:`collapse_folds`)
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(mesh.vertices, mesh.faces.astype(np.int32),
+                               v_scalar_array=np.arange(len(mesh.vertices), dtype=np.float64),
+                               f_scalar_array=np.arange(len(mesh.faces), dtype=np.float64)))
     for _ in range(rounds):
         ms.meshing_remove_t_vertices(method="Edge Collapse", threshold=1.0 / np.tan(np.radians(angle_deg)),
                                      repeat=True)
@@ -78,6 +85,20 @@ def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: in
         out = Mesh(cm.vertex_matrix().astype(np.float64), cm.face_matrix().astype(np.int64), mesh.source)
         if not (min_angles_deg(out) < angle_deg).any():
             break
+    vid, fid = cm.vertex_scalar_array().astype(np.int64), cm.face_scalar_array().astype(np.int64)
+    if len(vid) == len(out.vertices) and len(fid) == len(out.faces):
+        # a face of ``out`` is unchanged when it is the input face it came from with the same vertices (indices
+        # mapped back to the input's, in any rotation), none of them moved by the collapse; a face whose vertex
+        # was joined to a coincident one counts as changed (its vertex's fan, hence the non-manifold count, did)
+        moved = (mesh.vertices[vid] != out.vertices).any(axis=1)
+        orig, was = vid[out.faces], mesh.faces[fid]
+        same = np.zeros(len(out.faces), bool)
+        for r in range(3):
+            same |= (orig == np.roll(was, r, axis=1)).all(axis=1)
+        same &= ~moved[out.faces].any(axis=1)
+        kept = np.zeros(len(mesh.faces), bool)
+        kept[fid[same]] = True
+        remember(out, "collapsed_from", ((mesh.vertices, mesh.faces), ~kept, ~same))
     return out
 
 
@@ -158,34 +179,12 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
     and would add the same count to each. Both are zeros when no face differs."""
     from scipy.spatial import cKDTree
 
-    def coords(m: Mesh) -> np.ndarray:  # each vertex's coordinates hashed into one int64
-        b = np.ascontiguousarray(m.vertices, dtype=np.float64).view(np.int64)
-        return b[:, 0] * np.int64(-7046029254386353131) + b[:, 1] * np.int64(-4658895280553007687) + b[:, 2]
-
-    cb, fb = coords(before), before.faces
-    ca, fa = coords(after), after.faces
-    # faces compared by their vertices' coordinates (vertex indices differ after a collapse), any corner order;
-    # vertices at the same coordinates (a backend's duplicates) told apart by their order, which the edit keeps
-    _, inv = np.unique(np.concatenate([cb, ca]), return_inverse=True)
-    inv = inv.ravel().astype(np.int64)
-
-    def ranked(ids: np.ndarray) -> np.ndarray:
-        order = np.argsort(ids, kind="stable")
-        s = ids[order]
-        start = np.r_[0, np.flatnonzero(s[1:] != s[:-1]) + 1]
-        rank = np.empty(len(ids), np.int64)
-        rank[order] = np.arange(len(ids)) - np.repeat(start, np.diff(np.r_[start, len(ids)]))
-        return ids * 4 + np.minimum(rank, 3)
-
-    vb, va = ranked(inv[:len(cb)]), ranked(inv[len(cb):])
-    n = int(max(vb.max(), va.max())) + 1
-
-    def face_keys(ids: np.ndarray) -> np.ndarray:
-        s = np.sort(ids, axis=1)
-        return (s[:, 0] * n + s[:, 1]) * n + s[:, 2]  # wraps around for huge meshes: a hash, collisions rare
-
-    kb, ka = face_keys(vb[fb]), face_keys(va[fa])
-    gone, new = ~np.isin(kb, ka), ~np.isin(ka, kb)
+    fb, fa = before.faces, after.faces
+    track = known(after, "collapsed_from")  # set by collapse_slivers: the faces it changed
+    if track is not None and track[0][0] is before.vertices and track[0][1] is before.faces:
+        gone, new = track[1], track[2]
+    else:
+        gone, new = _changed_faces(before, after)
     if not gone.any() and not new.any():
         return np.zeros(3, np.int64), np.zeros(3, np.int64)
 
@@ -226,6 +225,39 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
         return mask
 
     return fold_counts(submesh(before, near(xb, rb))), fold_counts(submesh(after, near(xa, ra)))
+
+
+def _changed_faces(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Masks of the faces of ``before`` that are not in ``after`` and of the faces of ``after`` that are not in
+    ``before``, faces compared by their vertices' coordinates."""
+    def coords(m: Mesh) -> np.ndarray:  # each vertex's coordinates hashed into one int64
+        b = np.ascontiguousarray(m.vertices, dtype=np.float64).view(np.int64)
+        return b[:, 0] * np.int64(-7046029254386353131) + b[:, 1] * np.int64(-4658895280553007687) + b[:, 2]
+
+    cb, fb = coords(before), before.faces
+    ca, fa = coords(after), after.faces
+    # faces compared by their vertices' coordinates (vertex indices differ after a collapse), any corner order;
+    # vertices at the same coordinates (a backend's duplicates) told apart by their order, which the edit keeps
+    _, inv = np.unique(np.concatenate([cb, ca]), return_inverse=True)
+    inv = inv.ravel().astype(np.int64)
+
+    def ranked(ids: np.ndarray) -> np.ndarray:
+        order = np.argsort(ids, kind="stable")
+        s = ids[order]
+        start = np.r_[0, np.flatnonzero(s[1:] != s[:-1]) + 1]
+        rank = np.empty(len(ids), np.int64)
+        rank[order] = np.arange(len(ids)) - np.repeat(start, np.diff(np.r_[start, len(ids)]))
+        return ids * 4 + np.minimum(rank, 3)
+
+    vb, va = ranked(inv[:len(cb)]), ranked(inv[len(cb):])
+    n = int(max(vb.max(), va.max())) + 1
+
+    def face_keys(ids: np.ndarray) -> np.ndarray:
+        s = np.sort(ids, axis=1)
+        return (s[:, 0] * n + s[:, 1]) * n + s[:, 2]  # wraps around for huge meshes: a hash, collisions rare
+
+    kb, ka = face_keys(vb[fb]), face_keys(va[fa])
+    return ~np.isin(kb, ka), ~np.isin(ka, kb)
 
 
 def non_manifold_vertices(mesh: Mesh) -> int:

@@ -184,3 +184,51 @@ def test_open_border_open_keeps_only_the_outer_border():
     a = strip(metrics)
     assert_clean(a, watertight=False)
     assert a["before_boundary_loops"] == 32 and a["after_boundary_loops"] == 1
+
+
+def _wavy_grid_with_hole(n: int = 40, hole: tuple[int, int] = (17, 23)):
+    """A wavy n x n grid (an open surface, border of 4n edges) without the cells hole[0]..hole[1] in both
+    directions (one interior hole of 4 (hole[1] - hole[0]) edges)."""
+    from scanreg.geometry import Mesh
+
+    x, y = np.meshgrid(np.arange(n + 1, dtype=float), np.arange(n + 1, dtype=float))
+    v = np.stack([x.ravel(), y.ravel(), 0.3 * np.sin(x.ravel() / 3) * np.cos(y.ravel() / 4)], 1)
+    f = []
+    for i in range(n):
+        for j in range(n):
+            if not (hole[0] <= i < hole[1] and hole[0] <= j < hole[1]):
+                a, b, c, d = i * (n + 1) + j, i * (n + 1) + j + 1, (i + 1) * (n + 1) + j + 1, (i + 1) * (n + 1) + j
+                f += [(a, b, c), (a, c, d)]
+    return Mesh(v, np.array(f))
+
+
+def test_meshlab_closes_holes_on_their_neighbourhood_as_on_the_whole_mesh():
+    """repair=meshlab closes holes on the submesh around them (MeshLab's refinement visits every face it is
+    given): the patched mesh has the very faces MeshLab makes on the whole mesh, and the submesh's cut stays
+    open (only the outer border of 160 edges is left)."""
+    import pymeshlab
+
+    from scanreg.geometry import Mesh
+    from scanreg.registry import load_all
+    from scanreg.topology import boundary_loop_sizes
+
+    load_all()
+    m = _wavy_grid_with_hole()
+    assert sorted(boundary_loop_sizes(m)) == [24, 160]
+    cls = REPAIR.get("meshlab")
+    stage = cls(make_params(cls.Params, {"max_hole_edges": 100}, "meshlab"))
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(m.vertices, m.faces.astype(np.int32)))
+    stage._close(ms, prevent=True)
+    ref = pymeshlab.MeshSet()
+    ref.add_mesh(pymeshlab.Mesh(m.vertices, m.faces.astype(np.int32)))
+    ref.meshing_close_holes(maxholesize=100, selfintersection=True, refinehole=True)  # edge length 3 % of diag
+
+    def faces(cm):  # each face as its sorted corners: the same faces whatever the order
+        t = cm.vertex_matrix()[cm.face_matrix()]
+        return sorted(tuple(sorted(map(tuple, np.round(x, 12)))) for x in t)
+
+    local, whole = ms.current_mesh(), ref.current_mesh()
+    assert local.face_number() > len(m.faces)  # patched
+    assert faces(local) == faces(whole)
+    assert list(boundary_loop_sizes(Mesh(local.vertex_matrix(), local.face_matrix()))) == [160]

@@ -77,3 +77,20 @@ def test_sliver_sphere_still_registers(backend, tmp_path):
                            overrides=[f"repair={backend}", "coarse=none"], run_dir=tmp_path / "run")
     assert res.metrics["repair_after_sliver_faces"] == 0
     assert transform_errors(res.T_target_source, T)[0] < 0.5, res.metrics
+
+
+def test_collapse_tracks_the_faces_it_changed():
+    """collapse_slivers records which faces it changed (through MeshLab's quality arrays), for collapse_folds:
+    the same faces as comparing the two meshes' coordinates finds on the sliver sphere, and collapse_folds gives
+    the same counts either way."""
+    from scanreg.topology import _changed_faces, collapse_folds, known
+
+    _, sl = sliver_sphere()
+    out = collapse_slivers(sl)
+    tracked = known(out, "collapsed_from")
+    assert tracked is not None and tracked[0][0] is sl.vertices
+    gone, new = _changed_faces(sl, out)
+    assert gone.sum() >= 16 and (tracked[1] == gone).all() and (tracked[2] == new).all()
+    untracked = Mesh(out.vertices, out.faces)  # the same arrays, nothing remembered
+    for a, b in zip(collapse_folds(sl, out), collapse_folds(sl, untracked)):
+        assert (a == b).all()

@@ -8,7 +8,7 @@ import numpy as np
 
 from scanreg.config import Context
 from scanreg.errors import StageError
-from scanreg.geometry import Mesh, submesh
+from scanreg.geometry import Mesh, submesh, triangle_areas_normals
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
 from scanreg.topology import _face_components, _meshset, large_components, mesh_stats, remember
@@ -119,7 +119,8 @@ class MeshFix(AuditedRepair):
             tin.load_array(cm.vertex_matrix(), cm.face_matrix().astype(np.int32))
             tin.fill_small_boundaries(nbe=self.p.max_hole_edges, refine=self.p.refine)
             v, f = (np.asarray(a) for a in tin.return_arrays())
-        if mesh_stats(Mesh(v, f))["degenerate_faces"]:
+        repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
+        if (repeated | (triangle_areas_normals(Mesh(v, f))[0] <= 0)).any():  # mesh_stats' degenerate faces
             tin = pymeshfix.PyTMesh()
             tin.set_quiet(True)
             tin.load_array(v, f.astype(np.int32))

@@ -11,7 +11,7 @@ from scanreg.errors import StageError
 from scanreg.geometry import Mesh, submesh
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
-from scanreg.topology import _meshset, boundary_loop_sizes, large_components, mesh_stats
+from scanreg.topology import _meshset, boundary_edges, large_components, mesh_stats
 
 
 @REPAIR.register("meshlab")
@@ -75,21 +75,56 @@ class MeshLab(AuditedRepair):
                 ms.add_mesh(pymeshlab.Mesh(small.vertices, small.faces.astype(np.int32)))
 
     def _close(self, ms, prevent: bool) -> None:
+        """Close the holes within ``max_hole_edges`` (MeshLab's hole closing, ``selfintersection=prevent``), on
+        the neighbourhood of those holes only: MeshLab's refinement visits every face of the mesh it is given
+        (about 9 s per call on a 100k-face mesh whatever the holes), so the holes are closed in the submesh of
+        the faces whose bounding boxes overlap a hole's (grown by its size and three of its faces' longest
+        edges: every face a patch can touch, which the intersection check needs), with only the holes' own
+        faces selected (so that the submesh's cut is not closed), the refinement's edge length taken from the
+        whole mesh; the patched submesh then replaces those faces."""
         import pymeshlab
 
         cm = ms.current_mesh()
         if cm.face_number() == 0:
             return
-        # MeshLab's hole closing costs seconds on a large mesh even with nothing to close (its refinement
-        # visits the whole mesh): skip it when no boundary loop is within the limit
-        loops = boundary_loop_sizes(Mesh(cm.vertex_matrix(), cm.face_matrix()))
-        if not (loops <= (self.p.max_hole_edges or 10**9)).any():
+        mesh = Mesh(cm.vertex_matrix(), cm.face_matrix().astype(np.int64))
+        loop, bf = _hole_loops(mesh)
+        if not len(loop):
             return
+        sizes = np.bincount(loop)
+        chosen = np.flatnonzero(sizes <= (self.p.max_hole_edges or 10**9))
+        if not len(chosen):
+            return  # nothing within the limit: MeshLab's pass would cost seconds for nothing
+        region = _hole_region(mesh, loop, bf, chosen)
+        sub_idx = np.flatnonzero(region)
+        sub = submesh(mesh, region)
+        # the faces on the chosen holes, in the submesh's face order
+        on_hole = np.zeros(len(mesh.faces), bool)
+        on_hole[bf[np.isin(loop, chosen)]] = True
+        sel = on_hole[sub_idx]
+        m = pymeshlab.Mesh(sub.vertices, sub.faces.astype(np.int32), f_scalar_array=sel.astype(np.float64))
+        local = pymeshlab.MeshSet()
+        local.add_mesh(m)
+        local.compute_selection_by_condition_per_face(condselect="fq > 0.5")
+        diag = float(np.linalg.norm(mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)))
         try:
-            ms.meshing_close_holes(maxholesize=self.p.max_hole_edges or 10**9, selfintersection=prevent,
-                                   refinehole=self.p.refine_holes)
+            local.meshing_close_holes(maxholesize=self.p.max_hole_edges or 10**9, selected=True,
+                                      selfintersection=prevent, refinehole=self.p.refine_holes,
+                                      refineholeedgelen=pymeshlab.PureValue(0.03 * diag))
         except pymeshlab.PyMeshLabException:
-            pass  # MeshLab refuses some holes; what stays open is reported by the audit
+            return  # MeshLab refuses some holes; what stays open is reported by the audit
+        lm = local.current_mesh()
+        lv, lf = lm.vertex_matrix(), lm.face_matrix().astype(np.int64)
+        n_sub = len(sub.vertices)
+        if len(lv) < n_sub or not np.array_equal(lv[:n_sub], sub.vertices):
+            raise StageError("repair=meshlab: MeshLab's hole closing reordered the vertices")  # never seen
+        # the submesh's vertices back to the whole mesh's, new ones appended
+        used = np.unique(mesh.faces[region])
+        vmap = np.concatenate([used, len(mesh.vertices) + np.arange(len(lv) - n_sub)])
+        v = np.vstack([mesh.vertices, lv[n_sub:]])
+        f = np.vstack([mesh.faces[~region], vmap[lf]])
+        ms.clear()
+        ms.add_mesh(pymeshlab.Mesh(v, f.astype(np.int32)))
 
     def run(self, mesh: Mesh, ctx: Context) -> Mesh:
         import pymeshlab
@@ -138,3 +173,32 @@ class MeshLab(AuditedRepair):
         if p.orient and "volume" in (s := mesh_stats(out)) and s["volume"] < 0:
             out = Mesh(out.vertices, out.faces[:, ::-1].copy(), out.source)  # outward normals
         return out
+
+
+def _hole_loops(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The boundary loop of each boundary edge (labels from 0) and the face on that edge."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    bnd, bf = boundary_edges(mesh, with_faces=True)
+    if not len(bnd):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    bv, binv = np.unique(bnd, return_inverse=True)
+    binv = binv.reshape(-1, 2)
+    g = coo_matrix((np.ones(len(bnd)), (binv[:, 0], binv[:, 1])), shape=(len(bv), len(bv)))
+    return connected_components(g, directed=False)[1][binv[:, 0]], bf
+
+
+def _hole_region(mesh: Mesh, loop: np.ndarray, bf: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """Mask of the faces whose bounding boxes overlap the box of a chosen hole's faces grown by two median edge
+    lengths: a hole's patch lies within its loop's box (MeshLab's ear cutting joins the loop's vertices, its
+    refinement splits the new edges), so these are the faces it can touch, the hole's neighbours with them."""
+    P = mesh.vertices[mesh.faces]
+    lo, hi = P.min(axis=1), P.max(axis=1)
+    grow = 2 * float(np.median(np.sqrt(((P[:, 1] - P[:, 0]) ** 2).sum(-1))))
+    region = np.zeros(len(P), bool)
+    for k in chosen:
+        faces = bf[loop == k]
+        blo, bhi = lo[faces].min(axis=0) - grow, hi[faces].max(axis=0) + grow
+        region |= ((lo <= bhi) & (hi >= blo)).all(axis=1)
+    return region
