@@ -114,3 +114,23 @@ def test_voxel_representatives_equal_the_reference(n, voxel):
     # centroid ties broken the same way: a grid of duplicated points
     grid = np.repeat(np.stack(np.meshgrid(*[np.arange(4.0)] * 3), -1).reshape(-1, 3), 2, axis=0)
     assert np.array_equal(voxel_representatives(grid, 2.0), reference_voxel_representatives(grid, 2.0))
+
+
+def test_coarse_thinning_keeps_min_points_and_caps_max_points():
+    """The coarse stage's voxel thinning (stages/coarse.py ``downsampled``): a sparse pair is left as it is, the
+    thinner cloud keeps at least ``min_points`` (the voxel shrinks), and ``max_points`` bounds a dense one."""
+    from scanreg.stages.coarse import downsampled
+
+    m = read_mesh("pkg:pymeshlab/tests/sample_meshes/bunny.obj")
+    dense, sparse = (Cloud(*barycentric_sample(m, n, np.random.default_rng(n))[:2]) for n in (40_000, 3_000))
+    ctx = Context(seed=0, run_dir=None)
+    ctx.spacing = estimate_spacing(dense.points, np.random.default_rng(0))
+    t, s, c = downsampled(dense, sparse, ctx, 4 * ctx.spacing, 12000, 3000)
+    assert t is dense and s is sparse and c is ctx  # 3 000 points: not thinned at all
+    t, s, c = downsampled(dense, dense, ctx, 4 * ctx.spacing, None, None)
+    n4 = t.n_points
+    assert n4 < dense.n_points // 2 and c.spacing > ctx.spacing  # the plain 4-spacing voxel
+    t, s, c = downsampled(dense, dense, ctx, 4 * ctx.spacing, None, 20000)
+    assert min(t.n_points, s.n_points) >= 0.8 * 20000 and t.n_points > n4  # shrunk towards min_points
+    t, s, c = downsampled(dense, dense, ctx, ctx.spacing, 5000, None)
+    assert max(t.n_points, s.n_points) <= 1.25 * 5000  # grown towards max_points
