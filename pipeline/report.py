@@ -268,6 +268,36 @@ def group_labels(df: pd.DataFrame, group_by: list[str]) -> pd.Series:
                      dtype=object)
 
 
+def save_figure(fig, path: Path) -> Path:
+    """Lay out, write (110 dpi) and close a report figure; returns ``path``."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+    return path
+
+
+def success_stats(d: pd.DataFrame) -> dict:
+    """A group of runs' successes: ``successes``, ``success_rate`` and its Wilson interval (``success_lo``,
+    ``success_hi``); a run that failed (not FINISHED) counts as a failure."""
+    ok = d[d["status"] == "FINISHED"]
+    k = int((ok.get("metrics.success", pd.Series(dtype=float)).fillna(0) > 0.5).sum())
+    lo, hi = wilson_interval(k, len(d))
+    return {"successes": k, "success_rate": k / len(d), "success_lo": lo, "success_hi": hi}
+
+
+def median_stats(ok: pd.DataFrame, metrics, how: str) -> dict:
+    """The median ``M_median`` of each metric ``M`` logged by the finished runs ``ok``, with its interval
+    ``M_lo``, ``M_hi`` (``how``: see :func:`interval`); a metric no run logged is left out."""
+    row = {}
+    for m in metrics:
+        c = f"metrics.{m}"
+        if c in ok and ok[c].notna().any():
+            v = ok[c].dropna().values
+            row[f"{m}_median"] = float(np.median(v))
+            row[f"{m}_lo"], row[f"{m}_hi"] = interval(v, how)
+    return row
+
+
 def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = (), how: str = "bootstrap") -> pd.DataFrame:
     """One row per group: runs, failed, success rate with its Wilson interval (``success_lo``, ``success_hi``),
     error quantiles, median stage times (and the median of each ``extra`` metric); every median ``M_median``
@@ -284,11 +314,8 @@ def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = (), how:
         row = dict(zip(group_by, key))
         row["runs"] = len(g)
         row["failed"] = int((g["status"] != "FINISHED").sum())
-        if "metrics.success" in g and ok["metrics.success"].notna().any():
-            k = float((ok["metrics.success"].fillna(0) > 0.5).sum())
-            row["successes"] = int(k)
-            row["success_rate"] = k / len(g)
-            row["success_lo"], row["success_hi"] = wilson_interval(k, len(g))
+        if "metrics.success" in g:  # runs with ground truth; a group whose runs all failed has 0 successes
+            row.update(success_stats(g))
         for m, agg in [*AGG_METRICS, *[(e, "median") for e in extra if (e, "median") not in AGG_METRICS]]:
             c = f"metrics.{m}"
             if c in ok and ok[c].notna().any():
@@ -383,18 +410,8 @@ def bin_table(df: pd.DataFrame, group_by: list[str], bin_by: str, edges: list[fl
             d = work[(work["_bin"] == b) & (work["_grp"] == g)]
             if d.empty:
                 continue
-            ok = d[d["status"] == "FINISHED"]
-            k = int((ok.get("metrics.success", pd.Series(dtype=float)).fillna(0) > 0.5).sum())
-            lo, hi = wilson_interval(k, len(d))
-            row = {bin_by: b, "group": g, "runs": len(d), "successes": k, "success_rate": k / len(d),
-                   "success_lo": lo, "success_hi": hi}
-            for m in metrics:
-                c = f"metrics.{m}"
-                if c in ok and ok[c].notna().any():
-                    x = ok[c].dropna().values
-                    row[f"{m}_median"] = float(np.median(x))
-                    row[f"{m}_lo"], row[f"{m}_hi"] = interval(x, how)
-            rows.append(row)
+            rows.append({bin_by: b, "group": g, "runs": len(d), **success_stats(d),
+                         **median_stats(d[d["status"] == "FINISHED"], metrics, how)})
     return pd.DataFrame(rows)
 
 
@@ -524,10 +541,7 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
         ax.set_ylabel("success [%]")
         ax.set_ylim(0, 100)
         ax.set_title("success rate (rotation and translation\nerror within the thresholds)", fontsize=9)
-        fig.tight_layout()
-        paths.append(out / "success.png")
-        fig.savefig(paths[-1], dpi=110)
-        plt.close(fig)
+        paths.append(save_figure(fig, out / "success.png"))
 
     if x and "metrics.rotation_error_deg" in ok:
         xc = column_for(x, ok)
@@ -560,10 +574,7 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
                 ax.set_xticks(xs, [canonical(v) for v in xs], fontsize=7)
                 ax.xaxis.set_minor_locator(NullLocator())  # x only: a log y axis within a decade needs its minor labels
                 ax.legend(fontsize=7, title=" / ".join(others) or None, title_fontsize=7)
-            fig.tight_layout()
-            paths.append(out / f"error_time_vs_{_slug(x)}.png")
-            fig.savefig(paths[-1], dpi=110)
-            plt.close(fig)
+            paths.append(save_figure(fig, out / f"error_time_vs_{_slug(x)}.png"))
     elif "metrics.rotation_error_deg" in ok and len(ok):  # error distribution and stage times per method
         names = list(dict.fromkeys(labels))
         fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
@@ -585,10 +596,7 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
         axes[1].set_ylabel("median time per stage [s]")
         if bottom.any():  # no stage times logged: no legend to draw
             axes[1].legend(fontsize=7)
-        fig.tight_layout()
-        paths.append(out / "errors_times.png")
-        fig.savefig(paths[-1], dpi=110)
-        plt.close(fig)
+        paths.append(save_figure(fig, out / "errors_times.png"))
 
     if per_t is not None and not per_t.empty:
         fig, ax = plt.subplots(figsize=(max(4.0, 0.9 * per_t.shape[1] + 3), max(3.0, 0.22 * len(per_t) + 1.2)))
@@ -598,10 +606,7 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
                       ha="right" if per_t.shape[1] > 3 else "center", fontsize=7)
         ax.set_ylabel(per_t.index.name)
         fig.colorbar(im, ax=ax, label="success [%]")
-        fig.tight_layout()
-        paths.append(out / f"success_per_{_slug(per_t.index.name)}.png")
-        fig.savefig(paths[-1], dpi=110)
-        plt.close(fig)
+        paths.append(save_figure(fig, out / f"success_per_{_slug(per_t.index.name)}.png"))
     return paths
 
 
@@ -624,11 +629,7 @@ def plot_bins(bt: pd.DataFrame, bin_by: str, out: Path) -> Path:
     ax.set_ylabel("success [%] (Wilson 95 %)")
     ax.set_ylim(0, 105)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = out / f"success_by_{_slug(bin_by)}.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / f"success_by_{_slug(bin_by)}.png")
 
 
 def curve_table(df: pd.DataFrame, group_by: list[str], x: str, curves: list[str], how: str) -> pd.DataFrame:
@@ -641,17 +642,8 @@ def curve_table(df: pd.DataFrame, group_by: list[str], x: str, curves: list[str]
     work["_g"] = group_labels(work, others)
     rows = []
     for (g, xv), d in work.dropna(subset=["_x"]).groupby(["_g", "_x"], sort=True):
-        ok = d[d["status"] == "FINISHED"]
-        row = {"group": g, x: xv, "runs": len(d)}
-        for m in curves:
-            if m == "success":
-                k = int((ok.get("metrics.success", pd.Series(dtype=float)).fillna(0) > 0.5).sum())
-                row["successes"], row["success_rate"] = k, k / len(d)
-                row["success_lo"], row["success_hi"] = wilson_interval(k, len(d))
-            elif f"metrics.{m}" in ok and ok[f"metrics.{m}"].notna().any():
-                v = ok[f"metrics.{m}"].dropna().values
-                row[f"{m}_median"] = float(np.median(v))
-                row[f"{m}_lo"], row[f"{m}_hi"] = interval(v, how)
+        row = {"group": g, x: xv, "runs": len(d), **(success_stats(d) if "success" in curves else {}),
+               **median_stats(d[d["status"] == "FINISHED"], [m for m in curves if m != "success"], how)}
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -678,11 +670,7 @@ def plot_curves(ct: pd.DataFrame, x: str, curves: list[str], out: Path, how: str
                       fontsize=8)
         ax.set_xticks(sorted(ct[x].unique()), [canonical(v) for v in sorted(ct[x].unique())], fontsize=7)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = out / f"robustness_vs_{_slug(x)}.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / f"robustness_vs_{_slug(x)}.png")
 
 
 def curve_display(ct: pd.DataFrame, x: str, curves: list[str]) -> pd.DataFrame:

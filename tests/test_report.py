@@ -204,3 +204,14 @@ def test_report_cells_have_intervals_and_bins(tmp_path, figures):
     iq = write_report(df, ReportParams(enabled=True, group_by=["group.method"], interval="iqr"), tmp_path / "i")
     assert iq["table"].set_index("_label").loc["a", "rotation_error_deg_lo"] == pytest.approx(0.175)
     assert "interquartile range" in (tmp_path / "i" / "report.md").read_text()
+
+
+def test_a_group_whose_runs_all_failed_has_zero_successes():
+    """A failed run counts as a failure, also when every run of a group failed (it logged no success)."""
+    import pandas as pd
+
+    df = pd.DataFrame({"params.k": ["a", "a", "b", "b"], "status": ["FINISHED", "FAILED", "FAILED", "FAILED"],
+                       "metrics.success": [1.0, None, None, None]})
+    t = summarize(df, ["k"]).set_index("k")
+    assert t.loc["a", "successes"] == 1 and t.loc["a", "success_rate"] == 0.5
+    assert t.loc["b", "successes"] == 0 and t.loc["b", "success_rate"] == 0.0 and t.loc["b", "success_hi"] > 0
