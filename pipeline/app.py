@@ -94,7 +94,7 @@ def run_job(cfg: DictConfig) -> dict | None:
         if resolve_error:
             raise ScanregError(resolve_error)
         validate_config(cfg, stages=multirun)  # a single run's stages were built by check_config above
-        res = run_pipeline(cfg, run_dir)
+        res = run_pipeline(cfg, run_dir, in_sweep=multirun)
     except KeyboardInterrupt:
         if run:
             run.end("KILLED", "interrupted")

@@ -79,7 +79,9 @@ def build_stages(cfg: DictConfig) -> dict:
     return stages
 
 
-def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
+def run_pipeline(cfg: DictConfig, run_dir: Path, in_sweep: bool = False) -> Result:
+    """Run every stage of ``cfg`` into ``run_dir``; ``in_sweep``: the run is a job of a multirun sweep (the
+    caller knows; ``repair.cache: auto`` caches repaired meshes only then)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     res = Result()
     m = res.metrics
@@ -98,12 +100,11 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
     with timer("repair"):
         if cfg.repair.name != "none":
             apply_to = getattr(st["repair"].p, "apply_to", "both")
-            sweep = _in_sweep()  # repair.cache=auto: the repaired meshes are cached in -m sweeps
             for role, g in geoms.items():
                 if isinstance(g, Mesh) and apply_to in (role, "both"):
                     try:
                         geoms[role], rm = st["repair"].repair(g, ctx, "repair_" if role == "source"
-                                                              else "target_repair_", sweep=sweep)
+                                                              else "target_repair_", sweep=in_sweep)
                     except ScanregError as e:
                         e.metrics = {**m, **e.metrics}
                         raise
@@ -198,17 +199,6 @@ def run_pipeline(cfg: DictConfig, run_dir: Path) -> Result:
     res.artifacts = (dev_paths if ev.deviation_map or ev.view_html else []) + kp_paths + write_outputs(run_dir, res, transform_geometry(T, src), tgt if inputs.T_gt is not None and
                                   cfg.data.name != "files" else None)
     return res
-
-
-def _in_sweep() -> bool:
-    """True inside a job of a Hydra multirun sweep (``-m``; any launcher)."""
-    try:
-        from hydra.core.hydra_config import HydraConfig
-        from hydra.types import RunMode
-
-        return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-    except Exception:  # noqa: BLE001: no Hydra context (the Python API): not a sweep
-        return False
 
 
 def pose_uncertainty(icp, src: Cloud, T: np.ndarray, aligned: np.ndarray, on_points, on_surface, mesh_target: bool,

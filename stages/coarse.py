@@ -230,8 +230,7 @@ class LoRansac:
             try:
                 T, metrics = self._run(target, source, cctx)
             finally:
-                # keypoints and matches (positions) for the evaluation, with the spacing the detector saw
-                ctx.coarse_trace = None if cctx.coarse_trace is None else {**cctx.coarse_trace, "spacing": cctx.spacing}
+                ctx.coarse_trace = cctx.coarse_trace  # what the evaluation needs, in the thinned clouds' spacing
             metrics.update({"coarse_points_target": target.n_points, "coarse_points_source": source.n_points,
                             "coarse_spacing": cctx.spacing})
             return T, metrics
@@ -273,7 +272,8 @@ class LoRansac:
         N1 = None if source.normals is None else source.normals[ks[pairs[:, 1]]]
         T, inl, iters = self.estimate(P0, P1, N0, N1, to_abs(self.p.distance_threshold, self.p.distances, ctx.spacing))
         ctx.coarse_trace = {"keypoints_target": target.points[kt], "keypoints_source": source.points[ks],
-                            "matches_target": P0, "matches_source": P1, "ransac_inliers": inl}  # for the evaluation
+                            "matches_target": P0, "matches_source": P1, "ransac_inliers": inl,
+                            "spacing": ctx.spacing}  # for the evaluation: positions and the detector's spacing
         metrics.update({"coarse_ransac_iterations": iters, "coarse_inliers": int(inl.sum()),
                         "coarse_inlier_ratio": float(inl.mean())})
         if inl.sum() < self.p.min_inliers:
