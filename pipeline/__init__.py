@@ -14,6 +14,10 @@ the app (``app``, ``api``, ``report``, ``tracking``) > the runner (``runner``, `
 ``closest``, ``topology``, ``shell``).
 """
 
+from scanreg import _o3d_lazy
+
+_o3d_lazy.install()  # Open3D's plotly/dash viewer imported on first use, not by every scanreg process
+
 __all__ = ["Result", "build_stage", "compose", "register"]
 
 

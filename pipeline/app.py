@@ -306,6 +306,12 @@ def precheck(argv: list[str]) -> tuple[str, DictConfig | None] | None:
 
     Returns ``(message, config composed without the offending override or None)``, or None when all is well.
     """
+    problem, _ = compose_checked(argv)
+    return problem
+
+
+def compose_checked(argv: list[str]) -> tuple[tuple[str, DictConfig | None] | None, DictConfig | None]:
+    """:func:`precheck`'s work: ``(problem, config)``, the config as composed when there is no problem."""
     import re
 
     from hydra.errors import HydraException
@@ -315,7 +321,7 @@ def precheck(argv: list[str]) -> tuple[str, DictConfig | None] | None:
     try:
         name, overrides, dirs = _task_overrides(argv)
     except HydraException as e:
-        return f"bad override: {str(e).splitlines()[0]}", None
+        return (f"bad override: {str(e).splitlines()[0]}", None), None
     msg = check_group_overrides(argv, dirs)
 
     def try_compose(ovs):
@@ -326,15 +332,15 @@ def precheck(argv: list[str]) -> tuple[str, DictConfig | None] | None:
 
     if msg:
         bad = [o for o in overrides if o.lstrip("+").split("=")[0] not in STAGE_GROUPS + PRESET_GROUPS]
-        return msg, try_compose(bad)[0]
+        return (msg, try_compose(bad)[0]), None
     cfg, err = try_compose(overrides)
     if err is None:
-        return None
+        return None, cfg
     text = " ".join(str(err).split())
     m = re.search(r"Could not override '([^']+)'", text)
     if not m:
         cause = " ".join(str(err.__cause__ or "").split())
-        return (text + (f" ({cause})" if cause else ""))[:500], None
+        return ((text + (f" ({cause})" if cause else ""))[:500], None), None
     key = m.group(1)
     rest = [o for o in overrides if o.lstrip("+~").split("=")[0] != key]
     good, _ = try_compose(rest)
@@ -348,8 +354,8 @@ def precheck(argv: list[str]) -> tuple[str, DictConfig | None] | None:
             cls = REGISTRIES[group].get(good[group].name)
             make_params(cls.Params, {param.split(".")[0]: None}, f"{group}={good[group].name}")
         except ConfigError as e:
-            return str(e), good
-    return f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)", good
+            return (str(e), good), None
+    return (f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)", good), None
 
 
 def verbose_requested(argv: list[str]) -> bool:
@@ -359,7 +365,18 @@ def verbose_requested(argv: list[str]) -> bool:
 def main() -> None:
     argv = sys.argv[1:]
     if not any(a in ("-h", "--help", "--hydra-help", "-c", "--cfg", "--info", "-i") for a in argv):
-        problem = precheck(argv)
+        from scanreg import tracking
+        from scanreg.cli import may_track_single_run
+
+        # a single run logs to MLflow through a helper process (tracking.BackgroundRunLog): started before the
+        # config is composed (by the ``scanreg`` command even before Hydra is imported), so that its import of
+        # MLflow overlaps ours, Hydra's and the pipeline, and stopped at once if the composed config turns out
+        # not to track with MLflow
+        if may_track_single_run(argv):
+            tracking.prestart_helper()
+        problem, cfg = compose_checked(argv)
+        if problem or cfg.get("tracking", {}).get("name") != "mlflow":
+            tracking.drop_prestarted()
         if problem:  # a usage or config error: one line, exit 2, and no MLflow run
             _err(problem[0])
             raise SystemExit(EXIT_USAGE)
@@ -380,6 +397,11 @@ def main() -> None:
             n = 0
         _err("interrupted" + (f"; {n} unfinished MLflow run(s) of the sweep marked KILLED" if n else ""))
         raise SystemExit(EXIT_INTERRUPTED)
+    except BrokenPipeError:  # the reader of our output went away (``scanreg --help | head``): nothing to report
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        raise SystemExit(0)
     except Exception as e:  # noqa: BLE001: e.g. a launcher that cannot start; no run is left RUNNING
         reason = f"sweep failed: {type(e).__name__}: {e}".splitlines()[0]
         try:
@@ -395,4 +417,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from scanreg.cli import main as _cli
+
+    _cli()

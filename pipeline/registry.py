@@ -23,12 +23,14 @@ import dataclasses
 import inspect
 import sys
 import textwrap
-from typing import Any, Callable
-
-from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
+from typing import TYPE_CHECKING, Any, Callable
 
 from scanreg.errors import ConfigError
+
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
+# OmegaConf is imported where it is used: registering a class needs none (the MLflow helper process imports
+# scanreg.tracking, which registers its classes, on the critical path of a run's start-up)
 
 
 class Registry:
@@ -64,6 +66,8 @@ class Registry:
 
     def params(self, cfg: DictConfig | dict) -> tuple[type, Any]:
         """Validate ``cfg`` (``name`` plus parameters) and return ``(class, Params instance)``."""
+        from omegaconf import OmegaConf
+
         if isinstance(cfg, dict):
             cfg = OmegaConf.create(cfg)
         if cfg is None or "name" not in cfg:
@@ -79,6 +83,9 @@ class Registry:
 
 def make_params(params_cls: type, values: dict, where: str) -> Any:
     """Validate ``values`` against the dataclass ``params_cls``; one-line :class:`ConfigError` on failure."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
     fields = [f.name for f in dataclasses.fields(params_cls)]
     unknown = [k for k in values if k not in fields]
     if unknown:
@@ -208,6 +215,8 @@ def yaml_defaults(family: str, name: str) -> dict[str, Any]:
             values[f.name] = "???"
     path = conf_dir() / family / f"{name}.yaml"
     if path.exists():
+        from omegaconf import OmegaConf
+
         yaml = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
         values.update({k: v for k, v in yaml.items() if k in values})
     return values

@@ -18,13 +18,17 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
-from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
 
 from scanreg.errors import ConfigError
 from scanreg.registry import TRACKING
+
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
+
+# No Hydra or OmegaConf at import: the MLflow helper process (``python -m scanreg.tracking``) imports this module
+# on the critical path of a run's start-up. The Hydra callback lives in :mod:`scanreg.sweep`.
 
 SWEEP_ENV = "SCANREG_SWEEP"
 """Environment variable through which a sweep's jobs learn the store, experiment and parent run."""
@@ -122,11 +126,8 @@ class BackgroundRunLog:
     be ended KILLED, and exits when this process closes its input."""
 
     def __init__(self, start: dict):
-        import subprocess
-        import sys
-
-        self._proc = subprocess.Popen([sys.executable, "-m", "scanreg.tracking"], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, text=True)
+        global _prestarted
+        self._proc, _prestarted = (_prestarted or spawn_helper()), None
         self._run_id: str | None = None
         self._send({"op": "start", **start})
 
@@ -183,6 +184,51 @@ class BackgroundRunLog:
 _REPLY = "@scanreg-tracking "
 """Prefix of the helper process's answers on its standard output."""
 
+_prestarted = None
+"""A helper process started by :func:`prestart_helper`, taken by the next :class:`BackgroundRunLog`."""
+
+
+def spawn_helper():
+    """Start ``python -m scanreg.tracking`` (it imports MLflow at once, then waits for requests)."""
+    import subprocess
+    import sys
+
+    return subprocess.Popen([sys.executable, "-m", "scanreg.tracking"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+
+
+def prestart_helper() -> None:
+    """Start the MLflow helper process now, so that its import of MLflow (1-2 s) overlaps this process's own
+    imports and Hydra's composition instead of following them: for a single CLI run whose composed config says
+    ``tracking=mlflow``. The next :class:`BackgroundRunLog` takes it; if none does (the run stops before its MLflow
+    run is created), it exits when this process ends and closes its input. Does nothing if already started."""
+    global _prestarted
+    if _prestarted is None:
+        _prestarted = spawn_helper()
+
+
+def drop_prestarted() -> None:
+    """Stop the helper process of :func:`prestart_helper` if no run took it (the run does not use MLflow)."""
+    global _prestarted
+    if _prestarted is not None:
+        _prestarted.kill()
+        _prestarted.wait()
+        _prestarted = None
+
+
+def _warm_mlflow() -> None:
+    """Import what opening a SQL store and logging into it will import (MLflow, its SQLAlchemy store, the
+    store's ORM mappers configured), about 1.5-2 s, so that the helper is ready when the run starts."""
+    import mlflow.tracking  # noqa: F401
+
+    try:
+        import mlflow.store.tracking.sqlalchemy_store  # noqa: F401
+        import sqlalchemy.orm
+
+        sqlalchemy.orm.configure_mappers()
+    except Exception:  # noqa: BLE001: only a head start; opening the store reports any real problem
+        pass
+
 
 def _helper() -> None:
     """The loop of ``python -m scanreg.tracking`` (see :class:`BackgroundRunLog`): JSON requests on standard input,
@@ -191,6 +237,9 @@ def _helper() -> None:
     import sys
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _quiet_mlflow()
+    _warm_mlflow()  # at once: the caller starts this process before it knows the run
+
     log = None
     for line in sys.stdin:
         msg = json.loads(line)
@@ -220,6 +269,11 @@ def _helper() -> None:
         except Exception as e:  # noqa: BLE001: the caller reports it
             reply = {"error": f"{type(e).__name__}: {e}".splitlines()[0] if str(e) else type(e).__name__}
         print(_REPLY + json.dumps(reply), flush=True)
+        if msg.get("op") == "end" and "error" not in reply:
+            # the run is ended and its store committed: exit without tearing down MLflow's module graph and
+            # SQLAlchemy's pools, which takes about 0.5 s that the caller would wait for
+            sys.stderr.flush()
+            os._exit(0)
 
 
 @TRACKING.register("none")
@@ -312,67 +366,6 @@ class MlflowTracking:
         log = RunLog(client, run.info.run_id)
         log.log_params(params)
         return log
-
-
-class SweepCallback(Callback):
-    """Hydra callback for ``-m`` sweeps: creates store, experiment and parent run before the jobs start, and
-    ends the parent run (FAILED if any child failed) when they are done. Holds no state but plain values."""
-
-    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        _sweep_outcome.clear()
-        os.environ.pop(SWEEP_ENV, None)
-        try:
-            from scanreg.registry import TRACKING as T
-
-            cls, params = T.params(config.tracking)
-        except ConfigError:
-            return  # reported by each job
-        if cls is not MlflowTracking:
-            return
-        import sys
-
-        from scanreg.config import git_revision
-
-        tr = MlflowTracking(params)
-        client, eid = tr.prepare()
-        sweep_dir = str(config.hydra.sweep.dir)
-        overrides = " ".join(config.hydra.overrides.task)
-        command = " ".join(["scanreg", *sys.argv[1:]]) if Path(sys.argv[0]).name == "scanreg" else \
-            f"scanreg -m {overrides}"
-        parent = client.create_run(eid, run_name=f"sweep: {overrides}"[:250],
-                                   tags={"scanreg.sweep_dir": sweep_dir, "scanreg.overrides": overrides,
-                                         "scanreg.sweep": "parent", "scanreg.command": command,
-                                         "scanreg.git_commit": git_revision(), **launcher_tags(config)})
-        Path(sweep_dir).mkdir(parents=True, exist_ok=True)
-        info = json.dumps({"uri": tr.uri, "experiment": params.experiment, "experiment_id": eid,
-                           "parent_run_id": parent.info.run_id, "total": sweep_size(config), "start": time.time(),
-                           "progress": str((Path(sweep_dir) / ".progress").resolve())})
-        os.environ[SWEEP_ENV] = info
-        (Path(sweep_dir) / SWEEP_FILE).write_text(info)
-
-    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        info = json.loads(os.environ.pop(SWEEP_ENV, "null") or "null")
-        if not info:
-            return
-        tr = MlflowTracking(MlflowTracking.Params(uri=info["uri"], experiment=info["experiment"]))
-        client = tr._client()
-        children = _children(client, info)
-        failed = sum(r.info.status != "FINISHED" for r in children)
-        log = RunLog(client, info["parent_run_id"])
-        log.log_metrics({"sweep_runs": len(children), "sweep_failed": failed})
-        log.end("FAILED" if failed else "FINISHED", f"{failed} of {len(children)} runs failed" if failed else None)
-        _sweep_outcome.update(failed=failed, total=len(children))
-        print(f"sweep: {len(children)} run(s), {failed} failed; parent run {info['parent_run_id']} in experiment "
-              f"'{info['experiment']}' at {info['uri']}")
-        if config.get("report") is not None and config.report.get("enabled"):
-            from scanreg.report import report_for_sweep
-
-            try:
-                report_for_sweep(config, info["parent_run_id"], info["uri"], info["experiment"])
-            except Exception as e:  # noqa: BLE001: the runs are safe; say why the report is missing
-                msg = str(e) if isinstance(e, (ConfigError, SystemExit)) else f"{type(e).__name__}: {e}"
-                print(f"error: report not written: {msg}".splitlines()[0])
-                _sweep_outcome["failed"] = _sweep_outcome.get("failed", 0) or 1
 
 
 def launcher_tags(config: DictConfig) -> dict[str, str]:
@@ -470,3 +463,11 @@ def _hms(sec: float) -> str:
 
 if __name__ == "__main__":
     _helper()
+
+
+def __getattr__(name: str):
+    if name == "SweepCallback":  # configs written before it moved name scanreg.tracking.SweepCallback
+        from scanreg.sweep import SweepCallback
+
+        return SweepCallback
+    raise AttributeError(f"module 'scanreg.tracking' has no attribute {name!r}")

@@ -10,11 +10,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # highest first; a module may import its own layer and the layers after it
 LAYERS = [
-    ("app", {"scanreg", "scanreg.app", "scanreg.api", "scanreg.report", "scanreg.tracking"}),
+    ("app", {"scanreg", "scanreg.app", "scanreg.api", "scanreg.report", "scanreg.tracking", "scanreg.sweep",
+             "scanreg.cli"}),
     ("runner", {"scanreg.runner", "scanreg.deviation", "scanreg.view3d"}),
     ("stages", {"scanreg.stages"}),  # and every module below it
     ("core", {"scanreg.registry", "scanreg.config", "scanreg.errors", "scanreg.geometry", "scanreg.io",
-              "scanreg.metrics", "scanreg.checks", "scanreg.closest", "scanreg.topology", "scanreg.shell", "scanreg.uncertainty", "scanreg.conf"}),
+              "scanreg.metrics", "scanreg.checks", "scanreg.closest", "scanreg.topology", "scanreg.shell", "scanreg.uncertainty", "scanreg.conf",
+              "scanreg._o3d_lazy"}),
 ]
 
 
