@@ -143,52 +143,54 @@ class Histogram3P:
         self.p = params
 
     def compute(self, cloud: Cloud, keypoints: np.ndarray, ctx: Context) -> np.ndarray:
+        from scipy.spatial import cKDTree
+
         from scanreg.closest import estimate_normals
-        from scanreg.stages.salience import neighbourhoods
 
         p, u, s = self.p, self.p.distances, ctx.spacing
         R = to_abs(p.radius, u, s)
         pts = cloud.points
         nrm = cloud.normals if cloud.normals is not None else estimate_normals(pts)
-        j, d, valid = neighbourhoods(pts, R, p.max_neighbors, pts[keypoints])
+        # One k-d tree for both searches. scipy's cKDTree returns the same neighbours, distances and order as
+        # :func:`scanreg.stages.salience.neighbourhoods` (pykdtree), 2-3x faster at 256 neighbours; only among
+        # neighbours at exactly equal distances may the order differ (tests/test_histogram3p_speed_equal.py).
+        tree = cKDTree(pts)
+        j, d, valid = _knn(tree, pts[keypoints], R, p.max_neighbors)
         fr = to_abs(p.frame_radius, u, s)
         frames = local_frames(pts, cloud.normals, keypoints, fr, neighbours=(j, d, valid) if fr <= R else None)
-        # inverse local density of every neighbour that votes
-        used = np.unique(j[valid])
-        _, _, vd = neighbourhoods(pts, to_abs(p.density_radius, u, s), 64, pts[used])
+        # inverse local density of every neighbour that votes: its points within density_radius (strict, itself
+        # included), at most 64
+        used = np.zeros(len(pts), bool)
+        used[j[valid]] = True
+        used = np.flatnonzero(used)
         dens = np.zeros(len(pts))
-        dens[used] = vd.sum(axis=1)
+        dens[used] = _knn(tree, pts[used], to_abs(p.density_radius, u, s), 64)[2].sum(axis=1)
         w = np.where(valid, (1.0 - np.minimum(d, R) / R) / np.maximum(dens[j], 1.0), 0.0)
-        n = len(keypoints)
-        out = np.empty((n, 216))
-        # Every neighbour votes into 2 x 2 spatial x 2 orientation bins per plane with weight w * share_a *
-        # share_b * share_o (multiplied in that order); all votes of a block of keypoints go into one bincount
-        # (a share outside the grid is a vote of weight 0). In blocks of keypoints, to bound memory.
+        n, K = j.shape
+        out = np.empty((n, 3, 9, 8))
+        F = frames.transpose(0, 2, 1)
+
+        # Every neighbour votes w * share_a * share_b * share_o into its 2 x 2 spatial x 2 orientation bins per
+        # plane. As dense shares, (n, K, 3) per axis and (n, K, 8) per plane's angle (0 away from the two
+        # nearest bins), a plane's 9 x 8 histogram is one matrix product over the neighbours: (w s_a s_b)^T s_o.
+        # In blocks of a few keypoints, whose temporaries stay in the cache.
         def block(r0):
             rs = slice(r0, r0 + step)
-            jj, F = j[rs], frames[rs].transpose(0, 2, 1)
-            nb = len(jj)
-            L = np.matmul(pts[jj] - pts[keypoints[rs]][:, None, :], F)   # local coordinates
-            Ln = np.matmul(nrm[jj], F)                                 # local normals
-            spatial = [_two_bins((L[:, :, c] + R) / (2 * R / 3) - 0.5, 3, wrap=False) for c in range(3)]
+            jj = j[rs]
+            m = len(jj)
+            L = np.matmul(pts[jj] - pts[keypoints[rs]][:, None, :], F[rs])   # local coordinates
+            Ln = np.matmul(nrm[jj], F[rs])                                    # local normals
+            S = _hat_shares((L + R) / (2 * R / 3) - 0.5, 3, wrap=False)      # (m, K, 3 axes, 3 bins)
             wr = w[rs][..., None]
-            base = (np.arange(nb) * 216)[:, None, None, None, None]
-            idx = np.empty((3, nb, jj.shape[1], 2, 2, 2), np.int64)
-            wts = np.empty(idx.shape)
             for plane, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
-                (ia, sa), (ib, sb) = spatial[a], spatial[b]
-                io, so = _two_bins((np.arctan2(Ln[:, :, b], Ln[:, :, a]) + np.pi) / (2 * np.pi / 8) - 0.5, 8,
-                                   wrap=True)
-                np.add(base + plane * 72 + ia[..., :, None, None] * 24 + ib[..., None, :, None] * 8,
-                       io[..., None, None, :], out=idx[plane])
-                np.multiply((wr * sa)[..., :, None, None] * sb[..., None, :, None], so[..., None, None, :],
-                            out=wts[plane])
-            out[rs] = np.bincount(idx.ravel(), wts.ravel(), minlength=nb * 216).reshape(nb, 216)
+                so = _hat_shares((np.arctan2(Ln[:, :, b], Ln[:, :, a]) + np.pi) / (2 * np.pi / 8) - 0.5, 8,
+                                 wrap=True)
+                ab = ((wr * S[:, :, a])[..., :, None] * S[:, :, b][..., None, :]).reshape(m, K, 9)
+                np.matmul(ab.transpose(0, 2, 1), so, out=out[rs, plane])
 
-        # blocks of keypoints, independent of each other, on every core (NumPy releases the GIL in these loops)
-        step = max(1, 2 ** 16 // max(j.shape[1], 1))
+        step = 32
         starts = range(0, n, step)
-        if len(starts) > 1 and (os.cpu_count() or 1) > 1:
+        if len(starts) > 1 and (os.cpu_count() or 1) > 1:  # NumPy releases the GIL in these loops
             from concurrent.futures import ThreadPoolExecutor
 
             with ThreadPoolExecutor(min(os.cpu_count() or 1, len(starts))) as pool:
@@ -196,20 +198,30 @@ class Histogram3P:
         else:
             for r0 in starts:
                 block(r0)
+        out = out.reshape(n, 216)
         norm = np.linalg.norm(out, axis=1, keepdims=True)
         return out / np.where(norm > 0, norm, 1.0)
 
 
-def _two_bins(u: np.ndarray, nbins: int, wrap: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The two nearest bins (..., 2) of bin coordinates ``u`` (bin i centred at u = i) and their bilinear shares
-    (1 - f, f), f = u - floor(u); with ``wrap`` the bins close into a circle, else a share that falls outside
-    0..nbins-1 becomes 0 (into bin 0: dropped)."""
-    i = np.floor(u)
-    f = u - i
-    lo = i.astype(np.int64)
-    idx = np.stack([lo, lo + 1], axis=-1)
-    share = np.stack([1 - f, f], axis=-1)
+def _knn(tree, queries: np.ndarray, radius: float, max_neighbors: int):
+    """:func:`scanreg.stages.salience.neighbourhoods` on a prebuilt scipy k-d tree: the (at most
+    ``max_neighbors``) nearest points closer than ``radius``, ``(indices, distances, valid)``, nearest first."""
+    k = min(max_neighbors, tree.n)
+    d, j = tree.query(np.ascontiguousarray(queries), k=k, distance_upper_bound=radius)
+    d, j = d.reshape(len(queries), k), j.reshape(len(queries), k)
+    valid = j < tree.n
+    return np.where(valid, j, 0), np.where(valid, d, np.inf), valid
+
+
+_CENTRES = {n: np.arange(float(n)) for n in (3, 8)}
+
+
+def _hat_shares(u: np.ndarray, nbins: int, wrap: bool) -> np.ndarray:
+    """Bilinear shares (..., nbins) of bin coordinates ``u`` (bin i centred at u = i): max(0, 1 - |u - i|), the
+    (1 - f, f) of the two nearest bins and 0 elsewhere; with ``wrap`` the distance is taken around the circle of
+    ``nbins`` bins, else shares of bins outside 0..nbins-1 are dropped."""
+    t = np.abs(u[..., None] - _CENTRES[nbins])
     if wrap:
-        return idx % nbins, share
-    outside = (idx < 0) | (idx >= nbins)
-    return np.where(outside, 0, idx), np.where(outside, 0.0, share)
+        np.minimum(t, nbins - t, out=t)
+    np.subtract(1.0, t, out=t)
+    return np.maximum(t, 0.0, out=t)
