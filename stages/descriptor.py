@@ -166,29 +166,38 @@ class Histogram3P:
         dens = np.zeros(len(pts))
         dens[used] = _knn(tree, pts[used], to_abs(p.density_radius, u, s), 64)[2].sum(axis=1)
         w = np.where(valid, (1.0 - np.minimum(d, R) / R) / np.maximum(dens[j], 1.0), 0.0)
-        n, K = j.shape
+        n = len(keypoints)
+        count = valid.sum(axis=1)  # the valid neighbours are each row's first columns (nearest first)
         out = np.empty((n, 3, 9, 8))
-        F = frames.transpose(0, 2, 1)
 
         # Every neighbour votes w * share_a * share_b * share_o into its 2 x 2 spatial x 2 orientation bins per
-        # plane. As dense shares, (n, K, 3) per axis and (n, K, 8) per plane's angle (0 away from the two
-        # nearest bins), a plane's 9 x 8 histogram is one matrix product over the neighbours: (w s_a s_b)^T s_o.
-        # In blocks of a few keypoints, whose temporaries stay in the cache.
+        # plane. With the shares dense, (3, K) per axis and (8, K) per plane's angle (0 away from the two nearest
+        # bins), a plane's 9 x 8 histogram is one matrix product over the K neighbours: (w s_a s_b) s_o^T. In
+        # blocks of a few keypoints, whose temporaries stay in the cache, neighbours along the last axis.
         def block(r0):
             rs = slice(r0, r0 + step)
-            jj = j[rs]
+            K = max(int(count[rs].max()), 1)
+            jj, fr = j[rs, :K], frames[rs]
             m = len(jj)
-            L = np.matmul(pts[jj] - pts[keypoints[rs]][:, None, :], F[rs])   # local coordinates
-            Ln = np.matmul(nrm[jj], F[rs])                                    # local normals
-            S = _hat_shares((L + R) / (2 * R / 3) - 0.5, 3, wrap=False)      # (m, K, 3 axes, 3 bins)
-            wr = w[rs][..., None]
+            Lt = np.matmul(fr, (pts[jj] - pts[keypoints[rs]][:, None, :]).transpose(0, 2, 1))  # (m, 3, K) local
+            Nt = np.matmul(fr, nrm[jj].transpose(0, 2, 1))                                # coordinates, normals
+            U = (Lt + R) / (2 * R / 3) - 0.5
+            S = [_hat_shares(U[:, c]) for c in range(3)]                                 # (m, 3 bins, K)
+            wr = w[rs, None, :K]
+            # orientation shares (m, 3 planes, 8 bins, K): 1 - f and f into the two nearest bins, circularly
+            uo = (np.arctan2(Nt[:, [1, 2, 0]], Nt) + np.pi) / (2 * np.pi / 8) - 0.5
+            lo = np.floor(uo)
+            f = (uo - lo).reshape(m * 3, K)
+            lo = lo.astype(np.intp).reshape(m * 3, K)
+            so = np.zeros((m, 3, 8, K))
+            at = (np.arange(m * 3) * (8 * K))[:, None] + np.arange(K)
+            so.reshape(-1)[at + (lo & 7) * K] = 1 - f
+            so.reshape(-1)[at + ((lo + 1) & 7) * K] = f
             for plane, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
-                so = _hat_shares((np.arctan2(Ln[:, :, b], Ln[:, :, a]) + np.pi) / (2 * np.pi / 8) - 0.5, 8,
-                                 wrap=True)
-                ab = ((wr * S[:, :, a])[..., :, None] * S[:, :, b][..., None, :]).reshape(m, K, 9)
-                np.matmul(ab.transpose(0, 2, 1), so, out=out[rs, plane])
+                ab = ((wr * S[a])[:, :, None, :] * S[b][:, None, :, :]).reshape(m, 9, K)
+                np.matmul(ab, so[:, plane].transpose(0, 2, 1), out=out[rs, plane])
 
-        step = 32
+        step = 16
         starts = range(0, n, step)
         if len(starts) > 1 and (os.cpu_count() or 1) > 1:  # NumPy releases the GIL in these loops
             from concurrent.futures import ThreadPoolExecutor
@@ -213,15 +222,12 @@ def _knn(tree, queries: np.ndarray, radius: float, max_neighbors: int):
     return np.where(valid, j, 0), np.where(valid, d, np.inf), valid
 
 
-_CENTRES = {n: np.arange(float(n)) for n in (3, 8)}
+_CENTRES = np.arange(3.0)[:, None]
 
 
-def _hat_shares(u: np.ndarray, nbins: int, wrap: bool) -> np.ndarray:
-    """Bilinear shares (..., nbins) of bin coordinates ``u`` (bin i centred at u = i): max(0, 1 - |u - i|), the
-    (1 - f, f) of the two nearest bins and 0 elsewhere; with ``wrap`` the distance is taken around the circle of
-    ``nbins`` bins, else shares of bins outside 0..nbins-1 are dropped."""
-    t = np.abs(u[..., None] - _CENTRES[nbins])
-    if wrap:
-        np.minimum(t, nbins - t, out=t)
+def _hat_shares(u: np.ndarray) -> np.ndarray:
+    """Bilinear shares (m, 3, K) of spatial bin coordinates ``u`` (m, K) (bin i centred at u = i): max(0, 1 -
+    |u - i|), i.e. the (1 - f, f) of the two nearest bins, 0 elsewhere; shares of bins outside 0..2 are dropped."""
+    t = np.abs(u[:, None, :] - _CENTRES)
     np.subtract(1.0, t, out=t)
     return np.maximum(t, 0.0, out=t)
