@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -164,11 +163,12 @@ class Histogram3P:
         used[j[valid]] = True
         used = np.flatnonzero(used)
         dens = np.zeros(len(pts))
-        dens[used] = _knn(tree, pts[used], to_abs(p.density_radius, u, s), 64)[2].sum(axis=1)
+        dens[used] = _count_within(tree, pts[used], to_abs(p.density_radius, u, s), 64)
         w = np.where(valid, (1.0 - np.minimum(d, R) / R) / np.maximum(dens[j], 1.0), 0.0)
         n = len(keypoints)
         count = valid.sum(axis=1)  # the valid neighbours are each row's first columns (nearest first)
         out = np.empty((n, 3, 9, 8))
+        pn = np.hstack([pts, nrm])
 
         # Every neighbour votes w * share_a * share_b * share_o into its 2 x 2 spatial x 2 orientation bins per
         # plane. With the shares dense, (3, K) per axis and (8, K) per plane's angle (0 away from the two nearest
@@ -177,12 +177,12 @@ class Histogram3P:
         def block(r0):
             rs = slice(r0, r0 + step)
             K = max(int(count[rs].max()), 1)
-            jj, fr = j[rs, :K], frames[rs]
-            m = len(jj)
-            Lt = np.matmul(fr, (pts[jj] - pts[keypoints[rs]][:, None, :]).transpose(0, 2, 1))  # (m, 3, K) local
-            Nt = np.matmul(fr, nrm[jj].transpose(0, 2, 1))                                # coordinates, normals
-            U = (Lt + R) / (2 * R / 3) - 0.5
-            S = [_hat_shares(U[:, c]) for c in range(3)]                                 # (m, 3 bins, K)
+            m = len(j[rs])
+            G = pn[j[rs, :K]]                                  # (m, K, 6): neighbour points and normals
+            G[:, :, :3] -= pts[keypoints[rs]][:, None, :]
+            LN = np.matmul(frames[rs], G.reshape(m, 2 * K, 3).transpose(0, 2, 1))  # (m, 3, 2K) in the frame
+            Lt, Nt = LN[:, :, 0::2], LN[:, :, 1::2]            # local coordinates, local normals (m, 3, K)
+            S = _hat_shares((Lt + R) / (2 * R / 3) - 0.5)      # (m, 3 axes, 3 bins, K)
             wr = w[rs, None, :K]
             # orientation shares (m, 3 planes, 8 bins, K): 1 - f and f into the two nearest bins, circularly
             uo = (np.arctan2(Nt[:, [1, 2, 0]], Nt) + np.pi) / (2 * np.pi / 8) - 0.5
@@ -194,19 +194,12 @@ class Histogram3P:
             so.reshape(-1)[at + (lo & 7) * K] = 1 - f
             so.reshape(-1)[at + ((lo + 1) & 7) * K] = f
             for plane, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
-                ab = ((wr * S[a])[:, :, None, :] * S[b][:, None, :, :]).reshape(m, 9, K)
+                ab = ((wr * S[:, a])[:, :, None, :] * S[:, b, None, :, :]).reshape(m, 9, K)
                 np.matmul(ab, so[:, plane].transpose(0, 2, 1), out=out[rs, plane])
 
         step = 16
-        starts = range(0, n, step)
-        if len(starts) > 1 and (os.cpu_count() or 1) > 1:  # NumPy releases the GIL in these loops
-            from concurrent.futures import ThreadPoolExecutor
-
-            with ThreadPoolExecutor(min(os.cpu_count() or 1, len(starts))) as pool:
-                list(pool.map(block, starts))
-        else:
-            for r0 in starts:
-                block(r0)
+        for r0 in range(0, n, step):  # one thread: on 2 shared cores, a thread pool over the blocks was slower
+            block(r0)
         out = out.reshape(n, 216)
         norm = np.linalg.norm(out, axis=1, keepdims=True)
         return out / np.where(norm > 0, norm, 1.0)
@@ -222,12 +215,28 @@ def _knn(tree, queries: np.ndarray, radius: float, max_neighbors: int):
     return np.where(valid, j, 0), np.where(valid, d, np.inf), valid
 
 
+def _count_within(tree, queries: np.ndarray, radius: float, cap: int, first: int = 16) -> np.ndarray:
+    """Points of the tree closer than ``radius`` to each query, at most ``cap``: the valid count of
+    :func:`_knn` with ``cap`` neighbours. Searched for ``first`` neighbours, then for ``cap`` only where all
+    ``first`` are within the radius (few: a density radius holds about a dozen points)."""
+    def count(q, k):
+        return (tree.query(q, k=k, distance_upper_bound=radius)[1].reshape(len(q), k) < tree.n).sum(axis=1)
+
+    k0, k = min(first, cap, tree.n), min(cap, tree.n)
+    counts = count(queries, k0)
+    full = np.flatnonzero(counts == k0)
+    if len(full) and k > k0:
+        counts[full] = count(queries[full], k)
+    return counts
+
+
 _CENTRES = np.arange(3.0)[:, None]
 
 
 def _hat_shares(u: np.ndarray) -> np.ndarray:
-    """Bilinear shares (m, 3, K) of spatial bin coordinates ``u`` (m, K) (bin i centred at u = i): max(0, 1 -
-    |u - i|), i.e. the (1 - f, f) of the two nearest bins, 0 elsewhere; shares of bins outside 0..2 are dropped."""
-    t = np.abs(u[:, None, :] - _CENTRES)
+    """Bilinear shares (..., 3, K) of spatial bin coordinates ``u`` (..., K) (bin i centred at u = i): max(0,
+    1 - |u - i|), i.e. the (1 - f, f) of the two nearest bins, 0 elsewhere; shares of bins outside 0..2 are
+    dropped."""
+    t = np.abs(u[..., None, :] - _CENTRES)
     np.subtract(1.0, t, out=t)
     return np.maximum(t, 0.0, out=t)

@@ -145,6 +145,23 @@ def test_neighbour_search_equals_pykdtree_on_a_bunny_scan(bunny):
             assert np.array_equal(g, w)
 
 
+@pytest.mark.parametrize("radius, most", [(1.5, 19), (2.5, 64), (0.5, 1)])
+def test_density_counts_equal_the_capped_search(radius, most):
+    """The density count (points closer than the radius, itself included, at most 64), searched for 16 then
+    for 64 where 16 are full, equals the valid count of the 64-neighbour search, on a grid where counts pass 16
+    (radius 1.5: 19) and the cap (radius 2.5: 81 within, capped at 64), and points at exactly the radius (1 on
+    the grid, which the strict bound leaves out)."""
+    from scipy.spatial import cKDTree
+
+    from scanreg.stages.descriptor import _count_within
+
+    g = np.stack(np.meshgrid(*[np.arange(10.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    want = reference_neighbourhoods(g, radius, 64)[2].sum(axis=1)
+    got = _count_within(cKDTree(g), g, radius, 64)
+    assert want.max() == most and np.array_equal(got, want)
+    assert np.array_equal(_count_within(cKDTree(g), g, 1.0, 64), np.ones(len(g)))  # neighbours at 1.0: out
+
+
 @pytest.mark.parametrize("params", [{}, {"radius": 8.0, "max_neighbors": 64, "frame_radius": 10.0}])
 def test_histogram3p_equals_the_previous_implementation_on_a_bunny_scan(bunny, params):
     """The default coarse stage's case (828 keypoints on 6 279 points); the second set has the frame radius
