@@ -151,8 +151,9 @@ class Histogram3P:
         pts = cloud.points
         nrm = cloud.normals if cloud.normals is not None else estimate_normals(pts)
         # One k-d tree for both searches. scipy's cKDTree returns the same neighbours, distances and order as
-        # :func:`scanreg.stages.salience.neighbourhoods` (pykdtree), 2-3x faster at 256 neighbours; only among
-        # neighbours at exactly equal distances may the order differ (tests/test_histogram3p_speed_equal.py).
+        # :func:`scanreg.stages.salience.neighbourhoods` (pykdtree), 2-3x faster at 256 neighbours; only where
+        # neighbours lie at exactly equal distances (grids, not scans) may their order, and which of them the
+        # cap keeps, differ (tests/test_histogram3p_speed_equal.py).
         tree = cKDTree(pts)
         j, d, valid = _knn(tree, pts[keypoints], R, p.max_neighbors)
         fr = to_abs(p.frame_radius, u, s)
