@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -143,73 +142,102 @@ class Histogram3P:
         self.p = params
 
     def compute(self, cloud: Cloud, keypoints: np.ndarray, ctx: Context) -> np.ndarray:
+        from scipy.spatial import cKDTree
+
         from scanreg.closest import estimate_normals
-        from scanreg.stages.salience import neighbourhoods
 
         p, u, s = self.p, self.p.distances, ctx.spacing
         R = to_abs(p.radius, u, s)
         pts = cloud.points
         nrm = cloud.normals if cloud.normals is not None else estimate_normals(pts)
-        j, d, valid = neighbourhoods(pts, R, p.max_neighbors, pts[keypoints])
+        # One k-d tree for both searches. scipy's cKDTree returns the same neighbours, distances and order as
+        # :func:`scanreg.stages.salience.neighbourhoods` (pykdtree), 2-3x faster at 256 neighbours; only where
+        # neighbours lie at exactly equal distances (grids, not scans) may their order, and which of them the
+        # cap keeps, differ (tests/test_histogram3p_speed_equal.py).
+        tree = cKDTree(pts)
+        j, d, valid = _knn(tree, pts[keypoints], R, p.max_neighbors)
         fr = to_abs(p.frame_radius, u, s)
         frames = local_frames(pts, cloud.normals, keypoints, fr, neighbours=(j, d, valid) if fr <= R else None)
-        # inverse local density of every neighbour that votes
-        used = np.unique(j[valid])
-        _, _, vd = neighbourhoods(pts, to_abs(p.density_radius, u, s), 64, pts[used])
+        # inverse local density of every neighbour that votes: its points within density_radius (strict, itself
+        # included), at most 64
+        used = np.zeros(len(pts), bool)
+        used[j[valid]] = True
+        used = np.flatnonzero(used)
         dens = np.zeros(len(pts))
-        dens[used] = vd.sum(axis=1)
+        dens[used] = _count_within(tree, pts[used], to_abs(p.density_radius, u, s), 64)
         w = np.where(valid, (1.0 - np.minimum(d, R) / R) / np.maximum(dens[j], 1.0), 0.0)
         n = len(keypoints)
-        out = np.empty((n, 216))
-        # Every neighbour votes into 2 x 2 spatial x 2 orientation bins per plane with weight w * share_a *
-        # share_b * share_o (multiplied in that order); all votes of a block of keypoints go into one bincount
-        # (a share outside the grid is a vote of weight 0). In blocks of keypoints, to bound memory.
+        count = valid.sum(axis=1)  # the valid neighbours are each row's first columns (nearest first)
+        out = np.empty((n, 3, 9, 8))
+        pn = np.hstack([pts, nrm])
+
+        # Every neighbour votes w * share_a * share_b * share_o into its 2 x 2 spatial x 2 orientation bins per
+        # plane. With the shares dense, (3, K) per axis and (8, K) per plane's angle (0 away from the two nearest
+        # bins), a plane's 9 x 8 histogram is one matrix product over the K neighbours: (w s_a s_b) s_o^T. In
+        # blocks of a few keypoints, whose temporaries stay in the cache, neighbours along the last axis.
         def block(r0):
             rs = slice(r0, r0 + step)
-            jj, F = j[rs], frames[rs].transpose(0, 2, 1)
-            nb = len(jj)
-            L = np.matmul(pts[jj] - pts[keypoints[rs]][:, None, :], F)   # local coordinates
-            Ln = np.matmul(nrm[jj], F)                                 # local normals
-            spatial = [_two_bins((L[:, :, c] + R) / (2 * R / 3) - 0.5, 3, wrap=False) for c in range(3)]
-            wr = w[rs][..., None]
-            base = (np.arange(nb) * 216)[:, None, None, None, None]
-            idx = np.empty((3, nb, jj.shape[1], 2, 2, 2), np.int64)
-            wts = np.empty(idx.shape)
+            K = max(int(count[rs].max()), 1)
+            m = len(j[rs])
+            G = pn[j[rs, :K]]                                  # (m, K, 6): neighbour points and normals
+            G[:, :, :3] -= pts[keypoints[rs]][:, None, :]
+            LN = np.matmul(frames[rs], G.reshape(m, 2 * K, 3).transpose(0, 2, 1))  # (m, 3, 2K) in the frame
+            Lt, Nt = LN[:, :, 0::2], LN[:, :, 1::2]            # local coordinates, local normals (m, 3, K)
+            S = _hat_shares((Lt + R) / (2 * R / 3) - 0.5)      # (m, 3 axes, 3 bins, K)
+            wr = w[rs, None, :K]
+            # orientation shares (m, 3 planes, 8 bins, K): 1 - f and f into the two nearest bins, circularly
+            uo = (np.arctan2(Nt[:, [1, 2, 0]], Nt) + np.pi) / (2 * np.pi / 8) - 0.5
+            lo = np.floor(uo)
+            f = (uo - lo).reshape(m * 3, K)
+            lo = lo.astype(np.intp).reshape(m * 3, K)
+            so = np.zeros((m, 3, 8, K))
+            at = (np.arange(m * 3) * (8 * K))[:, None] + np.arange(K)
+            so.reshape(-1)[at + (lo & 7) * K] = 1 - f
+            so.reshape(-1)[at + ((lo + 1) & 7) * K] = f
             for plane, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
-                (ia, sa), (ib, sb) = spatial[a], spatial[b]
-                io, so = _two_bins((np.arctan2(Ln[:, :, b], Ln[:, :, a]) + np.pi) / (2 * np.pi / 8) - 0.5, 8,
-                                   wrap=True)
-                np.add(base + plane * 72 + ia[..., :, None, None] * 24 + ib[..., None, :, None] * 8,
-                       io[..., None, None, :], out=idx[plane])
-                np.multiply((wr * sa)[..., :, None, None] * sb[..., None, :, None], so[..., None, None, :],
-                            out=wts[plane])
-            out[rs] = np.bincount(idx.ravel(), wts.ravel(), minlength=nb * 216).reshape(nb, 216)
+                ab = ((wr * S[:, a])[:, :, None, :] * S[:, b, None, :, :]).reshape(m, 9, K)
+                np.matmul(ab, so[:, plane].transpose(0, 2, 1), out=out[rs, plane])
 
-        # blocks of keypoints, independent of each other, on every core (NumPy releases the GIL in these loops)
-        step = max(1, 2 ** 16 // max(j.shape[1], 1))
-        starts = range(0, n, step)
-        if len(starts) > 1 and (os.cpu_count() or 1) > 1:
-            from concurrent.futures import ThreadPoolExecutor
-
-            with ThreadPoolExecutor(min(os.cpu_count() or 1, len(starts))) as pool:
-                list(pool.map(block, starts))
-        else:
-            for r0 in starts:
-                block(r0)
+        step = 16
+        for r0 in range(0, n, step):  # one thread: on 2 shared cores, a thread pool over the blocks was slower
+            block(r0)
+        out = out.reshape(n, 216)
         norm = np.linalg.norm(out, axis=1, keepdims=True)
         return out / np.where(norm > 0, norm, 1.0)
 
 
-def _two_bins(u: np.ndarray, nbins: int, wrap: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The two nearest bins (..., 2) of bin coordinates ``u`` (bin i centred at u = i) and their bilinear shares
-    (1 - f, f), f = u - floor(u); with ``wrap`` the bins close into a circle, else a share that falls outside
-    0..nbins-1 becomes 0 (into bin 0: dropped)."""
-    i = np.floor(u)
-    f = u - i
-    lo = i.astype(np.int64)
-    idx = np.stack([lo, lo + 1], axis=-1)
-    share = np.stack([1 - f, f], axis=-1)
-    if wrap:
-        return idx % nbins, share
-    outside = (idx < 0) | (idx >= nbins)
-    return np.where(outside, 0, idx), np.where(outside, 0.0, share)
+def _knn(tree, queries: np.ndarray, radius: float, max_neighbors: int):
+    """:func:`scanreg.stages.salience.neighbourhoods` on a prebuilt scipy k-d tree: the (at most
+    ``max_neighbors``) nearest points closer than ``radius``, ``(indices, distances, valid)``, nearest first."""
+    k = min(max_neighbors, tree.n)
+    d, j = tree.query(np.ascontiguousarray(queries), k=k, distance_upper_bound=radius)
+    d, j = d.reshape(len(queries), k), j.reshape(len(queries), k)
+    valid = j < tree.n
+    return np.where(valid, j, 0), np.where(valid, d, np.inf), valid
+
+
+def _count_within(tree, queries: np.ndarray, radius: float, cap: int, first: int = 16) -> np.ndarray:
+    """Points of the tree closer than ``radius`` to each query, at most ``cap``: the valid count of
+    :func:`_knn` with ``cap`` neighbours. Searched for ``first`` neighbours, then for ``cap`` only where all
+    ``first`` are within the radius (few: a density radius holds about a dozen points)."""
+    def count(q, k):
+        return (tree.query(q, k=k, distance_upper_bound=radius)[1].reshape(len(q), k) < tree.n).sum(axis=1)
+
+    k0, k = min(first, cap, tree.n), min(cap, tree.n)
+    counts = count(queries, k0)
+    full = np.flatnonzero(counts == k0)
+    if len(full) and k > k0:
+        counts[full] = count(queries[full], k)
+    return counts
+
+
+_CENTRES = np.arange(3.0)[:, None]
+
+
+def _hat_shares(u: np.ndarray) -> np.ndarray:
+    """Bilinear shares (..., 3, K) of spatial bin coordinates ``u`` (..., K) (bin i centred at u = i): max(0,
+    1 - |u - i|), i.e. the (1 - f, f) of the two nearest bins, 0 elsewhere; shares of bins outside 0..2 are
+    dropped."""
+    t = np.abs(u[..., None, :] - _CENTRES)
+    np.subtract(1.0, t, out=t)
+    return np.maximum(t, 0.0, out=t)

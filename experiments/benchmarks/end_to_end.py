@@ -2,6 +2,7 @@
 
     .venv/bin/python experiments/benchmarks/end_to_end.py            # a subset (~6-8 min on a loaded 2-core box)
     .venv/bin/python experiments/benchmarks/end_to_end.py --all      # all 40 bunny pairs x 2 poses (~20 min)
+    .venv/bin/python experiments/benchmarks/end_to_end.py --only descriptor  # the descriptor table alone (~1 min)
 
 Cases (every one with ground truth; the source under a seeded random pose of any angle):
 - bunny: ordered pairs of the raw Stanford scans (``../shared/data/stanford_bunny``, binary range-grid PLYs, the
@@ -258,7 +259,8 @@ def worker_memory(method: str, stage: str, n: int) -> dict:
 def worker_descriptors(pairs: list[str]) -> list[dict]:
     """The coarse stage (defaults, uniform keypoints) with ``fpfh``, ``histogram3p`` and histogram3p's
     implementation before issue #16 (``tests/test_fast_paths.py``'s reference), interleaved per pair, in this
-    one warm process; the same keypoints for all three."""
+    one warm process (every variant run once on the first pair before any timing); the same keypoints for all
+    three. ``time_descriptors_s``: the two descriptor computations inside the coarse time."""
     import open3d  # noqa: F401
     from omegaconf import OmegaConf
 
@@ -271,7 +273,7 @@ def worker_descriptors(pairs: list[str]) -> list[dict]:
     from test_fast_paths import reference_histogram3p
 
     rows = []
-    for pair in pairs:
+    for i, pair in enumerate([pairs[0], *pairs]):
         for variant in ("fpfh", "histogram3p", "histogram3p_before"):
             desc = "fpfh" if variant == "fpfh" else "histogram3p"
             cfg = scanreg.compose(["data=stanford", f"data.pair={pair}", "repair=none", "tracking=none",
@@ -280,17 +282,29 @@ def worker_descriptors(pairs: list[str]) -> list[dict]:
             st = build_stages(cfg)
             ctx = Context(seed=0, run_dir=Path(tempfile.gettempdir()))
             ctx.stages = {k: st[k] for k in ("salience", "descriptor", "matcher")}
-            if variant == "histogram3p_before":
-                d = st["descriptor"]
-                d.compute = lambda cloud, kp, c, d=d: reference_histogram3p(d.p, cloud, kp, c.spacing)
+            d = st["descriptor"]
+            compute = (lambda cloud, kp, c, d=d: reference_histogram3p(d.p, cloud, kp, c.spacing)) \
+                if variant == "histogram3p_before" else d.compute
+            spent = []
+
+            def timed(cloud, kp, c, compute=compute, spent=spent):
+                t = time.perf_counter_ns()
+                out = compute(cloud, kp, c)
+                spent.append(time.perf_counter_ns() - t)
+                return out
+
+            d.compute = timed
             inputs = st["data"].load(ctx)
             tgt, src = st["sampler"].run(inputs.target, ctx), st["sampler"].run(inputs.source, ctx)
             ctx.spacing = max(estimate_spacing(tgt.points, ctx.rng(1)), estimate_spacing(src.points, ctx.rng(2)))
             t0 = time.perf_counter_ns()
             T, m = st["coarse"].run(tgt, src, ctx)
+            if i == 0:
+                continue  # the warm-up round
             rot, _ = transform_errors(T, inputs.T_gt)
             rows.append({"pair": pair, "variant": variant, "time_coarse_s": (time.perf_counter_ns() - t0) / 1e9,
-                         "coarse_rotation_error_deg": rot, "keypoints": m["coarse_keypoints_target"]})
+                         "time_descriptors_s": sum(spent) / 1e9, "coarse_rotation_error_deg": rot,
+                         "keypoints": m["coarse_keypoints_target"]})
     return rows
 
 
@@ -298,15 +312,42 @@ def descriptor_table(pairs: list[str]) -> list[str]:
     out, _, err = spawn(["--descriptors", ",".join(pairs)], timeout=1200)
     if out is None:
         return [f"descriptor comparison failed: {err}"]
-    lines = ["| descriptor (uniform keypoints) | coarse time [s] | ratio to fpfh | coarse rotation error [deg] |",
-             "|---|---|---|---|"]
-    med = {v: np.median([r["time_coarse_s"] for r in out if r["variant"] == v]) for v in
-           ("fpfh", "histogram3p", "histogram3p_before")}
-    for v in med:
-        lines.append(f"| {v} | {med_iqr([r['time_coarse_s'] for r in out if r['variant'] == v])} | "
-                     f"{med[v] / med['fpfh']:.2f} | "
-                     f"{med_iqr([r['coarse_rotation_error_deg'] for r in out if r['variant'] == v])} |")
+    lines = ["| descriptor (uniform keypoints) | coarse time [s] | ratio to fpfh | of which the two descriptor "
+             "computations [s] | coarse rotation error [deg] |", "|---|---|---|---|---|"]
+    variants = ("fpfh", "histogram3p", "histogram3p_before")
+    med = {v: np.median([r["time_coarse_s"] for r in out if r["variant"] == v]) for v in variants}
+    for v in variants:
+        col = lambda key: med_iqr([r[key] for r in out if r["variant"] == v])
+        lines.append(f"| {v} | {col('time_coarse_s')} | {med[v] / med['fpfh']:.2f} | {col('time_descriptors_s')} | "
+                     f"{col('coarse_rotation_error_deg')} |")
     return lines
+
+
+DESCRIPTOR_INTRO = ("The paper's descriptor against FPFH in the default coarse stage (`salience=uniform`, the same "
+                    "keypoints; {n} bunny pairs, one warm process, interleaved; `histogram3p_before`: the "
+                    "implementation before issue #16)")
+
+
+def replace_descriptor_table(md_path: Path, pairs: list[str]) -> None:
+    """``--only descriptor``: measure the descriptor table alone and put it in place of the one in ``md_path``
+    (the rest of the report, measured in an earlier run, is kept), noting this run's commit and date."""
+    from scanreg.config import git_revision
+
+    dt = descriptor_table(pairs)
+    print("\n".join(dt), flush=True)
+    intro = (DESCRIPTOR_INTRO.format(n=len(pairs)) + f"; measured on its own with `end_to_end.py --only descriptor`"
+             f", commit {git_revision()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}:")
+    lines = md_path.read_text().splitlines() if md_path.exists() else []
+    start = next((i for i, ln in enumerate(lines) if ln.startswith(DESCRIPTOR_INTRO.split(" (")[0])), None)
+    if start is None:
+        lines += ["", intro, "", *dt]
+    else:
+        end = start + 2
+        while end < len(lines) and lines[end].startswith("|"):
+            end += 1
+        lines[start:end] = [intro, "", *dt]
+    md_path.write_text("\n".join(lines) + "\n")
+    print(f"wrote the descriptor table into {md_path}")
 
 
 # ------------------------------------------------------------------------------------------------------ driver
@@ -446,7 +487,8 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=12, help="bunny pairs in the subset (pose seed 0)")
     ap.add_argument("--no-memory", action="store_true")
     ap.add_argument("--no-startup", action="store_true")
-    ap.add_argument("--only", default=None, help="comma-separated case groups: bunny,3dmatch,dental")
+    ap.add_argument("--only", default=None, help="comma-separated case groups: bunny,3dmatch,dental; or "
+                    "'descriptor': only the descriptor table, written in place of the one in --out")
     ap.add_argument("--extra", default=None, help=argparse.SUPPRESS)  # scanreg overrides (JSON list), to try
     ap.add_argument("--points", type=int, default=1_000_000, help="points per scan of the memory rows")
     ap.add_argument("--out", default=str(Path(__file__).with_suffix(".md")))
@@ -471,6 +513,9 @@ def main() -> None:
     if not (shared_data_dir() / "stanford_bunny").is_dir():
         sys.exit(f"error: {shared_data_dir()}: the shared data is absent; this benchmark needs ../shared/data")
     groups = a.only.split(",") if a.only else ["bunny", "3dmatch", "dental"]
+    if groups == ["descriptor"]:
+        replace_descriptor_table(Path(a.out), PAIRS[:4])
+        return
     pairs, seeds = (PAIRS, (0, 1)) if a.all else (PAIRS[:a.pairs], (0,))
     cases = [{"group": "bunny", "pair": p, "seed": s} for s in seeds for p in pairs] if "bunny" in groups else []
     cases += [{"group": "3dmatch", "seed": s} for s in range(6)] if "3dmatch" in groups else []
@@ -493,9 +538,7 @@ def main() -> None:
     if not a.no_descriptors:
         dt = descriptor_table(PAIRS[:4])
         print("\n".join(dt), flush=True)
-        md += ["", "The paper's descriptor against FPFH in the default coarse stage (`salience=uniform`, the same "
-               "keypoints; 4 bunny pairs, one warm process, interleaved; `histogram3p_before`: the implementation "
-               "before issue #16):", "", *dt]
+        md += ["", DESCRIPTOR_INTRO.format(n=4) + ":", "", *dt]
     if not a.no_startup:
         ov = overhead_table(16)
         print("\n".join(ov), flush=True)
