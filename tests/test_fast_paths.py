@@ -1,6 +1,6 @@
 """Fast paths of issue #16 against the straightforward code they replaced (kept here verbatim as references):
-histogram3p's votes (per-plane matrix products over blocks of keypoints) to 1e-12, and voxel_representatives (one int64 key
-per voxel, bincount sums) bit for bit."""
+histogram3p's votes (per-plane matrix products over blocks of keypoints) to 1e-12, and voxel_representatives (one
+int64 key per voxel, bincount sums) bit for bit."""
 
 import numpy as np
 import pytest
