@@ -62,3 +62,7 @@ def main() -> None:
     finally:
         logging.shutdown()
         os._exit(code or 0)
+
+
+if __name__ == "__main__":
+    main()

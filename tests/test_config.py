@@ -183,3 +183,20 @@ def test_scanreg_help_is_the_projects_own(tmp_path):
     assert "icp: anderson, gicp, horn, open3d, point_to_plane" in out
     assert len(out.splitlines()) < 60 and max(len(ln) for ln in out.splitlines()) <= 100
     assert not list(tmp_path.iterdir())  # help runs nothing
+
+
+def test_quick_help_is_hydras_text(tmp_path):
+    """`scanreg --help` writes the template itself (scanreg.app.quick_help) instead of Hydra's help machinery;
+    the text must be exactly what Hydra writes, with and without an override."""
+    import subprocess
+    import sys
+
+    for extra in ([], ["experiment=demo_density"]):
+        code = ("import sys; sys.argv = ['scanreg', '--help', *sys.argv[1:]]\n"
+                "from scanreg.app import _hydra_main; _hydra_main()")
+        hydra = subprocess.run([sys.executable, "-c", code, *extra], cwd=tmp_path, capture_output=True, text=True,
+                               timeout=300)
+        ours = subprocess.run([sys.executable, "-m", "scanreg.cli", "--help", *extra], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=300)
+        assert hydra.returncode == 0 and ours.returncode == 0, hydra.stderr + ours.stderr
+        assert ours.stdout == hydra.stdout and "Config groups" in ours.stdout
