@@ -35,7 +35,7 @@ process's ``resource.getrusage`` maximum resident set size after the stage, and 
 over the maximum before the stage started (the inputs and earlier stages).
 
 Start-up: ``scanreg --help`` wall time, and a CLI run's wall time minus its ``time_total_s``, with
-``tracking=mlflow`` (the default) and ``tracking=none`` (median of 3, interleaved); a 16-job ``-m`` sweep with
+``tracking=mlflow`` (the default) and ``tracking=none`` (median of 5, interleaved); a 16-job ``-m`` sweep with
 ``launch=serial``: (wall time - sum of the jobs' ``time_total_s``) / 16.
 """
 
@@ -459,7 +459,7 @@ def overhead_table(jobs: int) -> list[str]:
     try:
         cli(["--help"], work)  # warm the file cache
         helps, runs = [], {"mlflow": [], "none": []}
-        for k in range(3):
+        for k in range(5):
             helps.append(cli(["--help"], work)[0])
             for tr in ("mlflow", "none"):
                 d = work / f"run-{tr}-{k}"
@@ -542,7 +542,7 @@ def main() -> None:
     if not a.no_startup:
         ov = overhead_table(16)
         print("\n".join(ov), flush=True)
-        md += ["", "Start-up and tracking overhead (CLI, median [IQR] of 3, the bunny pair bun000:bun045):", "", *ov]
+        md += ["", "Start-up and tracking overhead (CLI, median [IQR] of 5, the bunny pair bun000:bun045):", "", *ov]
     md += ["", f"Benchmark wall time {time.time() - t0:.0f} s.", ""]
     Path(a.out).write_text("\n".join(md))
     (Path(a.out).with_suffix(".json")).write_text(json.dumps(rows, indent=1))
