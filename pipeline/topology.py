@@ -83,24 +83,38 @@ def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: in
         ms.meshing_remove_unreferenced_vertices()
         cm = ms.current_mesh()
         out = Mesh(cm.vertex_matrix().astype(np.float64), cm.face_matrix().astype(np.int64), mesh.source)
+        same = _collapse_track(mesh, out, cm)
+        if same is not None:  # the unchanged faces keep their smallest angle (the same corners, the same bits)
+            ang = np.empty(len(out.faces))
+            ang[same[0]] = min_angles_deg(mesh)[same[1]]
+            ang[~same[0]] = _min_angles_deg(Mesh(out.vertices, out.faces[~same[0]]))
+            remember(out, "min_angles", ang)
         if not (min_angles_deg(out) < angle_deg).any():
             break
-    vid, fid = cm.vertex_scalar_array().astype(np.int64), cm.face_scalar_array().astype(np.int64)
-    if len(vid) == len(out.vertices) and len(fid) == len(out.faces):
-        # a face of ``out`` is unchanged when it is the input face it came from with the same vertices (indices
-        # mapped back to the input's, in any rotation), none of them moved by the collapse; a face whose vertex
-        # was joined to a coincident one counts as changed (its vertex's fan, hence the non-manifold count, did)
-        moved = (mesh.vertices[vid] != out.vertices).any(axis=1)
-        orig, was = vid[out.faces], mesh.faces[fid]
-        same = np.zeros(len(out.faces), bool)
-        for r in range(3):
-            same |= (orig == np.roll(was, r, axis=1)).all(axis=1)
-        same &= ~moved[out.faces].any(axis=1)
+    if same is not None:
         kept = np.zeros(len(mesh.faces), bool)
-        kept[fid[same]] = True
+        kept[same[1]] = True
         # the input face each kept face of ``out`` is (for collapse_folds, which reuses its centre)
-        remember(out, "collapsed_from", ((mesh.vertices, mesh.faces), ~kept, ~same, fid[same]))
+        remember(out, "collapsed_from", ((mesh.vertices, mesh.faces), ~kept, ~same[0], same[1]))
     return out
+
+
+def _collapse_track(mesh: Mesh, out: Mesh, cm) -> tuple[np.ndarray, np.ndarray] | None:
+    """The faces of ``out`` (MeshLab's ``cm``, made from ``mesh`` by :func:`collapse_slivers`) that are faces of
+    ``mesh`` unchanged, and the input face each of them is; None when MeshLab's quality arrays were lost. A face
+    of ``out`` is unchanged when it is the input face it came from with the same vertices (indices mapped back
+    to the input's, in any rotation), none of them moved by the collapse; a face whose vertex was joined to a
+    coincident one counts as changed (its vertex's fan, hence the non-manifold count, did)."""
+    vid, fid = cm.vertex_scalar_array().astype(np.int64), cm.face_scalar_array().astype(np.int64)
+    if len(vid) != len(out.vertices) or len(fid) != len(out.faces):
+        return None
+    moved = (mesh.vertices[vid] != out.vertices).any(axis=1)
+    orig, was = vid[out.faces], mesh.faces[fid]
+    same = np.zeros(len(out.faces), bool)
+    for r in range(3):
+        same |= (orig == np.roll(was, r, axis=1)).all(axis=1)
+    same &= ~moved[out.faces].any(axis=1)
+    return same, fid[same]
 
 
 def mesh_stats(mesh: Mesh) -> dict[str, float]:
@@ -298,7 +312,7 @@ def non_manifold_vertices(mesh: Mesh) -> int:
     if not nf:
         return 0
     directed, edge, counts, order = _mesh_edges_sorted(mesh)
-    rows = order[counts[edge[order]] == 2]  # grouped by edge, row order within (as a stable sort by edge)
+    rows = order[counts[edge[order]] == 2]  # grouped by edge (the pair's order does not matter: links are symmetric)
     r1, r2 = rows[0::2], rows[1::2]  # the two faces' directed copies of each two-face edge
     j1, j2 = r1 // nf, r2 // nf  # local edge j runs from corner j to corner j + 1 of face r % nf
     c1s, c1e = 3 * (r1 % nf) + j1, 3 * (r1 % nf) + (j1 + 1) % 3
@@ -354,12 +368,42 @@ def point_distances(scene, points: np.ndarray) -> np.ndarray:
 def surface_distances(a: Mesh, b: Mesh, n: int, seed: int, scene=None) -> np.ndarray:
     """Distances from ``n`` area-weighted random points on ``a`` to the surface of ``b`` (exact point-to-
     triangle distances, Open3D's raycasting scene; ``scene``: :func:`raycasting_scene` of ``b`` when built)."""
-    pts, _, _ = barycentric_sample(a, n, np.random.default_rng([seed, 77]))
+    pts = _area_sample(a, n, np.random.default_rng([seed, 77]))
     return point_distances(raycasting_scene(b) if scene is None else scene, pts)
 
 
+def _area_sample(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:
+    """The points :func:`~scanreg.geometry.barycentric_sample` draws with ``rng`` (the same draws, the same
+    arithmetic, the same points bit for bit), from the face areas the audit has already measured: the
+    triangles' cross products are computed once per mesh, and the corners only for the sampled faces."""
+    import math
+
+    areas = _face_areas(mesh)
+    w = np.where(areas > 0, 2.0 * areas, 0.0)  # barycentric_sample's weights: |cross| (twice the area, exact)
+    total = math.fsum(w)
+    if not total > 0:  # barycentric_sample's own error
+        return barycentric_sample(mesh, n, rng)[0]
+    counts = rng.multinomial(n, w / total)
+    face = np.repeat(np.arange(len(mesh.faces)), counts)
+    uv = rng.random((n, 2))
+    flip = uv[:, 0] + uv[:, 1] > 1.0
+    uv[flip] = 1.0 - uv[flip]
+    v, f = mesh.vertices, mesh.faces[face]
+    a = v[f[:, 0]]
+    pts = a.copy()
+    pts += uv[:, :1] * (v[f[:, 1]] - a)
+    pts += uv[:, 1:] * (v[f[:, 2]] - a)
+    return pts
+
+
 def _face_areas(mesh: Mesh) -> np.ndarray:
-    return _cached(mesh, "areas", lambda: triangle_areas_normals(mesh)[0])
+    """Each face's area, as :func:`~scanreg.geometry.triangle_areas_normals` computes it (the same
+    arithmetic, without the normals), once per mesh."""
+    def areas() -> np.ndarray:
+        v, f = mesh.vertices, mesh.faces
+        cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        return 0.5 * np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    return _cached(mesh, "areas", areas)
 
 
 def _mesh_edges(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -379,11 +423,12 @@ def _edge_table(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _edge_table_sorted(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_edge_table` and the rows in the order of their undirected edge (stable: rows of one edge in
-    row order), the sort that ``np.unique`` makes and drops, kept for :func:`non_manifold_vertices`."""
+    """:func:`_edge_table` and the rows in the order of their undirected edge (the rows of one edge in any
+    order), the sort that ``np.unique`` makes and drops, kept for :func:`non_manifold_vertices`."""
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    keys = _edge_keys(np.sort(directed, axis=1))
-    order = np.argsort(keys, kind="stable")
+    lo, hi = np.minimum(directed[:, 0], directed[:, 1]), np.maximum(directed[:, 0], directed[:, 1])
+    keys = lo.astype(np.int64) * (int(hi.max()) + 1 if len(hi) else 1) + hi  # _edge_keys of the sorted pairs
+    order = np.argsort(keys)  # the edges' ids do not depend on the order of equal keys
     sk = keys[order]
     first = np.ones(len(sk), bool)
     first[1:] = sk[1:] != sk[:-1]
