@@ -52,13 +52,13 @@ def _min_angles_deg(mesh: Mesh) -> np.ndarray:
     P = mesh.vertices[mesh.faces]
     e = [P[:, (i + 1) % 3] - P[:, i] for i in range(3)]  # edge i runs from corner i to corner i+1
     L = [np.sqrt(np.einsum("ij,ij->i", x, x)) for x in e]
-    out = np.full(len(P), 180.0)
-    for i in range(3):  # the angle at corner i, between edge i and the reversed edge i-1
-        a, b = e[i], -e[i - 1]
+    # the smallest angle has the largest cosine (arccos decreases): one arccos per face, the same value
+    cmax = np.full(len(P), -1.0)
+    for i in range(3):  # the cosine at corner i, between edge i and the reversed edge i-1
         den = L[i] * L[i - 1]
-        c = np.divide(np.einsum("ij,ij->i", a, b), den, out=np.ones(len(P)), where=den > 0)
-        out = np.minimum(out, np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-    return out
+        c = np.divide(-np.einsum("ij,ij->i", e[i], e[i - 1]), den, out=np.ones(len(P)), where=den > 0)
+        np.maximum(cmax, c, out=cmax)
+    return np.degrees(np.arccos(np.clip(cmax, -1.0, 1.0)))
 
 
 def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: int = 3) -> Mesh:
@@ -83,23 +83,38 @@ def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: in
         ms.meshing_remove_unreferenced_vertices()
         cm = ms.current_mesh()
         out = Mesh(cm.vertex_matrix().astype(np.float64), cm.face_matrix().astype(np.int64), mesh.source)
+        same = _collapse_track(mesh, out, cm)
+        if same is not None:  # the unchanged faces keep their smallest angle (the same corners, the same bits)
+            ang = np.empty(len(out.faces))
+            ang[same[0]] = min_angles_deg(mesh)[same[1]]
+            ang[~same[0]] = _min_angles_deg(Mesh(out.vertices, out.faces[~same[0]]))
+            remember(out, "min_angles", ang)
         if not (min_angles_deg(out) < angle_deg).any():
             break
-    vid, fid = cm.vertex_scalar_array().astype(np.int64), cm.face_scalar_array().astype(np.int64)
-    if len(vid) == len(out.vertices) and len(fid) == len(out.faces):
-        # a face of ``out`` is unchanged when it is the input face it came from with the same vertices (indices
-        # mapped back to the input's, in any rotation), none of them moved by the collapse; a face whose vertex
-        # was joined to a coincident one counts as changed (its vertex's fan, hence the non-manifold count, did)
-        moved = (mesh.vertices[vid] != out.vertices).any(axis=1)
-        orig, was = vid[out.faces], mesh.faces[fid]
-        same = np.zeros(len(out.faces), bool)
-        for r in range(3):
-            same |= (orig == np.roll(was, r, axis=1)).all(axis=1)
-        same &= ~moved[out.faces].any(axis=1)
+    if same is not None:
         kept = np.zeros(len(mesh.faces), bool)
-        kept[fid[same]] = True
-        remember(out, "collapsed_from", ((mesh.vertices, mesh.faces), ~kept, ~same))
+        kept[same[1]] = True
+        # the input face each kept face of ``out`` is (for collapse_folds, which reuses its centre)
+        remember(out, "collapsed_from", ((mesh.vertices, mesh.faces), ~kept, ~same[0], same[1]))
     return out
+
+
+def _collapse_track(mesh: Mesh, out: Mesh, cm) -> tuple[np.ndarray, np.ndarray] | None:
+    """The faces of ``out`` (MeshLab's ``cm``, made from ``mesh`` by :func:`collapse_slivers`) that are faces of
+    ``mesh`` unchanged, and the input face each of them is; None when MeshLab's quality arrays were lost. A face
+    of ``out`` is unchanged when it is the input face it came from with the same vertices (indices mapped back
+    to the input's, in any rotation), none of them moved by the collapse; a face whose vertex was joined to a
+    coincident one counts as changed (its vertex's fan, hence the non-manifold count, did)."""
+    vid, fid = cm.vertex_scalar_array().astype(np.int64), cm.face_scalar_array().astype(np.int64)
+    if len(vid) != len(out.vertices) or len(fid) != len(out.faces):
+        return None
+    moved = (mesh.vertices[vid] != out.vertices).any(axis=1)
+    orig, was = vid[out.faces], mesh.faces[fid]
+    same = np.zeros(len(out.faces), bool)
+    for r in range(3):
+        same |= (orig == np.roll(was, r, axis=1)).all(axis=1)
+    same &= ~moved[out.faces].any(axis=1)
+    return same, fid[same]
 
 
 def mesh_stats(mesh: Mesh) -> dict[str, float]:
@@ -181,20 +196,22 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
 
     fb, fa = before.faces, after.faces
     track = known(after, "collapsed_from")  # set by collapse_slivers: the faces it changed
-    if track is not None and track[0][0] is before.vertices and track[0][1] is before.faces:
+    tracked = track is not None and track[0][0] is before.vertices and track[0][1] is before.faces
+    if tracked:
         gone, new = track[1], track[2]
     else:
         gone, new = _changed_faces(before, after)
     if not gone.any() and not new.any():
         return np.zeros(3, np.int64), np.zeros(3, np.int64)
 
-    def centres(m: Mesh) -> tuple[np.ndarray, np.ndarray]:
-        P = m.vertices[m.faces]
-        c = P.mean(axis=1)
-        return c, np.sqrt(((P - c[:, None]) ** 2).sum(-1).max(axis=1))
-
-    (xb, rb), (xa, ra) = centres(before), centres(after)
-    bound = max(np.quantile(rb, 0.99), np.quantile(ra, 0.99))  # most faces' circumradius is below it
+    xb, rb = _centres(before)
+    if tracked:  # the faces the collapse kept have before's centres (computed once)
+        xa, ra = np.empty((len(fa), 3)), np.empty(len(fa))
+        xa[~new], ra[~new] = xb[track[3]], rb[track[3]]
+        xa[new], ra[new] = _centres(Mesh(after.vertices, fa[new]))
+    else:
+        xa, ra = _centres(after)
+    bound = max(np.quantile(rb, 0.99), np.quantile(ra, 0.99)) if len(fa) else np.quantile(rb, 0.99)
     # the changed faces as points with a reach: a small face its centroid and circumradius, a large one (a long
     # sliver) a grid of points on it at most ``step`` apart, each reaching ``step`` (covering the face)
     tris = np.concatenate([before.vertices[fb[gone]], after.vertices[fa[new]]])
@@ -210,21 +227,46 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
         reach.append(np.full(len(a), bound))
     seeds, reach = np.concatenate(seeds), np.concatenate(reach)
     seed_tree = cKDTree(seeds)
+    # every reach is at most the bound, so a centroid within a seed's reach plus the bound lies in the seed's
+    # cell of a grid of side 2 bound or in a neighbouring cell: only the centroids in those cells are looked at
+    pts = np.concatenate([xb, xa, seeds])
+    cell = 2 * bound
+    lo = pts.min(axis=0) - cell
+    dims = np.floor((pts.max(axis=0) - lo) / cell).astype(np.int64) + 3 if cell > 0 else None
+    gridded = dims is not None and float(np.prod(dims.astype(float))) < 2.0 ** 62
+
+    def grid(p: np.ndarray) -> np.ndarray:
+        return np.floor((p - lo) / cell).astype(np.int64)
+
+    def keys(g: np.ndarray) -> np.ndarray:
+        return (g[..., 0] * dims[1] + g[..., 1]) * dims[2] + g[..., 2]
+
+    if gridded:
+        off = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3)
+        around = np.unique(keys(grid(seeds)[:, None] + off))
 
     def near(x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Faces (centroids ``x``, circumradii ``r``) that can touch a changed face: centroids within the sum of
         the two reaches; faces up to the common bound found around the seeds, the few larger ones (1 %)
         looked up the other way."""
         mask = np.zeros(len(x), bool)
-        hits = cKDTree(x).query_ball_point(seeds, reach + bound)
+        cand = np.flatnonzero(np.isin(keys(grid(x)), around)) if gridded else np.arange(len(x))
+        hits = cKDTree(x[cand]).query_ball_point(seeds, reach + bound) if len(cand) else []
         idx = np.concatenate([np.asarray(h, np.int64) for h in hits]) if len(hits) else np.zeros(0, np.int64)
-        mask[idx] = True
+        mask[cand[idx]] = True
         big = np.flatnonzero(r > bound)
         if len(big):  # every reach is at most the bound
             mask[big[seed_tree.query_ball_point(x[big], r[big] + bound, return_length=True) > 0]] = True
         return mask
 
     return fold_counts(submesh(before, near(xb, rb))), fold_counts(submesh(after, near(xa, ra)))
+
+
+def _centres(m: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Each face's centroid and circumradius (the largest distance from the centroid to a corner)."""
+    P = m.vertices[m.faces]
+    c = P.mean(axis=1)
+    return c, np.sqrt(((P - c[:, None]) ** 2).sum(-1).max(axis=1))
 
 
 def _changed_faces(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -269,9 +311,8 @@ def non_manifold_vertices(mesh: Mesh) -> int:
     nf = len(f)
     if not nf:
         return 0
-    directed, edge, counts = _mesh_edges(mesh)
-    rows = np.flatnonzero(counts[edge] == 2)
-    rows = rows[np.argsort(edge[rows], kind="stable")]
+    directed, edge, counts, order = _mesh_edges_sorted(mesh)
+    rows = order[counts[edge[order]] == 2]  # grouped by edge (the pair's order does not matter: links are symmetric)
     r1, r2 = rows[0::2], rows[1::2]  # the two faces' directed copies of each two-face edge
     j1, j2 = r1 // nf, r2 // nf  # local edge j runs from corner j to corner j + 1 of face r % nf
     c1s, c1e = 3 * (r1 % nf) + j1, 3 * (r1 % nf) + (j1 + 1) % 3
@@ -279,8 +320,8 @@ def non_manifold_vertices(mesh: Mesh) -> int:
     same = directed[r1, 0] == directed[r2, 0]  # traversed the same way (inconsistent orientation)
     a = np.concatenate([c1s, c1e])
     b = np.concatenate([np.where(same, c2s, c2e), np.where(same, c2e, c2s)])
-    g = coo_matrix((np.ones(len(a)), (a, b)), shape=(3 * nf, 3 * nf))
-    fan = connected_components(g, directed=False)[1]
+    g = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(3 * nf, 3 * nf)).tocsr()
+    fan = connected_components(g, directed=True, connection="weak")[1]  # weak: as undirected, no transpose
     vert = f.ravel()  # corner 3 * face + k is vertex f[face, k]
     nv = max(len(mesh.vertices), int(vert.max()) + 1)
     one = np.empty(nv, fan.dtype)
@@ -327,25 +368,75 @@ def point_distances(scene, points: np.ndarray) -> np.ndarray:
 def surface_distances(a: Mesh, b: Mesh, n: int, seed: int, scene=None) -> np.ndarray:
     """Distances from ``n`` area-weighted random points on ``a`` to the surface of ``b`` (exact point-to-
     triangle distances, Open3D's raycasting scene; ``scene``: :func:`raycasting_scene` of ``b`` when built)."""
-    pts, _, _ = barycentric_sample(a, n, np.random.default_rng([seed, 77]))
+    pts = _area_sample(a, n, np.random.default_rng([seed, 77]))
     return point_distances(raycasting_scene(b) if scene is None else scene, pts)
 
 
+def _area_sample(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:
+    """The points :func:`~scanreg.geometry.barycentric_sample` draws with ``rng`` (the same draws, the same
+    arithmetic, the same points bit for bit), from the face areas the audit has already measured: the
+    triangles' cross products are computed once per mesh, and the corners only for the sampled faces."""
+    import math
+
+    areas = _face_areas(mesh)
+    w = np.where(areas > 0, 2.0 * areas, 0.0)  # barycentric_sample's weights: |cross| (twice the area, exact)
+    total = math.fsum(w)
+    if not total > 0:  # barycentric_sample's own error
+        return barycentric_sample(mesh, n, rng)[0]
+    counts = rng.multinomial(n, w / total)
+    face = np.repeat(np.arange(len(mesh.faces)), counts)
+    uv = rng.random((n, 2))
+    flip = uv[:, 0] + uv[:, 1] > 1.0
+    uv[flip] = 1.0 - uv[flip]
+    v, f = mesh.vertices, mesh.faces[face]
+    a = v[f[:, 0]]
+    pts = a.copy()
+    pts += uv[:, :1] * (v[f[:, 1]] - a)
+    pts += uv[:, 1:] * (v[f[:, 2]] - a)
+    return pts
+
+
 def _face_areas(mesh: Mesh) -> np.ndarray:
-    return _cached(mesh, "areas", lambda: triangle_areas_normals(mesh)[0])
+    """Each face's area, as :func:`~scanreg.geometry.triangle_areas_normals` computes it (the same
+    arithmetic, without the normals), once per mesh."""
+    def areas() -> np.ndarray:
+        v, f = mesh.vertices, mesh.faces
+        cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        return 0.5 * np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    return _cached(mesh, "areas", areas)
 
 
 def _mesh_edges(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_edge_table` of ``mesh``'s faces, computed once per mesh."""
-    return _cached(mesh, "edges", lambda: _edge_table(mesh.faces))
+    return _mesh_edges_sorted(mesh)[:3]
+
+
+def _mesh_edges_sorted(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_edge_table_sorted` of ``mesh``'s faces, computed once per mesh (the one edge table)."""
+    return _cached(mesh, "edges", lambda: _edge_table_sorted(mesh.faces))
 
 
 def _edge_table(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The faces' directed edges (3M, 2; face k's at rows k, M + k, 2M + k), the undirected edge of each, and
-    the number of faces on each undirected edge."""
+    the number of faces on each undirected edge (``np.unique``'s sorted order and inverse)."""
+    return _edge_table_sorted(f)[:3]
+
+
+def _edge_table_sorted(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_edge_table` and the rows in the order of their undirected edge (the rows of one edge in any
+    order), the sort that ``np.unique`` makes and drops, kept for :func:`non_manifold_vertices`."""
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    _, edge, counts = np.unique(_edge_keys(np.sort(directed, axis=1)), return_inverse=True, return_counts=True)
-    return directed, edge.ravel(), counts
+    lo, hi = np.minimum(directed[:, 0], directed[:, 1]), np.maximum(directed[:, 0], directed[:, 1])
+    keys = lo.astype(np.int64) * (int(hi.max()) + 1 if len(hi) else 1) + hi  # _edge_keys of the sorted pairs
+    order = np.argsort(keys)  # the edges' ids do not depend on the order of equal keys
+    sk = keys[order]
+    first = np.ones(len(sk), bool)
+    first[1:] = sk[1:] != sk[:-1]
+    ids = np.cumsum(first) - 1
+    edge = np.empty(len(keys), np.int64)
+    edge[order] = ids
+    counts = np.diff(np.r_[np.flatnonzero(first), len(sk)])
+    return directed, edge, counts, order
 
 
 def _edge_keys(e: np.ndarray) -> np.ndarray:

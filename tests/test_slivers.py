@@ -94,3 +94,39 @@ def test_collapse_tracks_the_faces_it_changed():
     untracked = Mesh(out.vertices, out.faces)  # the same arrays, nothing remembered
     for a, b in zip(collapse_folds(sl, out), collapse_folds(sl, untracked)):
         assert (a == b).all()
+
+
+def test_audit_shortcuts_give_the_plain_computations_answers():
+    """The audit's faster computations (#16) give what the plain ones give, bit for bit: the smallest angle from
+    the largest cosine, the edge table from min/max keys, the surface samples from the remembered face areas
+    (the points ``barycentric_sample`` draws), and the smallest angles ``collapse_slivers`` copies for the faces
+    it kept."""
+    from scanreg.geometry import barycentric_sample
+    from scanreg.topology import _area_sample, _edge_table, _min_angles_deg, non_manifold_vertices
+
+    _, sl = sliver_sphere()
+    # a non-manifold edge (three faces on 0-1), a pinched vertex (two fans at 5) and a zero-area face
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [3, 0, 0], [4, 0, 0], [3, 1, 0],
+                  [2, 0, 0], [3, -1, 0], [5, 0, 0]], float)
+    odd = Mesh(v, np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [5, 6, 7], [5, 8, 9], [5, 6, 10]]))
+    for m in (sl, odd):
+        P = m.vertices[m.faces]
+        plain = np.full(len(P), 180.0)
+        for i in range(3):  # the angle at each corner, the smallest kept
+            a, b = P[:, (i + 1) % 3] - P[:, i], P[:, i - 1] - P[:, i]
+            den = np.sqrt(np.einsum("ij,ij->i", a, a)) * np.sqrt(np.einsum("ij,ij->i", b, b))
+            c = np.divide(np.einsum("ij,ij->i", a, b), den, out=np.ones(len(P)), where=den > 0)
+            plain = np.minimum(plain, np.degrees(np.arccos(np.clip(c, -1, 1))))
+        assert np.array_equal(_min_angles_deg(m), plain)
+        d = np.concatenate([m.faces[:, [0, 1]], m.faces[:, [1, 2]], m.faces[:, [2, 0]]])
+        _, inv, cnt = np.unique(np.sort(d, axis=1), axis=0, return_inverse=True, return_counts=True)
+        directed, edge, counts = _edge_table(m.faces)
+        assert np.array_equal(directed, d) and np.array_equal(edge, inv.ravel()) and np.array_equal(counts, cnt)
+        for seed in (0, 3):
+            assert np.array_equal(_area_sample(m, 500, np.random.default_rng(seed)),
+                                  barycentric_sample(m, 500, np.random.default_rng(seed))[0])
+    assert non_manifold_vertices(odd) == 1  # vertex 5 (0 and 1 are on the non-manifold edge, not counted)
+    out = collapse_slivers(sl, 1.0)
+    from scanreg.topology import known
+    assert known(out, "collapsed_from") is not None  # the kept faces' angles were copied, not recomputed
+    assert np.array_equal(min_angles_deg(out), _min_angles_deg(Mesh(out.vertices, out.faces)))
