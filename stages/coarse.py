@@ -10,7 +10,7 @@ import numpy as np
 from scanreg.config import Context, Distances, to_abs
 from scanreg.errors import ConfigError, StageError
 from scanreg.geometry import (Cloud, apply_T, blas_single_thread, horn_quaternion, kabsch_batch, rigid_points_normals,
-                               row_norms)
+                               row_norms, sparse_voxel_mask)
 from scanreg.registry import COARSE, SALIENCE
 from scanreg.stages.descriptor import to_o3d
 
@@ -202,11 +202,22 @@ class LoRansac:
         than its target) then keep enough keypoints: with the 4-spacing voxel alone, 3 000 sampled points
         became 900 and a demo pose failed (README, findings). null: no lower bound."""
 
+        isolated_ratio: Optional[float] = 0.25
+        """With ``voxel``: before thinning, drop the points whose voxel (the initial edge) holds fewer than this
+        share of the points the median point's voxel holds (a ratio, no unit). A sampled surface fills its voxels
+        alike (about 6 points each at 4 spacings), while outliers scattered through the volume sit one to a voxel;
+        thinning would keep every one of them and only one point per surface voxel, so that at 30 % outliers most
+        of the thinned cloud was outliers, the keypoints and FPFH neighbourhoods with it, and every run failed
+        (README, findings). A cloud whose median voxel holds fewer than 1 / ratio points loses nothing. Logged as
+        ``coarse_isolated_target`` / ``_source`` (points dropped). null: keep every point."""
+
         def check(self):
             if self.min_points is not None and self.min_points < 10:
                 raise ValueError(f"min_points must be >= 10 or null, got {self.min_points}")
             if self.max_points is not None and self.max_points < 10:
                 raise ValueError(f"max_points must be >= 10 or null, got {self.max_points}")
+            if self.isolated_ratio is not None and not 0 < self.isolated_ratio <= 1:
+                raise ValueError(f"isolated_ratio must be in (0, 1] or null, got {self.isolated_ratio}")
             if self.voxel is not None and not self.voxel > 0:
                 raise ValueError(f"voxel must be > 0 or null, got {self.voxel}")
             if self.fallback_voxel is not None and not self.fallback_voxel > 0:
@@ -225,14 +236,22 @@ class LoRansac:
         with blas_single_thread():  # small products between OpenMP calls (Open3D, k-d trees): see its note
             if self.p.voxel is None:
                 return self._run(target, source, ctx)
-            target, source, cctx = downsampled(target, source, ctx, self.p.voxel * ctx.spacing, self.p.max_points,
-                                               self.p.min_points)
+            voxel, dropped = self.p.voxel * ctx.spacing, (0, 0)
+            if self.p.isolated_ratio is not None and (self.p.min_points is None or
+                                                      min(target.n_points, source.n_points) > self.p.min_points):
+                keep_t = sparse_voxel_mask(target.points, voxel, self.p.isolated_ratio)
+                keep_s = sparse_voxel_mask(source.points, voxel, self.p.isolated_ratio)
+                dropped = (int((~keep_t).sum()), int((~keep_s).sum()))
+                target = target.subset(keep_t) if dropped[0] else target
+                source = source.subset(keep_s) if dropped[1] else source
+            target, source, cctx = downsampled(target, source, ctx, voxel, self.p.max_points, self.p.min_points)
             try:
                 T, metrics = self._run(target, source, cctx)
             finally:
                 ctx.coarse_trace = cctx.coarse_trace  # what the evaluation needs, in the thinned clouds' spacing
             metrics.update({"coarse_points_target": target.n_points, "coarse_points_source": source.n_points,
-                            "coarse_spacing": cctx.spacing})
+                            "coarse_spacing": cctx.spacing, "coarse_isolated_target": dropped[0],
+                            "coarse_isolated_source": dropped[1]})
             return T, metrics
 
     def _run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
