@@ -372,7 +372,7 @@ def voxel_occupancy(points: np.ndarray, voxel: float) -> np.ndarray:
     return counts[inv.ravel()]
 
 
-def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float) -> np.ndarray:
+def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float, near: float | None = None) -> np.ndarray:
     """Which points to keep, dropping isolated ones (outliers scattered through the volume), on a grid of edge
     ``voxel`` (input units). A full cell holds ``full`` points, the 90th percentile of the points' cell counts
     (:func:`voxel_occupancy`; counted per point, it is a surface cell's count while fewer than about 85 % of the
@@ -380,8 +380,11 @@ def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float) -> np.ndar
     dropped when its 3 x 3 x 3 block of cells (itself and its 26 neighbours) holds fewer than ``2 * full`` points
     too: a sampled surface fills its cells alike and a sparse cell at its border or where it grazes a cell's
     corner has full neighbours, while an outlier sits alone in an empty block. Voxel thinning would give each
-    outlier a representative of its own. A cloud whose full cells hold fewer than ``1 / ratio`` points (a
-    sparse cloud) keeps every point, and so does one too large for a 62-bit cell index."""
+    outlier a representative of its own. With ``near`` (input units), a point of a sparse cell whose block is
+    full enough is dropped still when no other point lies within ``near`` of it: an outlier floating a few
+    cells off the surface, where a point at the surface's border has neighbours one spacing away. A cloud
+    whose full cells hold fewer than ``1 / ratio`` points (a sparse cloud) keeps every point, and so does one
+    too large for a 62-bit cell index."""
     n = len(points)
     keep = np.ones(n, bool)
     if n == 0:
@@ -407,4 +410,14 @@ def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float) -> np.ndar
     block = np.where(cells[pos] == nb, counts[pos], 0).sum(axis=1)
     drop = np.zeros(len(cells), bool)
     drop[sparse[block < 2 * full]] = True
-    return ~drop[inv]
+    keep = ~drop[inv]
+    if near is not None:
+        sparse_cell = np.zeros(len(cells), bool)
+        sparse_cell[sparse] = True
+        ask = np.flatnonzero(sparse_cell[inv] & keep)
+        if len(ask):
+            from scipy.spatial import cKDTree
+
+            d = cKDTree(points).query(points[ask], k=2)[0][:, 1]
+            keep[ask[d > near]] = False
+    return keep
