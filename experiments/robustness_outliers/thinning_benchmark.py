@@ -13,7 +13,8 @@ Variants (scanreg overrides on top of the defaults; ``--variants`` JSON replaces
 Groups (each case with ground truth, the source under pose seed 0 unless said):
 - clean: the 40 ordered Stanford bunny pairs with >= 40 % overlap of ``experiment=first_contact`` (raw scans,
   ``repair=none`` as in the end-to-end benchmark), pose seed 0;
-- 3dmatch: the real 3DMatch fragment pair, pose seeds 0-5 (success: 15 deg and 5 % of the diagonal, as ``conf/data/pairs_3dmatch.yaml`` suggests);
+- 3dmatch: the real 3DMatch fragment pair, pose seeds 0-5 (success: 15 deg and 5 % of the diagonal, as
+  ``conf/data/pairs_3dmatch.yaml`` suggests);
 - outliers: ``experiment=robustness_outliers``'s cases (3 pairs, ISS / uniform / cn_l3, no fallback, min_inliers
   3, 10 000 points) at 30, 40 and 50 % outliers;
 - low_overlap: ``experiment=bunny_benchmark``'s pairs with 10-20 % overlap (gt_overlap), 10 000 points.
