@@ -419,6 +419,6 @@ def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float, near: floa
             from scipy.spatial import cKDTree
 
             tree = cKDTree(points, leafsize=32, balanced_tree=False, compact_nodes=False)  # builds 2x faster
-            d = tree.query(points[ask], k=2)[0][:, 1]
+            d = tree.query(points[ask], k=2, distance_upper_bound=near)[0][:, 1]  # inf beyond near
             keep[ask[d > near]] = False
     return keep
