@@ -128,6 +128,13 @@ def main() -> None:
             rows.append(row)
             print(json.dumps(row), flush=True)
     minutes = (time.time() - t_start) / 60
+    import subprocess
+
+    git = ["git", "-C", str(ROOT)]
+    commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run([*git, "status", "--porcelain", "--", ".", ":!experiments"], capture_output=True,
+                           text=True).stdout.strip()
+    commit += "+dirty" if dirty else ""
     out = Path(a.out)
     with open(out.with_suffix(".csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -136,7 +143,8 @@ def main() -> None:
     groups = list(dict.fromkeys(r["group"] for r in rows))
     names = list(variants)
     lines = [f"# Coarse-stage thinning: before/after ({sys.argv[0]} --groups {a.groups})", "",
-             f"{len(rows)} runs, {minutes:.1f} min, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; "
+             f"{len(rows)} runs, {minutes:.1f} min, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+             f"commit {commit}; "
              f"variants: " + "; ".join(f"{k}: `{' '.join(v) or 'the defaults'}`" for k, v in variants.items())
              + ". Cells: successes/runs = rate [Wilson 95 %]; coarse time: median [total] in s of `time_coarse_s`, "
              "the variants of a case run back to back (interleaved). How it is measured: this script's docstring.",
