@@ -109,6 +109,13 @@ def main() -> None:
     a = ap.parse_args()
     warnings.filterwarnings("ignore")
     variants = json.loads(a.variants) if a.variants else VARIANTS
+    import subprocess  # the commit the runs measure, read before they start
+
+    git = ["git", "-C", str(ROOT)]
+    commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run([*git, "status", "--porcelain", "--", ".", ":!experiments"], capture_output=True,
+                           text=True).stdout.strip()
+    commit += "+dirty" if dirty else ""
     rows, t_start = [], time.time()
     for i, (group, ovs, with_full) in enumerate(cases(a.groups.split(","))):
         names = [v for v in variants if with_full or v != "every point"]
@@ -128,13 +135,6 @@ def main() -> None:
             rows.append(row)
             print(json.dumps(row), flush=True)
     minutes = (time.time() - t_start) / 60
-    import subprocess
-
-    git = ["git", "-C", str(ROOT)]
-    commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run([*git, "status", "--porcelain", "--", ".", ":!experiments"], capture_output=True,
-                           text=True).stdout.strip()
-    commit += "+dirty" if dirty else ""
     out = Path(a.out)
     with open(out.with_suffix(".csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
