@@ -207,7 +207,10 @@ class LoRansac:
         (4 spacings), a cell is sparse when it holds fewer than this share (a ratio, no unit) of a full cell's
         points (the 90th percentile of the points' cell counts); its points go when its 3 x 3 x 3 block holds
         fewer than two full cells, or when no other point lies within 3 spacings (of the full clouds) of them
-        (:func:`scanreg.geometry.sparse_voxel_mask`). A sampled surface fills its cells alike, outliers
+        (:func:`scanreg.geometry.sparse_voxel_mask`). When over 5 % of a cloud proves isolated, the spacing is
+        measured again without those points and, if smaller, they are looked for again on its grid and the
+        clouds thinned with it (at 50 % outliers the run's spacing is 1.5 times the surface's). A sampled
+        surface fills its cells alike, outliers
         scattered through the volume sit one to a cell; thinning keeps one point per occupied cell, so without
         this at 30 % outliers most of the thinned source was outliers, the keypoints and FPFH neighbourhoods
         with it, and every detector failed where on every point each succeeded (README, findings). A clean bunny
@@ -242,12 +245,7 @@ class LoRansac:
             voxel, dropped = self.p.voxel * ctx.spacing, (0, 0)
             if self.p.isolated_ratio is not None and (self.p.min_points is None or
                                                       min(target.n_points, source.n_points) > self.p.min_points):
-                near = 3 * ctx.spacing
-                keep_t = sparse_voxel_mask(target.points, voxel, self.p.isolated_ratio, near)
-                keep_s = sparse_voxel_mask(source.points, voxel, self.p.isolated_ratio, near)
-                dropped = (int((~keep_t).sum()), int((~keep_s).sum()))
-                target = target.subset(keep_t) if dropped[0] else target
-                source = source.subset(keep_s) if dropped[1] else source
+                target, source, dropped, voxel = self._without_isolated(target, source, ctx)
             target, source, cctx = downsampled(target, source, ctx, voxel, self.p.max_points, self.p.min_points)
             try:
                 T, metrics = self._run(target, source, cctx)
@@ -257,6 +255,30 @@ class LoRansac:
                             "coarse_spacing": cctx.spacing, "coarse_isolated_target": dropped[0],
                             "coarse_isolated_source": dropped[1]})
             return T, metrics
+
+    def _without_isolated(self, target: Cloud, source: Cloud, ctx: Context):
+        """Both clouds without their isolated points (``isolated_ratio``), the counts dropped and the voxel to
+        thin with. The run's spacing is measured on the clouds as given; when more than 5 % of a cloud proved
+        isolated, it is measured again without them (as the runner does: the larger median nearest-neighbour
+        distance) and, if smaller, the isolated points are looked for again on its finer grid and the clouds
+        thinned with it: at 50 % outliers the first spacing is 1.5 times the surface's."""
+        from scanreg.metrics import estimate_spacing
+
+        spacing = ctx.spacing
+        for attempt in range(2):
+            voxel = self.p.voxel * spacing
+            keep_t = sparse_voxel_mask(target.points, voxel, self.p.isolated_ratio, 3 * spacing)
+            keep_s = sparse_voxel_mask(source.points, voxel, self.p.isolated_ratio, 3 * spacing)
+            dropped = (int((~keep_t).sum()), int((~keep_s).sum()))
+            if attempt or max(dropped[0] / target.n_points, dropped[1] / source.n_points) <= 0.05:
+                break
+            again = max(estimate_spacing(target.points[keep_t], ctx.rng(1)),
+                        estimate_spacing(source.points[keep_s], ctx.rng(2)))
+            if not 0 < again < spacing:
+                break
+            spacing = again
+        return (target.subset(keep_t) if dropped[0] else target, source.subset(keep_s) if dropped[1] else source,
+                dropped, voxel)
 
     def _run(self, target: Cloud, source: Cloud, ctx: Context) -> tuple[np.ndarray, dict]:
         try:

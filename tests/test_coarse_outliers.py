@@ -78,6 +78,32 @@ def test_lo_ransac_registers_scans_with_30_percent_outliers_on_thinned_clouds():
     assert transform_errors(T0, T_gt)[0] > 5, "the case no longer shows the guard's effect"
 
 
+def test_lo_ransac_remeasures_the_spacing_at_50_percent_outliers():
+    """Half the source outliers and the run's spacing measured as the runner measures it, on the clouds with
+    their outliers (1.5 times the surface's): the guard finds the outliers on the coarse grid, measures the
+    spacing again without them, looks again on the finer grid, and the pose is found."""
+    from test_coarse import stanford_case
+
+    from scanreg.metrics import estimate_spacing
+
+    tgt, src, T_gt, c = stanford_case(3, 10000, build(SALIENCE, "uniform"))
+    clean_coarse = build(COARSE, "lo_ransac", fallback_voxel=None).run(tgt, src, c)[1]["coarse_spacing"]
+    rng = np.random.default_rng(6)
+    out = rng.uniform(src.points.min(axis=0), src.points.max(axis=0), size=(src.n_points, 3))
+    nrm = rng.normal(size=out.shape)
+    src = Cloud(np.vstack([src.points, out]), np.vstack([src.normals, nrm / np.linalg.norm(nrm, axis=1)[:, None]]))
+    clean = c.spacing
+    c.spacing = max(estimate_spacing(tgt.points, np.random.default_rng(1)),
+                    estimate_spacing(src.points, np.random.default_rng(2)))
+    assert c.spacing > 1.3 * clean  # the runner's spacing, inflated by the outliers
+    T, m = build(COARSE, "lo_ransac", fallback_voxel=None).run(tgt, src, c)
+    assert transform_errors(T, T_gt)[0] < 5, m
+    assert 0.8 * len(out) < m["coarse_isolated_source"] < 1.05 * len(out), m
+    # thinned on the grid of the spacing measured again (coarse spacing 1.17 times the clean run's here), not
+    # on the inflated one (one pass: 1.48 times)
+    assert m["coarse_spacing"] < 1.3 * clean_coarse, (m["coarse_spacing"], clean_coarse)
+
+
 def test_isolated_ratio_is_checked():
     from scanreg.errors import ConfigError
 
