@@ -210,11 +210,10 @@ class LoRansac:
         (:func:`scanreg.geometry.sparse_voxel_mask`). When over 5 % of a cloud proves isolated, the spacing is
         measured again without those points and, if smaller, they are looked for again on its grid and the
         clouds thinned with it (at 50 % outliers the run's spacing is 1.5 times the surface's). A sampled
-        surface fills its cells alike, outliers
-        scattered through the volume sit one to a cell; thinning keeps one point per occupied cell, so without
-        this at 30 % outliers most of the thinned source was outliers, the keypoints and FPFH neighbourhoods
-        with it, and every detector failed where on every point each succeeded (README, findings). A clean bunny
-        scan loses 0.2-0.7 % of its points. Logged as ``coarse_isolated_target`` / ``_source`` (points
+        surface fills its cells alike, outliers scattered through the volume sit one to a cell; thinning keeps
+        one point per occupied cell, so without this at 30 % outliers most of the thinned source was outliers,
+        the keypoints and FPFH neighbourhoods with it, and every detector failed where on every point each
+        succeeded (README, findings). A clean bunny scan loses 0.2-0.7 % of its points. Logged as ``coarse_isolated_target`` / ``_source`` (points
         dropped). null: keep every point."""
 
         def check(self):
