@@ -8,7 +8,14 @@ very same input returns 70 faces in rounds 1-2 and 139 from round 3 on, also on 
 same arrays at that moment. Ruled out: the rounding mode (``fegetround`` unchanged), flush-to-zero/denormals-are-
 zero on the main thread, a selection left over (none before the call), OpenMP thread count (1 and 2 both give 70 in
 a process that has run no repair), a race (three calls in a row agree). So some state that an earlier repair
-leaves behind changes MeshLab's test. Single runs are deterministic (a fresh process each); sweep jobs share
+leaves behind changes MeshLab's test. Narrowed down (wrapping the audit's steps and counting the same input after
+each): the count flips during the second repair's ``collapse_folds`` (scanreg.topology), between its two
+``fold_counts`` calls (each leaves the count as it found it), i.e. while ``near`` selects the neighbourhood with
+SciPy k-d tree queries and ``submesh`` cuts it out; none of pymeshfix's clean / fill / degeneracy removal,
+Open3D's raycasting, MeshLab's sliver collapse or clean-up filters, or MeshLab's tests on small submeshes,
+repeated alone in a fresh process, flips it; nor do MALLOC_PERTURB_ or a fixed MALLOC_MMAP_THRESHOLD_ remove it.
+The test itself is numerically fragile on this scan: the same faces scaled by 1000, shifted by 5 or divided by
+1000 give 39, 56 and 26 self-intersecting faces (MeshLab's known false positives, cnr-isti-vclab/meshlab#50). Single runs are deterministic (a fresh process each); sweep jobs share
 worker processes and may not be.
 
 Run: ``.venv/bin/python experiments/benchmarks/si_state_repro.py`` (about 1.5 min; needs ../shared/data).
