@@ -13,7 +13,9 @@ each): the count flips during the second repair's ``collapse_folds`` (scanreg.to
 ``fold_counts`` calls (each leaves the count as it found it), i.e. while ``near`` selects the neighbourhood with
 SciPy k-d tree queries and ``submesh`` cuts it out; none of pymeshfix's clean / fill / degeneracy removal,
 Open3D's raycasting, MeshLab's sliver collapse or clean-up filters, or MeshLab's tests on small submeshes,
-repeated alone in a fresh process, flips it; nor do MALLOC_PERTURB_ or a fixed MALLOC_MMAP_THRESHOLD_ remove it.
+repeated alone in a fresh process, flips it; nor do MALLOC_PERTURB_ or a fixed MALLOC_MMAP_THRESHOLD_ remove it,
+nor disabling Python's GC. The x87 control word and MXCSR's control bits stay the same (only MXCSR's sticky
+denormal flag gets set, earlier than the flip; clearing the flags before each test changes nothing).
 The test itself is numerically fragile on this scan: the same faces scaled by 1000, shifted by 5 or divided by
 1000 give 39, 56 and 26 self-intersecting faces (MeshLab's known false positives, cnr-isti-vclab/meshlab#50). Single runs are deterministic (a fresh process each); sweep jobs share
 worker processes and may not be.
