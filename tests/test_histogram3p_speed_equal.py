@@ -1,102 +1,22 @@
 """histogram3p's fast path (issue #16 item 4: one scipy k-d tree for both neighbour searches, the votes as dense
-bilinear shares and one matrix product per plane) against the implementation it replaced, kept here verbatim
-as the reference: the same descriptor values to 1e-12 and the same coarse registration on a real bunny scan.
-(``tests/test_fast_paths.py`` pins the same against the straightforward code from before issue #16.)"""
-
-import os
+bilinear shares and one matrix product per plane) against the straightforward implementation from before issue
+#16 (``tests/test_fast_paths.py``'s reference): the same descriptor values to 1e-12 and the same coarse
+registration, bit for bit, on a real bunny scan; and scipy's searches against the pykdtree search they replaced."""
 
 import numpy as np
 import pytest
 
 from conftest import shared, stage_ctx
-from scanreg.config import to_abs
 from scanreg.geometry import Cloud, apply_T, barycentric_sample, invert_T, random_pose
 from scanreg.io import read_mesh, read_stanford_conf
 from scanreg.metrics import estimate_spacing, transform_errors
 from scanreg.registry import COARSE, DESCRIPTOR, MATCHER, SALIENCE, load_all
+# the references: the pykdtree search histogram3p used before (still the salience measures' search), and the
+# straightforward implementation from before issue #16 that test_fast_paths keeps (the benchmark's "before")
+from scanreg.stages.salience import neighbourhoods as reference_neighbourhoods
+from test_fast_paths import reference_histogram3p
 
 load_all()
-
-
-# ------------------------------------------------------------------ the implementation before, verbatim
-def reference_neighbourhoods(points, radius, max_neighbors, queries=None):
-    """scanreg.stages.salience.neighbourhoods as histogram3p called it (pykdtree)."""
-    from pykdtree.kdtree import KDTree
-
-    q = points if queries is None else queries
-    k = min(max_neighbors, len(points))
-    d, j = KDTree(points).query(np.ascontiguousarray(q), k=k, distance_upper_bound=radius)
-    d, j = d.reshape(len(q), k), j.reshape(len(q), k).astype(np.int64)
-    valid = j < len(points)
-    j = np.where(valid, j, 0)
-    return j, np.where(valid, d, np.inf), valid
-
-
-def _two_bins(u, nbins, wrap):
-    i = np.floor(u)
-    f = u - i
-    lo = i.astype(np.int64)
-    idx = np.stack([lo, lo + 1], axis=-1)
-    share = np.stack([1 - f, f], axis=-1)
-    if wrap:
-        return idx % nbins, share
-    outside = (idx < 0) | (idx >= nbins)
-    return np.where(outside, 0, idx), np.where(outside, 0.0, share)
-
-
-def reference_histogram3p(p, cloud, keypoints, spacing):
-    """Histogram3P.compute before this change (pykdtree searches, every vote into one bincount per block)."""
-    from scanreg.closest import estimate_normals
-    from scanreg.stages.descriptor import local_frames
-
-    u, s = p.distances, spacing
-    R = to_abs(p.radius, u, s)
-    pts = cloud.points
-    nrm = cloud.normals if cloud.normals is not None else estimate_normals(pts)
-    j, d, valid = reference_neighbourhoods(pts, R, p.max_neighbors, pts[keypoints])
-    fr = to_abs(p.frame_radius, u, s)
-    frames = local_frames(pts, cloud.normals, keypoints, fr, neighbours=(j, d, valid) if fr <= R else None)
-    used = np.unique(j[valid])
-    _, _, vd = reference_neighbourhoods(pts, to_abs(p.density_radius, u, s), 64, pts[used])
-    dens = np.zeros(len(pts))
-    dens[used] = vd.sum(axis=1)
-    w = np.where(valid, (1.0 - np.minimum(d, R) / R) / np.maximum(dens[j], 1.0), 0.0)
-    n = len(keypoints)
-    out = np.empty((n, 216))
-
-    def block(r0):
-        rs = slice(r0, r0 + step)
-        jj, F = j[rs], frames[rs].transpose(0, 2, 1)
-        nb = len(jj)
-        L = np.matmul(pts[jj] - pts[keypoints[rs]][:, None, :], F)
-        Ln = np.matmul(nrm[jj], F)
-        spatial = [_two_bins((L[:, :, c] + R) / (2 * R / 3) - 0.5, 3, wrap=False) for c in range(3)]
-        wr = w[rs][..., None]
-        base = (np.arange(nb) * 216)[:, None, None, None, None]
-        idx = np.empty((3, nb, jj.shape[1], 2, 2, 2), np.int64)
-        wts = np.empty(idx.shape)
-        for plane, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
-            (ia, sa), (ib, sb) = spatial[a], spatial[b]
-            io, so = _two_bins((np.arctan2(Ln[:, :, b], Ln[:, :, a]) + np.pi) / (2 * np.pi / 8) - 0.5, 8,
-                               wrap=True)
-            np.add(base + plane * 72 + ia[..., :, None, None] * 24 + ib[..., None, :, None] * 8,
-                   io[..., None, None, :], out=idx[plane])
-            np.multiply((wr * sa)[..., :, None, None] * sb[..., None, :, None], so[..., None, None, :],
-                        out=wts[plane])
-        out[rs] = np.bincount(idx.ravel(), wts.ravel(), minlength=nb * 216).reshape(nb, 216)
-
-    step = max(1, 2 ** 16 // max(j.shape[1], 1))
-    starts = range(0, n, step)
-    if len(starts) > 1 and (os.cpu_count() or 1) > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(min(os.cpu_count() or 1, len(starts))) as pool:
-            list(pool.map(block, starts))
-    else:
-        for r0 in starts:
-            block(r0)
-    norm = np.linalg.norm(out, axis=1, keepdims=True)
-    return out / np.where(norm > 0, norm, 1.0)
 
 
 class ReferenceHistogram3P:
