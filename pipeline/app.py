@@ -221,12 +221,10 @@ def quick_help(overrides: list[str]) -> str | None:
     variables, so substituting nothing gives Hydra's text (``tests/test_cli.py`` compares the two)."""
     import string
 
-    from hydra import compose as hydra_compose, initialize_config_module
+    from scanreg.config import compose
 
     try:
-        with initialize_config_module(CONF_PACKAGE, version_base="1.3"):
-            template = str(hydra_compose("config", overrides=overrides, return_hydra_config=True).hydra.help.template)
-        return string.Template(template).substitute({})
+        return string.Template(str(compose(overrides, return_hydra_config=True).hydra.help.template)).substitute({})
     except Exception:  # noqa: BLE001: Hydra's own path reports it, or the template uses Hydra's variables
         return None
 
@@ -377,11 +375,21 @@ def compose_checked(argv: list[str]) -> tuple[tuple[str, DictConfig | None] | No
     return (f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)", good), None
 
 
+def _stdout_gone() -> None:
+    """The reader of our output went away (``scanreg --help | head``): nothing to report, and no error from the
+    interpreter's own flush at exit."""
+    import os
+
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
 def verbose_requested(argv: list[str]) -> bool:
     return any(a.replace(" ", "") in ("verbose=true", "verbose=True") for a in argv)
 
 
 def main() -> None:
+    from scanreg.cli import NO_RUN_FLAGS
+
     argv = sys.argv[1:]
     helps = [a for a in argv if a in ("-h", "--help")]
     if helps and all(a in helps or ("=" in a and not a.startswith("-")) for a in argv):
@@ -389,21 +397,14 @@ def main() -> None:
         if text is not None:
             try:
                 print(text, flush=True)
-            except BrokenPipeError:  # ``scanreg --help | head``
-                import os
-
-                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            except BrokenPipeError:
+                _stdout_gone()
             return
-    if not any(a in ("-h", "--help", "--hydra-help", "-c", "--cfg", "--info", "-i") for a in argv):
+    if not any(a in NO_RUN_FLAGS for a in argv):
         from scanreg import tracking
-        from scanreg.cli import may_track_single_run
 
-        # a single run logs to MLflow through a helper process (tracking.BackgroundRunLog): started before the
-        # config is composed (by the ``scanreg`` command even before Hydra is imported), so that its import of
-        # MLflow overlaps ours, Hydra's and the pipeline, and stopped at once if the composed config turns out
-        # not to track with MLflow
-        if may_track_single_run(argv):
-            tracking.prestart_helper()
+        # the ``scanreg`` command (scanreg.cli) started the MLflow helper process of a single run before Hydra
+        # was imported; it is stopped at once if the composed config turns out not to track with MLflow
         problem, cfg = compose_checked(argv)
         if problem or cfg.get("tracking", {}).get("name") != "mlflow":
             tracking.drop_prestarted()
@@ -427,10 +428,8 @@ def main() -> None:
             n = 0
         _err("interrupted" + (f"; {n} unfinished MLflow run(s) of the sweep marked KILLED" if n else ""))
         raise SystemExit(EXIT_INTERRUPTED)
-    except BrokenPipeError:  # the reader of our output went away (``scanreg --help | head``): nothing to report
-        import os
-
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except BrokenPipeError:
+        _stdout_gone()
         raise SystemExit(0)
     except Exception as e:  # noqa: BLE001: e.g. a launcher that cannot start; no run is left RUNNING
         reason = f"sweep failed: {type(e).__name__}: {e}".splitlines()[0]

@@ -9,6 +9,10 @@ from __future__ import annotations
 import sys
 
 
+NO_RUN_FLAGS = ("-h", "--help", "--hydra-help", "-c", "--cfg", "--info", "-i")
+"""Hydra's flags that show something instead of running."""
+
+
 def is_multirun(argv: list[str]) -> bool:
     return any(a in ("-m", "--multirun") or a.startswith("hydra.mode=") for a in argv)
 
@@ -17,7 +21,7 @@ def may_track_single_run(argv: list[str]) -> bool:
     """Whether ``scanreg ARGV`` may be a single run that logs to MLflow (the default): not a ``-m`` sweep, not
     ``tracking=`` something else. A config may still choose otherwise; :func:`scanreg.app.main` then stops the
     helper process once the config is composed."""
-    if is_multirun(argv) or any(a in ("-h", "--help", "--hydra-help", "-c", "--cfg", "--info", "-i") for a in argv):
+    if is_multirun(argv) or any(a in NO_RUN_FLAGS for a in argv):
         return False
     return not any(a.replace(" ", "").startswith("tracking=") and a.replace(" ", "") != "tracking=mlflow"
                    for a in argv)

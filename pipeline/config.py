@@ -31,13 +31,15 @@ def search_path_override(config_dirs) -> list[str]:
     return [f"hydra.searchpath=[{','.join(dirs)}]"] if dirs else []
 
 
-def compose(overrides=(), config_name: str = "config", config_dirs=()):
+def compose(overrides=(), config_name: str = "config", config_dirs=(), return_hydra_config: bool = False):
     """The run configuration as ``scanreg`` composes it: the shipped configs (``pkg://scanreg.conf``), plus
-    ``config_dirs`` on Hydra's search path, with command-line style ``overrides``. Returns a ``DictConfig``."""
+    ``config_dirs`` on Hydra's search path, with command-line style ``overrides``. Returns a ``DictConfig``
+    (with its ``hydra`` node when ``return_hydra_config``)."""
     from hydra import compose as hydra_compose, initialize_config_module
 
     with initialize_config_module(CONF_PACKAGE, version_base="1.3"):
-        return hydra_compose(config_name, overrides=[*overrides, *search_path_override(config_dirs)])
+        return hydra_compose(config_name, overrides=[*overrides, *search_path_override(config_dirs)],
+                             return_hydra_config=return_hydra_config)
 
 
 class Distances(str, Enum):

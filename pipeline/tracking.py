@@ -199,9 +199,10 @@ def spawn_helper():
 
 def prestart_helper() -> None:
     """Start the MLflow helper process now, so that its import of MLflow (1-2 s) overlaps this process's own
-    imports and Hydra's composition instead of following them: for a single CLI run whose composed config says
-    ``tracking=mlflow``. The next :class:`BackgroundRunLog` takes it; if none does (the run stops before its MLflow
-    run is created), it exits when this process ends and closes its input. Does nothing if already started."""
+    imports and Hydra's composition instead of following them: for a single CLI run that may track with MLflow
+    (:func:`scanreg.cli.may_track_single_run`, before the config is composed). The next :class:`BackgroundRunLog`
+    takes it; if none does, :func:`drop_prestarted` stops it (``scanreg.cli``, and ``scanreg.app.main`` once the
+    composed config does not use MLflow). Does nothing if already started."""
     global _prestarted
     if _prestarted is None:
         _prestarted = spawn_helper()
