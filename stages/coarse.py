@@ -261,8 +261,6 @@ class LoRansac:
         isolated, it is measured again without them (as the runner does: the larger median nearest-neighbour
         distance) and, if smaller, the isolated points are looked for again on its finer grid and the clouds
         thinned with it: at 50 % outliers the first spacing is 1.5 times the surface's."""
-        from scanreg.metrics import estimate_spacing
-
         spacing = ctx.spacing
         for attempt in range(2):
             voxel = self.p.voxel * spacing
@@ -271,8 +269,7 @@ class LoRansac:
             dropped = (int((~keep_t).sum()), int((~keep_s).sum()))
             if attempt or max(dropped[0] / target.n_points, dropped[1] / source.n_points) <= 0.05:
                 break
-            again = max(estimate_spacing(target.points[keep_t], ctx.rng(1)),
-                        estimate_spacing(source.points[keep_s], ctx.rng(2)))
+            again = pair_spacing(target.points[keep_t], source.points[keep_s], ctx)
             if not 0 < again < spacing:
                 break
             spacing = again
@@ -469,6 +466,14 @@ class LoRansac:
         return best_T, best_inl, drawn
 
 
+def pair_spacing(target_points: np.ndarray, source_points: np.ndarray, ctx: Context) -> float:
+    """The spacing of a pair of clouds as the runner measures the run's: the larger of the two median
+    nearest-neighbour distances, each estimated with the run's seeded generators (``ctx.rng(1)``, ``ctx.rng(2)``)."""
+    from scanreg.metrics import estimate_spacing
+
+    return max(estimate_spacing(target_points, ctx.rng(1)), estimate_spacing(source_points, ctx.rng(2)))
+
+
 def downsampled(target: Cloud, source: Cloud, ctx: Context, voxel: float, max_points: int | None = None,
                 min_points: int | None = None) -> tuple[Cloud, Cloud, Context]:
     """Both clouds voxel-downsampled (edge ``voxel``, input units; one point per voxel, the one nearest its
@@ -478,7 +483,6 @@ def downsampled(target: Cloud, source: Cloud, ctx: Context, voxel: float, max_po
     with ``ctx`` itself."""
     from dataclasses import replace
 
-    from scanreg.metrics import estimate_spacing
     from scanreg.stages.salience import voxel_representatives
 
     if min_points is not None and min(target.n_points, source.n_points) <= min_points:
@@ -493,7 +497,7 @@ def downsampled(target: Cloud, source: Cloud, ctx: Context, voxel: float, max_po
         else:
             break
     tgt, src = target.subset(ti), source.subset(si)
-    spacing = max(estimate_spacing(tgt.points, ctx.rng(1)), estimate_spacing(src.points, ctx.rng(2)))
+    spacing = pair_spacing(tgt.points, src.points, ctx)
     if not spacing > 0:
         spacing = ctx.spacing
     return tgt, src, replace(ctx, spacing=spacing)
