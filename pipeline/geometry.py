@@ -336,24 +336,40 @@ def barycentric_sample(
     """
     v, f = mesh.vertices, mesh.faces
     a = v[f[:, 0]]
-    e1 = v[f[:, 1]] - a
-    e2 = v[f[:, 2]] - a
-    cross = np.cross(e1, e2)
+    cross = np.cross(v[f[:, 1]] - a, v[f[:, 2]] - a)
     norm = np.sqrt(np.einsum("ij,ij->i", cross, cross))
-    w = np.where(0.5 * norm > min_area, norm, 0.0)
-    total = math.fsum(w)
-    if not total > 0:
+    drawn = area_weighted_draws(np.where(0.5 * norm > min_area, norm, 0.0), n_points, rng)
+    if drawn is None:
         raise InputError(f"{mesh.source or 'mesh'}: no triangle has an area above {min_area:g}: nothing to sample")
-    counts = rng.multinomial(n_points, w / total)
-    face = np.repeat(np.arange(len(f)), counts)
+    face, uv = drawn
+    normals = cross / np.where(norm > 0, norm, 1.0)[:, None]
+    return points_on_faces(mesh, face, uv), normals[face], face
+
+
+def area_weighted_draws(weights: np.ndarray, n_points: int,
+                        rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`barycentric_sample`'s random draws: each point's face, drawn with probability proportional to
+    ``weights`` (per-face counts from the multinomial, faces in order), and its ``(u, v)`` (N, 2), uniform and
+    reflected to ``(1 - u, 1 - v)`` when ``u + v > 1``. None when no weight is positive."""
+    total = math.fsum(weights)
+    if not total > 0:
+        return None
+    counts = rng.multinomial(n_points, weights / total)
+    face = np.repeat(np.arange(len(weights)), counts)
     uv = rng.random((n_points, 2))
     flip = uv[:, 0] + uv[:, 1] > 1.0
     uv[flip] = 1.0 - uv[flip]
-    pts = a[face]
-    pts += uv[:, :1] * e1[face]
-    pts += uv[:, 1:] * e2[face]
-    normals = cross / np.where(norm > 0, norm, 1.0)[:, None]
-    return pts, normals[face], face
+    return face, uv
+
+
+def points_on_faces(mesh: Mesh, face: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """The points ``a + u (b - a) + v (c - a)`` on the faces ``face`` (corners a, b, c) at ``uv`` (N, 2)."""
+    v, f = mesh.vertices, mesh.faces[face]
+    a = v[f[:, 0]]
+    pts = a.copy()
+    pts += uv[:, :1] * (v[f[:, 1]] - a)
+    pts += uv[:, 1:] * (v[f[:, 2]] - a)
+    return pts
 
 
 def voxel_cells(points: np.ndarray, voxel: float, margin: int = 0) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:

@@ -8,7 +8,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from scanreg.geometry import Mesh, barycentric_sample, submesh, triangle_areas_normals
+from scanreg.geometry import (Mesh, area_weighted_draws, barycentric_sample, points_on_faces, submesh,
+                              triangle_areas_normals)
 
 
 def _cached(mesh: Mesh, name: str, compute):
@@ -376,24 +377,12 @@ def _area_sample(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:
     """The points :func:`~scanreg.geometry.barycentric_sample` draws with ``rng`` (the same draws, the same
     arithmetic, the same points bit for bit), from the face areas the audit has already measured: the
     triangles' cross products are computed once per mesh, and the corners only for the sampled faces."""
-    import math
-
     areas = _face_areas(mesh)
-    w = np.where(areas > 0, 2.0 * areas, 0.0)  # barycentric_sample's weights: |cross| (twice the area, exact)
-    total = math.fsum(w)
-    if not total > 0:  # barycentric_sample's own error
+    # barycentric_sample's weights: |cross|, twice the area (exact); its own error when there is nothing to draw
+    drawn = area_weighted_draws(np.where(areas > 0, 2.0 * areas, 0.0), n, rng)
+    if drawn is None:
         return barycentric_sample(mesh, n, rng)[0]
-    counts = rng.multinomial(n, w / total)
-    face = np.repeat(np.arange(len(mesh.faces)), counts)
-    uv = rng.random((n, 2))
-    flip = uv[:, 0] + uv[:, 1] > 1.0
-    uv[flip] = 1.0 - uv[flip]
-    v, f = mesh.vertices, mesh.faces[face]
-    a = v[f[:, 0]]
-    pts = a.copy()
-    pts += uv[:, :1] * (v[f[:, 1]] - a)
-    pts += uv[:, 1:] * (v[f[:, 2]] - a)
-    return pts
+    return points_on_faces(mesh, *drawn)
 
 
 def _face_areas(mesh: Mesh) -> np.ndarray:
