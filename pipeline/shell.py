@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from scanreg.geometry import Mesh, face_normals, row_norms, submesh, vertex_normals
-from scanreg.topology import _face_components, _meshset, boundary_edges
+from scanreg.topology import _face_components, _meshset, boundary_edges, self_intersecting_faces
 
 
 def close_as_shell(mesh: Mesh, thickness: float, rounds: int = 6, attempts: int = 6) -> Mesh:
@@ -73,9 +73,7 @@ def _shell(mesh: Mesh, thickness: float, rounds: int) -> tuple[Mesh, np.ndarray,
     faces = np.concatenate([f, added]).astype(np.int64)
     for _ in range(rounds):
         shell = Mesh(np.vstack([v, v - offset[:, None] * n]), faces, mesh.source, closure_faces=len(added))
-        ms = _meshset(shell)
-        ms.compute_selection_by_self_intersections_per_face()
-        sel = ms.current_mesh().face_selection_array().astype(bool)
+        sel = self_intersecting_faces(shell)
         if not sel.any():
             break
         idx = np.unique(faces[sel])

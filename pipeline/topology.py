@@ -1,5 +1,6 @@
 """Mesh topology and the repair audit's measurements: counts of components, borders, holes, non-manifold and
-degenerate elements, MeshLab's self-intersection and non-manifold-vertex counts, and surface-to-surface distances.
+degenerate elements, self-intersections (exact, scanreg.intersect), MeshLab's non-manifold-vertex count, and
+surface-to-surface distances.
 Shared by the repair stages, the shell closing and the dental case (the geometry core: it imports no stage)."""
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from scipy.sparse.csgraph import connected_components
 
 from scanreg.geometry import (Mesh, area_weighted_draws, barycentric_sample, points_on_faces, submesh,
                               triangle_areas_normals)
+from scanreg.intersect import self_intersecting_faces as _si_mask
 
 
 def _cached(mesh: Mesh, name: str, compute):
@@ -174,17 +176,42 @@ def _meshset(mesh: Mesh):
 
 
 def fold_count(mesh: Mesh) -> int:
-    """Self-intersecting faces plus non-manifold edges and vertices (MeshLab): what an edge collapse can add."""
+    """Self-intersecting faces plus non-manifold edges and vertices: what an edge collapse can add."""
     return int(fold_counts(mesh).sum())
 
 
+def self_intersecting_faces(mesh: Mesh) -> np.ndarray:
+    """Boolean mask of ``mesh``'s self-intersecting faces (:func:`scanreg.intersect.self_intersecting_faces`:
+    exact, a function of the coordinates alone)."""
+    return _cached(mesh, "self_intersecting_mask", lambda: _si_mask(mesh.vertices, mesh.faces))
+
+
+def self_intersecting_count(mesh: Mesh) -> int:
+    """The number of self-intersecting faces, from a backend's :func:`remember`-ed count when it has one."""
+    si = known(mesh, "self_intersecting_faces")
+    if si is None:
+        si = int(self_intersecting_faces(mesh).sum())
+        remember(mesh, "self_intersecting_faces", si)
+    return int(si)
+
+
+def dilate_faces(faces: np.ndarray, mask: np.ndarray, rings: int = 1) -> np.ndarray:
+    """``mask`` grown ``rings`` times by the faces that share a vertex with a face in it (MeshLab's selection
+    dilation)."""
+    mask = mask.copy()
+    for _ in range(rings):
+        if not mask.any():
+            break
+        hot = np.zeros(int(faces.max()) + 1, bool)
+        hot[faces[mask].ravel()] = True
+        mask = hot[faces].any(axis=1)
+    return mask
+
+
 def fold_counts(mesh: Mesh) -> np.ndarray:
-    """``[self-intersecting faces, non-manifold edges, non-manifold vertices]`` (MeshLab's counts)."""
-    ms = _meshset(mesh)
-    topo = ms.get_topological_measures()
-    ms.compute_selection_by_self_intersections_per_face()
-    return np.array([int(ms.current_mesh().selected_face_number()), int(topo["non_two_manifold_edges"]),
-                     int(topo["non_two_manifold_vertices"])])
+    """``[self-intersecting faces, non-manifold edges, non-manifold vertices]``."""
+    return np.array([self_intersecting_count(mesh), mesh_stats(mesh)["non_manifold_edges"],
+                     non_manifold_vertices(mesh)])
 
 
 def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -333,19 +360,16 @@ def non_manifold_vertices(mesh: Mesh) -> int:
     return int(several.sum())
 
 
-def audit_mesh(mesh: Mesh) -> dict[str, float]:
-    """:func:`mesh_stats` plus MeshLab's counts: ``non_manifold_vertices`` (:func:`non_manifold_vertices`) and
-    ``self_intersecting_faces`` (faces that intersect a face they do not share a vertex with). The self-intersection test, the costly
-    part, is skipped when a backend has just made it on this very mesh (:func:`remember`)."""
+def audit_mesh(mesh: Mesh, self_intersections: bool = True) -> dict[str, float]:
+    """:func:`mesh_stats` plus ``non_manifold_vertices`` (MeshLab's count, :func:`non_manifold_vertices`) and
+    ``self_intersecting_faces`` (faces with a point in common with another face beyond the vertices they share;
+    exact, :mod:`scanreg.intersect`). The self-intersection test, the costly part, is skipped when a backend has
+    just made it on this very mesh (:func:`remember`), and left out when ``self_intersections`` is false (the
+    caller adds it)."""
     out = mesh_stats(mesh)
     out["non_manifold_vertices"] = non_manifold_vertices(mesh)
-    si = known(mesh, "self_intersecting_faces")
-    if si is None:
-        ms = _meshset(mesh)
-        ms.compute_selection_by_self_intersections_per_face()
-        si = int(ms.current_mesh().selected_face_number())
-        remember(mesh, "self_intersecting_faces", si)
-    out["self_intersecting_faces"] = int(si)
+    if self_intersections:
+        out["self_intersecting_faces"] = self_intersecting_count(mesh)
     return out
 
 

@@ -1,26 +1,23 @@
-"""Reproduction: MeshLab's self-intersection selection depends on the process's history (found 2026-11-23).
+"""Reproduction: MeshLab's self-intersection selection depends on the process's history (found 2026-11-23), and
+the check that scanreg's repair no longer does (its exact test, scanreg.intersect, replaced MeshLab's).
 
 Seen as: first_contact run twice at the same commit, bun315:top3 pose 1 gave 1.04 deg in one sweep and 0.25 deg
-in the other (the source's repair left 70 581 vs 70 652 faces); the same job run alone gives 1.04 deg every time.
-The repair of a posed top3 scan, repeated in one process (fresh copies, memory allocated in between), is the same
-twice, then differs from the third time on: MeshLab's ``compute_selection_by_self_intersections_per_face`` on the
-very same input returns 70 faces in rounds 1-2 and 139 from round 3 on, also on fresh MeshSets built from the
-same arrays at that moment. Ruled out: the rounding mode (``fegetround`` unchanged), flush-to-zero/denormals-are-
-zero on the main thread, a selection left over (none before the call), OpenMP thread count (1 and 2 both give 70 in
-a process that has run no repair), a race (three calls in a row agree). So some state that an earlier repair
-leaves behind changes MeshLab's test. Narrowed down (wrapping the audit's steps and counting the same input after
-each): the count flips during the second repair's ``collapse_folds`` (scanreg.topology), between its two
-``fold_counts`` calls (each leaves the count as it found it), i.e. while ``near`` selects the neighbourhood with
-SciPy k-d tree queries and ``submesh`` cuts it out; none of pymeshfix's clean / fill / degeneracy removal,
-Open3D's raycasting, MeshLab's sliver collapse or clean-up filters, or MeshLab's tests on small submeshes,
-repeated alone in a fresh process, flips it; nor do MALLOC_PERTURB_ or a fixed MALLOC_MMAP_THRESHOLD_ remove it,
-nor disabling Python's GC. The x87 control word and MXCSR's control bits stay the same (only MXCSR's sticky
-denormal flag gets set, earlier than the flip; clearing the flags before each test changes nothing).
-The test itself is numerically fragile on this scan: the same faces scaled by 1000, shifted by 5 or divided by
-1000 give 39, 56 and 26 self-intersecting faces (MeshLab's known false positives, cnr-isti-vclab/meshlab#50). Single runs are deterministic (a fresh process each); sweep jobs share
-worker processes and may not be.
+in the other (the source's repair left 70 581 vs 70 652 faces); the same job run alone gave 1.04 deg every time.
+MeshLab's ``compute_selection_by_self_intersections_per_face`` on the very same arrays of a posed top3 scan
+returned 70 faces in a fresh process and 139 after two repairs in the same process (fresh MeshSets agree at each
+moment). Ruled out: the rounding mode, flush-to-zero/denormals-are-zero, a left-over selection, the OpenMP thread
+count, malloc reuse (MALLOC_PERTURB_, a fixed MALLOC_MMAP_THRESHOLD_), Python's GC, the x87 control word and
+MXCSR's control bits. MeshLab's test is also numerically fragile on this scan: the same faces scaled by 1000,
+shifted by 5 or divided by 1000 gave 39, 56 and 26 faces (cnr-isti-vclab/meshlab#50); the exact test finds none in
+any of these frames. Suspected mechanism (not confirmed): vcg's ``TestFaceFaceIntersection`` reads the segment
+parameters ``a, b`` of ``IntersectionSegmentTriangle`` on a path that may leave them unset (stack contents).
 
-Run: ``.venv/bin/python experiments/benchmarks/si_state_repro.py`` (about 1.5 min; needs ../shared/data).
+This script repairs the posed scan four times in one process (fresh copies, memory allocated in between, the
+exact test's reuse memo cleared each round so that every round tests afresh) and prints, per round, MeshLab's
+count on the same input (it may change) and the exact count and the repaired mesh's hash (they must not).
+
+Run: ``.venv/bin/python experiments/benchmarks/si_state_repro.py`` (about 1 min; needs ../shared/data). Exit 0
+when the repair is the same every round.
 """
 
 from __future__ import annotations
@@ -40,6 +37,7 @@ def main() -> int:
     from scanreg.api import build_stage
     from scanreg.config import Context, shared_data_dir
     from scanreg.geometry import transform_geometry
+    from scanreg.intersect import _MEMO, self_intersecting_faces
     from scanreg.io import read_mesh
 
     path = shared_data_dir() / "stanford_bunny" / "top3.ply"
@@ -53,20 +51,24 @@ def main() -> int:
     posed = transform_geometry(T, copy.deepcopy(m0))
     v, f = np.ascontiguousarray(posed.vertices), np.ascontiguousarray(posed.faces, dtype=np.int32)
     stage = build_stage("repair", "meshfix")
-    junk, counts, hashes = [], [], []
+    junk, counts, exact, hashes = [], [], [], []
     for k in range(4):
         ms = pymeshlab.MeshSet()
         ms.add_mesh(pymeshlab.Mesh(v, f))
         ms.compute_selection_by_self_intersections_per_face()
         counts.append(int(ms.current_mesh().selected_face_number()))
+        _MEMO.clear()
+        exact.append(int(self_intersecting_faces(v, f).sum()))
+        _MEMO.clear()
         out, _ = stage.repair(transform_geometry(T, copy.deepcopy(m0)),
                               Context(seed=0, run_dir=pathlib.Path(".")), "repair_")
         hashes.append(hashlib.sha1(out.vertices.tobytes() + out.faces.tobytes()).hexdigest()[:10])
-        print(f"round {k}: self-intersecting faces of the same input {counts[-1]}; repaired mesh "
-              f"{len(out.faces)} faces, {hashes[-1]}", flush=True)
+        print(f"round {k}: the same input's self-intersecting faces: MeshLab {counts[-1]}, exact {exact[-1]}; "
+              f"repaired mesh {len(out.faces)} faces, {hashes[-1]}", flush=True)
         junk.append([np.random.rand(1000 * (k + 1)) for _ in range(200)])
-    same = len(set(counts)) == 1 and len(set(hashes)) == 1
-    print("deterministic in this process" if same else "NOT deterministic: the same input gave different results")
+    print("MeshLab's count " + ("stayed the same" if len(set(counts)) == 1 else "CHANGED") + " in this process")
+    same = len(set(exact)) == 1 and len(set(hashes)) == 1
+    print("the exact count and the repair: " + ("the same every round" if same else "NOT deterministic"))
     return 0 if same else 1
 
 

@@ -33,7 +33,7 @@ from scanreg.config import Context
 from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.shell import close_as_shell
-from scanreg.topology import collapse_folds, collapse_slivers, audit_mesh, known, remember, point_distances, raycasting_scene, border_loops, component_areas, open_scan_borders, surface_distances
+from scanreg.topology import collapse_folds, collapse_slivers, audit_mesh, known, remember, point_distances, raycasting_scene, border_loops, component_areas, open_scan_borders, self_intersecting_count, surface_distances
 
 
 @dataclass
@@ -163,6 +163,32 @@ def _border_plan(p: GuardParams, mesh: Mesh) -> tuple[str, int | None]:
     return mode, max(int(edges.max()) // 2, 1)  # keep loops over half the longest open
 
 
+class _Background:
+    """``fn(*args)`` in a daemon thread; :meth:`result` waits for it and returns its value or raises its
+    exception. The value does not depend on the thread (a pure function of its arguments)."""
+
+    def __init__(self, fn, *args):
+        import threading
+
+        self._out: list = []
+
+        def work():
+            try:
+                self._out.append((True, fn(*args)))
+            except BaseException as e:  # handed to the caller by result()
+                self._out.append((False, e))
+
+        self._thread = threading.Thread(target=work, daemon=True, name="scanreg-audit")
+        self._thread.start()
+
+    def result(self):
+        self._thread.join()
+        ok, value = self._out[0]
+        if not ok:
+            raise value
+        return value
+
+
 def _run_backend(stage, mesh: Mesh, ctx: Context) -> Mesh:
     """The backend's ``run``; any failure, and an empty result, as one line naming the backend and file."""
     where = f"repair={stage.name}: {mesh.source or 'mesh'}"
@@ -188,7 +214,9 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     if not len(mesh.faces):
         raise StageError(f"{where}: the mesh has no faces to repair (a point cloud? use repair=none)")
     t0 = time.perf_counter()
-    before = audit_mesh(mesh)
+    # the input's self-intersection test runs beside the backend (NumPy and pymeshfix release the GIL)
+    si_before = _Background(self_intersecting_count, mesh)
+    before = audit_mesh(mesh, self_intersections=False)
     mode, max_hole = _border_plan(p, mesh)
     run = stage
     if max_hole is not None or p.open_border != "cap":
@@ -215,6 +243,7 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
     t2 = time.perf_counter()
+    before["self_intersecting_faces"] = si_before.result()
     after = audit_mesh(out)  # the output's one self-intersection pass
     m = {f"{prefix}before_{k}": v for k, v in before.items()}
     m.update({f"{prefix}after_{k}": v for k, v in after.items()})

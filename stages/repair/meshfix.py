@@ -11,7 +11,8 @@ from scanreg.errors import StageError
 from scanreg.geometry import Mesh, submesh, triangle_areas_normals
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
-from scanreg.topology import _face_components, _meshset, large_components, mesh_stats, remember
+from scanreg.topology import (_face_components, _meshset, dilate_faces, large_components, mesh_stats, remember,
+                              self_intersecting_faces)
 
 
 @REPAIR.register("meshfix")
@@ -21,7 +22,8 @@ class MeshFix(AuditedRepair):
     intersection removal between touching parts, a head and its eyes, can eat them whole): it fixes
     connectivity and orientation, removes degenerate and self-intersecting triangles, and fills holes. When
     MeshFix's cleaning reports success (its own exact intersection test), or the loop that keeps the border open
-    ended on MeshLab's test finding none, the audit takes that count instead of testing again."""
+    ended on the exact test (:mod:`scanreg.intersect`) finding none, the audit takes that count instead of
+    testing again."""
 
     @dataclass
     class Params(GuardParams):
@@ -41,7 +43,8 @@ class MeshFix(AuditedRepair):
         clean_iterations: int = 10
         """Maximum iterations of MeshFix's degeneracy and self-intersection removal (0: skip it). With
         ``max_hole_edges`` > 0, MeshFix's own cleaning (which caps every border) is replaced by: delete the
-        self-intersecting faces (found by MeshLab) and a ring around them, refill holes under the limit."""
+        self-intersecting faces (the exact test, :mod:`scanreg.intersect`) and a ring around them, refill holes
+        under the limit."""
 
     def __init__(self, params: Params):
         self.p = params
@@ -94,20 +97,18 @@ class MeshFix(AuditedRepair):
 
     def _clean_keeping_borders(self, v: np.ndarray, f: np.ndarray,
                                ctx: Context) -> tuple[np.ndarray, np.ndarray, bool]:
-        """Intersections removed, holes under the limit refilled; and whether MeshLab's test found the result
+        """Intersections removed, holes under the limit refilled; and whether the exact test found the result
         free of self-intersections."""
         import pymeshfix
         import pymeshlab
 
         clean = False
         for _ in range(self.p.clean_iterations):
-            ms = _meshset(Mesh(v, f))
-            ms.compute_selection_by_self_intersections_per_face()
-            if ms.current_mesh().selected_face_number() == 0:
+            sel = self_intersecting_faces(Mesh(v, f))
+            if not sel.any():
                 clean = True
                 break
-            ms.apply_selection_dilatation()
-            ms.meshing_remove_selected_faces()
+            ms = _meshset(Mesh(v, f[~dilate_faces(f, sel)]))
             ms.meshing_remove_unreferenced_vertices()
             ms.meshing_repair_non_manifold_edges(method=0)
             ms.meshing_repair_non_manifold_vertices()

@@ -11,7 +11,8 @@ from scanreg.errors import StageError
 from scanreg.geometry import Mesh, submesh
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
-from scanreg.topology import _meshset, boundary_edges, large_components, mesh_stats
+from scanreg.topology import (_meshset, boundary_edges, boundary_loop_sizes, dilate_faces, large_components, mesh_stats,
+                              self_intersecting_faces)
 
 
 @REPAIR.register("meshlab")
@@ -140,15 +141,31 @@ class MeshLab(AuditedRepair):
         self._clean_topology(ms)
         if p.orient:
             ms.meshing_re_orient_faces_coherently()
+        stuck = False
         for _ in range(p.max_rounds):
             if ms.current_mesh().face_number() == 0:
                 break
+            if p.close_holes and p.max_hole_edges and stuck:
+                # holes under the limit that the last round's closing left or the clean-up opened again
+                # (a patch MeshLab cannot make manifold): widened by the same rings, then refilled
+                cm = ms.current_mesh()
+                now = Mesh(cm.vertex_matrix(), cm.face_matrix())
+                loop, on = _hole_loops(now)
+                small = np.bincount(loop)[loop] <= p.max_hole_edges
+                sel = np.zeros(len(now.faces), bool)
+                sel[on[small]] = True
+                ms.clear()
+                ms.add_mesh(pymeshlab.Mesh(now.vertices, now.faces[~dilate_faces(now.faces, sel,
+                                                                                  p.self_intersection_ring)]))
+                self._clean_topology(ms)
             if p.remove_self_intersections:
-                ms.compute_selection_by_self_intersections_per_face()
-                if ms.current_mesh().selected_face_number():
-                    for _ in range(p.self_intersection_ring):
-                        ms.apply_selection_dilatation()
-                    ms.meshing_remove_selected_faces()
+                cm = ms.current_mesh()
+                f = cm.face_matrix()
+                sel = self_intersecting_faces(Mesh(cm.vertex_matrix(), f))
+                if sel.any():
+                    v = cm.vertex_matrix()
+                    ms.clear()  # the faces removed here; the vertices stay until the clean-up, as in MeshLab
+                    ms.add_mesh(pymeshlab.Mesh(v, f[~dilate_faces(f, sel, p.self_intersection_ring)]))
                     self._clean_topology(ms)
             if p.close_holes:
                 self._close(ms, prevent=True)
@@ -160,12 +177,18 @@ class MeshLab(AuditedRepair):
                 break
             if p.orient:
                 ms.meshing_re_orient_faces_coherently()
-            ms.compute_selection_by_self_intersections_per_face()
-            intersecting = cm.selected_face_number() if p.remove_self_intersections else 0
-            stats = mesh_stats(Mesh(cm.vertex_matrix(), cm.face_matrix()))
-            open_holes = stats["boundary_loops"] if (p.close_holes and not p.max_hole_edges) else 0
+            now = Mesh(cm.vertex_matrix(), cm.face_matrix())
+            intersecting = int(self_intersecting_faces(now).sum()) if p.remove_self_intersections else 0
+            stats = mesh_stats(now)
+            if not p.close_holes:
+                open_holes = 0
+            elif p.max_hole_edges:  # holes under the limit left (or opened again by the clean-up)
+                open_holes = int((boundary_loop_sizes(now) <= p.max_hole_edges).sum())
+            else:
+                open_holes = stats["boundary_loops"]
             if not intersecting and not open_holes:
                 break
+            stuck = open_holes > 0
         cm = ms.current_mesh()
         if cm.face_number() == 0:
             raise StageError(f"repair=meshlab: {mesh.source or 'mesh'}: the filter chain removed every face")

@@ -1,0 +1,571 @@
+"""Exact self-intersection test of a triangle mesh (the geometry core; NumPy only).
+
+A face is self-intersecting when it has a point in common with another face beyond the vertices they share
+(vertices at the same position count as one: two faces that touch only at a duplicated vertex do not intersect):
+
+* no shared vertex: the two closed triangles touch or cross anywhere;
+* one shared vertex ``v``: they meet at a point other than ``v`` (one folds into the other);
+* a shared edge: they are coplanar and lie on the same side of that edge (folded flat onto each other);
+* the same three vertices: a duplicated face.
+
+Degenerate faces (repeated vertex indices or collinear corners, exactly) take no part; the audit counts them
+separately. Every decision rests on the signs of 3x3 and 2x2 orientation determinants, computed in floating
+point with Shewchuk's static error bounds (orient3d: ``(7 + 56 eps) eps`` times the permanent, orient2d:
+``(3 + 16 eps) eps``) and exactly, with Python integers, where the bound cannot certify the sign. The result is
+therefore exact for the floating-point coordinates as given and depends on nothing but them: not on the order of
+the faces, the process's history or the scale of the coordinates (a ``2^k`` scaling gives the same answer).
+
+Candidate pairs are the faces whose bounding boxes overlap (k-d trees over the box centres, by size level).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_EPS = np.ldexp(1.0, -53)  # half an ulp of 1.0: Shewchuk's epsilon
+_O3_BOUND = (7.0 + 56.0 * _EPS) * _EPS
+_O2_BOUND = (3.0 + 16.0 * _EPS) * _EPS
+
+
+# ---------------------------------------------------------------------------------------------- predicates
+
+def _as_ints(rows: np.ndarray) -> np.ndarray:
+    """Each row's floats as Python integers of one common power-of-two scale per row (exact: the signs of
+    the homogeneous determinants below do not change under a positive scale), as an object array."""
+    mant, expo = np.frexp(rows)
+    ints = (mant * 2.0 ** 53).astype(np.int64)  # exact: |mant| < 1
+    expo = np.where(mant == 0, expo.max(axis=1, keepdims=True), expo)
+    shift = (expo - expo.min(axis=1, keepdims=True)).astype(object)
+    return ints.astype(object) << shift
+
+
+def _orient3d_exact(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+    r = _as_ints(np.hstack([a, b, c, d])).T
+    adx, ady, adz = r[0] - r[9], r[1] - r[10], r[2] - r[11]
+    bdx, bdy, bdz = r[3] - r[9], r[4] - r[10], r[5] - r[11]
+    cdx, cdy, cdz = r[6] - r[9], r[7] - r[10], r[8] - r[11]
+    det = adz * (bdx * cdy - cdx * bdy) + bdz * (cdx * ady - adx * cdy) + cdz * (adx * bdy - bdx * ady)
+    return np.array([(x > 0) - (x < 0) for x in det], np.int8)
+
+
+def orient3d(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Exact sign (+1, 0, -1, int8) of ``det[a - d; b - d; c - d]`` for rows of (n, 3) float64 arrays: positive
+    when ``d`` lies below the plane through ``a, b, c`` seen counter-clockwise from above (Shewchuk's
+    convention), zero when the four points are coplanar."""
+    adx, ady, adz = (a - d).T
+    bdx, bdy, bdz = (b - d).T
+    cdx, cdy, cdz = (c - d).T
+    bc, cb = bdx * cdy, cdx * bdy
+    ca, ac = cdx * ady, adx * cdy
+    ab, ba = adx * bdy, bdx * ady
+    det = adz * (bc - cb) + bdz * (ca - ac) + cdz * (ab - ba)
+    perm = (np.abs(bc) + np.abs(cb)) * np.abs(adz) + (np.abs(ca) + np.abs(ac)) * np.abs(bdz) \
+        + (np.abs(ab) + np.abs(ba)) * np.abs(cdz)
+    sign = np.sign(det).astype(np.int8)
+    unsure = np.flatnonzero(np.abs(det) <= _O3_BOUND * perm)
+    if len(unsure):
+        a, b, c, d = a[unsure], b[unsure], c[unsure], d[unsure]
+        # every product zero (axis-aligned coplanar points): the determinant is exactly zero, unless a product
+        # underflowed, which the exact path settles
+        zero = (perm[unsure] == 0) & _no_underflow(a, b, c, d)
+        sign[unsure[zero]] = 0
+        rest = ~zero
+        if rest.any():
+            sign[unsure[rest]] = _orient3d_exact(a[rest], b[rest], c[rest], d[rest])
+    return sign
+
+
+def _no_underflow(*pts: np.ndarray) -> np.ndarray:
+    """Rows whose nonzero coordinate differences are all large enough that no product of three underflows."""
+    d = pts[-1]
+    ok = np.ones(len(d), bool)
+    for p in pts[:-1]:
+        diff = np.abs(p - d)
+        ok &= ((diff == 0) | (diff > 1e-90)).all(axis=1)
+    return ok
+
+
+def _orient2d_exact(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    r = _as_ints(np.hstack([a, b, c])).T
+    det = (r[0] - r[4]) * (r[3] - r[5]) - (r[1] - r[5]) * (r[2] - r[4])
+    return np.array([(x > 0) - (x < 0) for x in det], np.int8)
+
+
+def orient2d(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Exact sign (int8) of ``det[a - c; b - c]`` for rows of (n, 2) float64 arrays: positive when ``a, b, c``
+    run counter-clockwise."""
+    left = (a[:, 0] - c[:, 0]) * (b[:, 1] - c[:, 1])
+    right = (a[:, 1] - c[:, 1]) * (b[:, 0] - c[:, 0])
+    det = left - right
+    perm = np.abs(left) + np.abs(right)
+    sign = np.sign(det).astype(np.int8)
+    unsure = np.flatnonzero(np.abs(det) <= _O2_BOUND * perm)
+    if len(unsure):
+        a, b, c = a[unsure], b[unsure], c[unsure]
+        d = np.abs(np.hstack([a - c, b - c]))
+        zero = (perm[unsure] == 0) & ((d == 0) | (d > 1e-150)).all(axis=1)
+        sign[unsure[zero]] = 0
+        rest = ~zero
+        if rest.any():
+            sign[unsure[rest]] = _orient2d_exact(a[rest], b[rest], c[rest])
+    return sign
+
+
+# ------------------------------------------------------------------------------------- segment vs triangle
+
+def _projection_axes(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per triangle, the two coordinates kept by a projection along one axis that keeps it non-degenerate (the
+    axis of the normal's largest component among those that are exactly nonzero), and whether it has one."""
+    n = np.cross(q - p, r - p)
+    ok = np.zeros((len(p), 3), bool)
+    for k in range(3):
+        keep = [j for j in range(3) if j != k]
+        ok[:, k] = orient2d(p[:, keep], q[:, keep], r[:, keep]) != 0
+    score = np.where(ok, np.abs(n), -1.0)
+    drop = np.argmax(score, axis=1)
+    keep = np.array([[1, 2], [0, 2], [0, 1]])[drop]
+    return keep, ok.any(axis=1)
+
+
+def _take2(x: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    return np.take_along_axis(x, keep, axis=1)
+
+
+def _on_segment(x, y, c) -> np.ndarray:
+    """``c`` (collinear with ``x, y``) within the closed segment's bounding box."""
+    lo, hi = np.minimum(x, y), np.maximum(x, y)
+    return ((lo <= c) & (c <= hi)).all(axis=1)
+
+
+def _segments_meet_2d(x, y, u, w) -> np.ndarray:
+    """Closed 2-D segments ``xy`` and ``uw`` have a common point."""
+    d1, d2 = orient2d(x, y, u), orient2d(x, y, w)
+    d3, d4 = orient2d(u, w, x), orient2d(u, w, y)
+    hit = (d1.astype(np.int16) * d2 < 0) & (d3.astype(np.int16) * d4 < 0)
+    hit |= (d1 == 0) & _on_segment(x, y, u)
+    hit |= (d2 == 0) & _on_segment(x, y, w)
+    hit |= (d3 == 0) & _on_segment(u, w, x)
+    hit |= (d4 == 0) & _on_segment(u, w, y)
+    return hit
+
+
+def _inside_2d(p, q, r, x) -> np.ndarray:
+    """``x`` in the closed 2-D triangle ``p, q, r`` (non-degenerate)."""
+    s = np.stack([orient2d(p, q, x), orient2d(q, r, x), orient2d(r, p, x)], axis=1)
+    return (s >= 0).all(axis=1) | (s <= 0).all(axis=1)
+
+
+def _coplanar_segment_triangle(p, q, r, x, y) -> np.ndarray:
+    """Closed segment ``xy`` lying in the plane of the closed triangle ``p, q, r`` meets it."""
+    keep, ok = _projection_axes(p, q, r)
+    p2, q2, r2, x2, y2 = (_take2(a, keep) for a in (p, q, r, x, y))
+    hit = _inside_2d(p2, q2, r2, x2) | _inside_2d(p2, q2, r2, y2)
+    for u, w in ((p2, q2), (q2, r2), (r2, p2)):
+        hit |= _segments_meet_2d(x2, y2, u, w)
+    return hit & ok
+
+
+def segment_meets_triangle(p, q, r, x, y, sx: np.ndarray | None = None,
+                           sy: np.ndarray | None = None) -> np.ndarray:
+    """Rows where the closed segment ``xy`` and the closed triangle ``p, q, r`` (non-degenerate) have a common
+    point. ``sx``, ``sy``: ``orient3d(p, q, r, x)`` and ``(…, y)`` when already known."""
+    sx = orient3d(p, q, r, x) if sx is None else sx
+    sy = orient3d(p, q, r, y) if sy is None else sy
+    hit = np.zeros(len(p), bool)
+    cross = (sx.astype(np.int16) * sy <= 0) & ((sx != 0) | (sy != 0))  # the line meets the plane once, in xy
+    if cross.any():
+        i = np.flatnonzero(cross)
+        o = np.stack([orient3d(x[i], y[i], p[i], q[i]), orient3d(x[i], y[i], q[i], r[i]),
+                      orient3d(x[i], y[i], r[i], p[i])], axis=1)
+        hit[i] = (o >= 0).all(axis=1) | (o <= 0).all(axis=1)
+    flat = (sx == 0) & (sy == 0)
+    if flat.any():
+        i = np.flatnonzero(flat)
+        hit[i] = _coplanar_segment_triangle(p[i], q[i], r[i], x[i], y[i])
+    return hit
+
+
+# ------------------------------------------------------------------------------------------------ the mesh
+
+def degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Faces with a repeated vertex index or three collinear corners (exactly)."""
+    f = faces
+    bad = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
+    p, q, r = (vertices[f[:, k]] for k in range(3))
+    flat = np.ones(len(f), bool)
+    for keep in ([1, 2], [0, 2], [0, 1]):
+        flat &= orient2d(p[:, keep], q[:, keep], r[:, keep]) == 0
+    return bad | flat
+
+
+def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
+                    among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs ``(i, j)``, ``i < j``, of the closed boxes ``[lo, hi]`` (rows) that overlap, each once (with
+    the mask ``among``: only the pairs with at least one box in it). Found with k-d trees over the box centres in
+    the maximum norm, the boxes split into levels of twice the size (half the longest side) each, so that a few
+    long boxes do not widen every search."""
+    from scipy.spatial import cKDTree
+
+    m = len(lo)
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    if m < 2 or (among is not None and not among.any()):
+        return empty
+    ctr = 0.5 * (lo + hi)
+    half = (0.5 * (hi - lo)).max(axis=1)
+    # a margin for the rounding of the centres (the search only pre-filters; the boxes decide)
+    margin = 4 * _EPS * float(np.abs(ctr).max() + half.max())
+    base = max(float(np.median(half)), margin, 1e-300)
+    level = np.ceil(np.log2(np.maximum(half / base, 1.0))).astype(np.int64)
+    groups = [np.flatnonzero(level == k) for k in np.unique(level)]
+    hmax = [float(half[g].max()) for g in groups]
+    trees: dict = {}
+
+    def tree(g: np.ndarray, key):
+        if key not in trees:
+            trees[key] = cKDTree(ctr[g]) if len(g) else None
+        return trees[key]
+
+    def between(ga, ka, gb, kb, r):
+        ta, tb = tree(ga, ka), tree(gb, kb)
+        if ta is None or tb is None:
+            return None
+        p = ta.sparse_distance_matrix(tb, r, p=np.inf, output_type="ndarray")
+        return ga[p["i"]], gb[p["j"]]
+
+    ii, jj = [], []
+    for a, ga in enumerate(groups):
+        for b in range(a + 1):
+            gb = groups[b]
+            r = hmax[a] + hmax[b] + margin
+            found = []
+            if among is None:
+                if a == b:
+                    p = tree(ga, a).query_pairs(r, p=np.inf, output_type="ndarray")
+                    found.append((ga[p[:, 0]], ga[p[:, 1]]))
+                else:
+                    found.append(between(ga, a, gb, b, r))
+            else:
+                sa, sb = ga[among[ga]], gb[among[gb]]
+                if a == b:
+                    got = between(sa, ("s", a), ga, a, r)
+                    if got is not None:  # each pair once: not a box with itself, both in ``among`` once
+                        A, B = got
+                        keep = (A != B) & (~among[B] | (A < B))
+                        found.append((A[keep], B[keep]))
+                else:
+                    found.append(between(sa, ("s", a), gb, b, r))
+                    found.append(between(ga[~among[ga]], ("n", a), sb, ("s", b), r))
+            for got in found:
+                if got is None or not len(got[0]):
+                    continue
+                A, B = got
+                for k in range(3):  # the exact box test, one axis at a time on the pairs left
+                    keep = (lo[A, k] <= hi[B, k]) & (lo[B, k] <= hi[A, k])
+                    A, B = A[keep], B[keep]
+                ii.append(np.minimum(A, B))
+                jj.append(np.maximum(A, B))
+    if not ii:
+        return empty
+    return np.concatenate(ii).astype(np.int64), np.concatenate(jj).astype(np.int64)
+
+
+def _member(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.isin(a, b)`` for integer arrays, by one sort and a binary search."""
+    srt = np.sort(b)
+    k = np.minimum(np.searchsorted(srt, a), len(srt) - 1)
+    return srt[k] == a
+
+
+def _same_ray(v2, a2, b2) -> np.ndarray:
+    """``a`` and ``b`` (2-D, collinear with ``v``) lie on the same half-line from ``v`` (exact comparisons)."""
+    return ((np.sign(a2 - v2) == np.sign(b2 - v2)).all(axis=1))
+
+
+def regular_vertices(v: np.ndarray, fl: np.ndarray) -> np.ndarray:
+    """Vertices around which no two of the faces ``fl`` can intersect beyond the vertex (nor fold flat onto
+    each other across an edge at it): the faces, each turned to start at the vertex, ``(v, x, y)``, project
+    along one axis with the same non-zero orientation; their edges chain up (every end ``y`` is another face's
+    start ``x``, except at most one of each, a border), and the chain's wedges turn once around the vertex (one
+    wedge contains the first start's direction, counting each wedge from its start, and a border's last end
+    is not on the first start's ray). The wedges then meet only along the edges consecutive faces share.
+    Every decision is made with the exact predicates; a vertex that fails any is simply tested pair by pair."""
+    nv = len(v)
+    if not len(fl):
+        return np.zeros(nv, bool)
+    c = np.concatenate([fl, fl[:, [1, 2, 0]], fl[:, [2, 0, 1]]])  # rows (v, x, y): each corner's wedge
+    vid, x, y = c[:, 0], c[:, 1], c[:, 2]
+    # the projection axis per vertex: the largest component of the sum of its faces' normals
+    P = v[fl]
+    n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    nsum = np.zeros((nv, 3))
+    np.add.at(nsum, vid, np.concatenate([n, n, n]))
+    drop = np.argmax(np.abs(nsum), axis=1)
+    keep = np.array([[1, 2], [0, 2], [0, 1]])[drop[vid]]
+    v2, x2, y2 = (np.take_along_axis(v[a], keep, axis=1) for a in (vid, x, y))
+    o = orient2d(v2, x2, y2)
+    ok = np.ones(nv, bool)
+    ok[vid[o == 0]] = False
+    pos = np.zeros(nv, np.int64)
+    np.add.at(pos, vid, (o > 0).astype(np.int64))
+    deg = np.bincount(vid, minlength=nv)
+    ok &= (pos == 0) | (pos == deg)
+    sigma = np.where(pos[vid] > 0, 1, -1).astype(np.int8)
+    # the chain: starts and ends each once per vertex; at most one start that is no end
+    start_key, end_key = vid * nv + x, vid * nv + y
+    for key in (start_key, end_key):
+        srt = np.sort(key)
+        ok[(srt[1:][srt[1:] == srt[:-1]]) // nv] = False
+    matched = _member(start_key, end_key)
+    loose = np.bincount(vid, ~matched, minlength=nv)
+    ok &= loose <= 1
+    # the reference direction: the loose start, else any start
+    ref = np.full(nv, -1, np.int64)
+    ref[vid] = x  # any
+    ref[vid[~matched]] = x[~matched]
+    r2 = np.take_along_axis(v[ref[vid]], keep, axis=1)
+    at_start = (ref[vid] == x) | ((orient2d(v2, x2, r2) == 0) & _same_ray(v2, x2, r2))
+    inside = (sigma * orient2d(v2, x2, r2) > 0) & (sigma * orient2d(v2, r2, y2) > 0)
+    count = np.bincount(vid, at_start | inside, minlength=nv)
+    ok &= count == 1
+    # a border's last end on the first start's ray: the fan closes onto itself through two distinct edges
+    last = ~_member(end_key, start_key)
+    if last.any():
+        k = np.flatnonzero(last)
+        closes = (orient2d(v2[k], y2[k], r2[k]) == 0) & _same_ray(v2[k], y2[k], r2[k])
+        ok[vid[k[closes]]] = False
+    ok &= deg > 0
+    return ok
+
+
+def _pair_hits(P: np.ndarray, fl: np.ndarray, i: np.ndarray, j: np.ndarray,
+               regular: np.ndarray | None = None) -> np.ndarray:
+    """Which candidate pairs ``(i, j)`` of the faces ``fl`` (vertex ids, one per position; corners ``P``)
+    intersect. Pairs that share a vertex of ``regular`` (:func:`regular_vertices`) cannot, and are not tested."""
+    Fi, Fj = fl[i], fl[j]
+    eq = Fi[:, :, None] == Fj[:, None, :]  # eq[p, a, b]: corner a of i is corner b of j
+    shared = eq.sum(axis=(1, 2))
+    if regular is not None:
+        at_regular = (regular[Fi] & eq.any(axis=2)).any(axis=1)
+        shared = np.where(at_regular & (shared < 3), -1, shared)  # -1: settled, no hit
+    hit = np.zeros(len(i), bool)
+    hit[shared == 3] = True  # the same face twice
+
+    # one shared vertex: the edge opposite it in either face meets the other face
+    s = np.flatnonzero(shared == 1)
+    if len(s):
+        e = eq[s]
+        ca = e.any(axis=2).argmax(axis=1)  # the shared corner's position in i
+        cb = e.any(axis=1).argmax(axis=1)  # ... in j
+        r = np.arange(len(s))
+        Pi, Pj = P[i[s]], P[j[s]]
+        xa, ya = Pi[r, (ca + 1) % 3], Pi[r, (ca + 2) % 3]
+        xb, yb = Pj[r, (cb + 1) % 3], Pj[r, (cb + 2) % 3]
+        # the faces meet only at v when one of them has both its other corners strictly on one side of the
+        # other's plane (the plane cuts it in v alone)
+        sxa, sya = (orient3d(Pj[:, 0], Pj[:, 1], Pj[:, 2], x) for x in (xa, ya))
+        apart = sxa.astype(np.int16) * sya > 0
+        t = np.flatnonzero(~apart)
+        sxb, syb = (orient3d(Pi[t, 0], Pi[t, 1], Pi[t, 2], x[t]) for x in (xb, yb))
+        apart = sxb.astype(np.int16) * syb > 0
+        t, sxb, syb = t[~apart], sxb[~apart], syb[~apart]
+        h1 = segment_meets_triangle(Pj[t, 0], Pj[t, 1], Pj[t, 2], xa[t], ya[t], sxa[t], sya[t])
+        h2 = segment_meets_triangle(Pi[t, 0], Pi[t, 1], Pi[t, 2], xb[t], yb[t], sxb, syb)
+        hit[s[t]] = h1 | h2
+
+    # a shared edge: coplanar and on the same side of it
+    s = np.flatnonzero(shared == 2)
+    if len(s):
+        e = eq[s]
+        ca = (~e.any(axis=2)).argmax(axis=1)  # i's corner not in j
+        cb = (~e.any(axis=1)).argmax(axis=1)
+        r = np.arange(len(s))
+        Pi, Pj = P[i[s]], P[j[s]]
+        c, d = Pi[r, ca], Pj[r, cb]
+        x, y = Pi[r, (ca + 1) % 3], Pi[r, (ca + 2) % 3]
+        flat = orient3d(x, y, c, d) == 0
+        if flat.any():
+            k = np.flatnonzero(flat)
+            keep, ok = _projection_axes(x[k], y[k], c[k])
+            x2, y2, c2, d2 = (_take2(a[k], keep) for a in (x, y, c, d))
+            same = orient2d(x2, y2, c2).astype(np.int16) * orient2d(x2, y2, d2) > 0
+            hit[s[k]] = same & ok
+
+    # no shared vertex: rejected when one face lies strictly on one side of the other's plane, else an edge of
+    # one meets the other (closed triangles that are not coplanar meet only so; coplanar ones too)
+    s = np.flatnonzero(shared == 0)
+    if len(s):
+        Pi, Pj = P[i[s]], P[j[s]]
+        sj = np.stack([orient3d(Pi[:, 0], Pi[:, 1], Pi[:, 2], Pj[:, k]) for k in range(3)], axis=1)
+        apart = (sj > 0).all(axis=1) | (sj < 0).all(axis=1)
+        t = np.flatnonzero(~apart)
+        si = np.stack([orient3d(Pj[t, 0], Pj[t, 1], Pj[t, 2], Pi[t, k]) for k in range(3)], axis=1)
+        apart = (si > 0).all(axis=1) | (si < 0).all(axis=1)
+        t, si, sj = t[~apart], si[~apart], sj[t[~apart]]
+        Pi, Pj = Pi[t], Pj[t]
+        h = np.zeros(len(t), bool)
+        for k in range(3):
+            k1 = (k + 1) % 3
+            h |= segment_meets_triangle(Pi[:, 0], Pi[:, 1], Pi[:, 2], Pj[:, k], Pj[:, k1], sj[:, k], sj[:, k1])
+            h |= segment_meets_triangle(Pj[:, 0], Pj[:, 1], Pj[:, 2], Pi[:, k], Pi[:, k1], si[:, k], si[:, k1])
+        hit[s[t]] = h
+
+    return hit
+
+
+def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Boolean mask of the self-intersecting faces (see the module docstring for the definition).
+
+    A mesh that shares most of its faces (the same corner coordinates) with one tested shortly before in this
+    process (a repair's input and its output, a loop that cuts out and refills a few faces) is tested
+    incrementally: the pairs of faces both meshes have keep their outcome, only pairs with a new face are
+    tested. The outcome of a pair depends on its two faces' coordinates alone, so the result is the same as a
+    full test, bit for bit (tests/test_intersect.py checks it)."""
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    out = np.zeros(len(f), bool)
+    if len(f) < 2:
+        return out
+    # vertices at the same position are one vertex here (a split pinch, a seam of duplicated vertices)
+    v, canon = np.unique(v, axis=0, return_inverse=True)
+    f = canon.reshape(-1)[f]
+    live = ~degenerate_faces(v, f)
+    keys = _face_keys(v, f)
+    entry, prev = _MEMO.begin(keys)
+    pairs = None
+    try:
+        old = prev.wait() if prev is not None else None
+        if old is not None:
+            pairs = _incremental(v, f, live, keys, prev, old)
+        if pairs is None:
+            pairs = _all_pairs(v, f, live)
+    finally:
+        _MEMO.finish(entry, None if pairs is None else (v, f, pairs))
+    out[pairs.ravel()] = True
+    return out
+
+
+def _all_pairs(v: np.ndarray, f: np.ndarray, live: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+    """The intersecting pairs of faces (rows of face indices, the smaller first), among the live ones; with
+    ``among``, only pairs with at least one face in it."""
+    idx = np.flatnonzero(live)
+    fl = f[idx]
+    P = v[fl]  # (m, 3 corners, 3)
+    i, j = candidate_pairs(P.min(axis=1), P.max(axis=1), None if among is None else among[idx])
+    if not len(i):
+        return np.zeros((0, 2), np.int64)
+    hit = _pair_hits(P, fl, i, j, regular_vertices(v, fl))
+    return np.stack([idx[i[hit]], idx[j[hit]]], axis=1)
+
+
+# ------------------------------------------------------------------------------------- incremental tests
+
+def _mix(z: np.ndarray) -> np.ndarray:
+    """SplitMix64's finaliser on uint64 arrays (wrapping arithmetic)."""
+    with np.errstate(over="ignore"):
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def _face_keys(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """A 64-bit hash of each face's set of corner coordinates (not of its indices or corner order); equal
+    keys are confirmed by comparing the coordinates before a face counts as the same."""
+    bits = np.ascontiguousarray(v).view(np.uint64).reshape(-1, 3)
+    hv = _mix(bits[:, 0] ^ _mix(bits[:, 1] ^ _mix(bits[:, 2] ^ np.uint64(0x9E3779B97F4A7C15))))
+    c = np.sort(hv[f], axis=1)
+    return _mix(c[:, 0] ^ _mix(c[:, 1] ^ _mix(c[:, 2])))
+
+
+def _corner_sets(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Each face's corner coordinates in a canonical corner order (lexicographic), (n, 9)."""
+    P = v[f]
+    order = np.lexsort((P[:, :, 2], P[:, :, 1], P[:, :, 0]), axis=1)
+    return np.take_along_axis(P, order[:, :, None], axis=1).reshape(len(f), 9)
+
+
+class _Entry:
+    def __init__(self, keys: np.ndarray):
+        import threading
+
+        self.order = np.argsort(keys, kind="stable")
+        self.sorted = keys[self.order]
+        self.done = threading.Event()
+        self.result = None  # (v, f, pairs) once finished
+
+    def wait(self):
+        self.done.wait()
+        return self.result
+
+
+class _Memo:
+    """The last few meshes tested in this process (their face keys, corners and intersecting pairs); a test
+    registers its mesh before it starts, so that a later one may wait for it instead of starting afresh."""
+
+    SIZE = 4
+
+    def __init__(self):
+        import threading
+
+        self._lock = threading.Lock()
+        self._entries: list[_Entry] = []
+
+    def begin(self, keys: np.ndarray) -> tuple[_Entry, _Entry | None]:
+        entry = _Entry(keys)
+        with self._lock:
+            earlier = list(self._entries)
+            self._entries = (self._entries + [entry])[-self.SIZE:]
+        best, best_n = None, len(keys) // 2  # worth it when at least half the faces are shared
+        for e in earlier:
+            if not len(e.sorted):
+                continue
+            k = np.searchsorted(e.sorted, keys)
+            n = int((e.sorted[np.minimum(k, len(e.sorted) - 1)] == keys).sum())
+            if n > best_n:
+                best, best_n = e, n
+        return entry, best
+
+    def finish(self, entry: _Entry, result) -> None:
+        entry.result = result
+        entry.done.set()
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries = []
+
+
+_MEMO = _Memo()
+
+
+def _incremental(v, f, live, keys, prev: _Entry, old) -> np.ndarray | None:
+    """The intersecting pairs of ``(v, f)`` from those of the earlier mesh ``prev`` (``old``: its ``(v, f,
+    pairs)``), testing only the pairs with a face the earlier mesh did not have; None when it cannot be used."""
+    v0, f0, pairs0 = old
+    # a face matches when its key occurs once in each mesh and the corner coordinates are equal
+    k = np.searchsorted(prev.sorted, keys)
+    k = np.minimum(k, len(prev.sorted) - 1)
+    hit = prev.sorted[k] == keys
+    once_old = np.ones(len(prev.sorted), bool)
+    dup = prev.sorted[1:] == prev.sorted[:-1]
+    once_old[1:] &= ~dup
+    once_old[:-1] &= ~dup
+    ks = np.sort(keys)
+    dup_new = np.zeros(len(keys), bool)
+    rep = ks[1:][ks[1:] == ks[:-1]]
+    if len(rep):
+        dup_new = np.isin(keys, rep)
+    match = hit & once_old[k] & ~dup_new
+    old_of = np.where(match, prev.order[k], -1)
+    m = np.flatnonzero(match)
+    same = (_corner_sets(v, f[m]) == _corner_sets(v0, f0[old_of[m]])).all(axis=1)
+    old_of[m[~same]] = -1
+    new_of_old = np.full(len(f0), -1, np.int64)
+    kept = old_of >= 0
+    new_of_old[old_of[kept]] = np.flatnonzero(kept)
+    # the earlier outcome of pairs whose faces are both still here
+    mapped = new_of_old[pairs0] if len(pairs0) else np.zeros((0, 2), np.int64)
+    mapped = mapped[(mapped >= 0).all(axis=1)]
+    mapped = np.sort(mapped, axis=1)
+    fresh = live & ~kept
+    if not fresh.any():
+        return mapped
+    return np.concatenate([mapped, _all_pairs(v, f, live, among=fresh)])

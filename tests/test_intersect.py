@@ -1,0 +1,354 @@
+"""The exact self-intersection test (scanreg.intersect) against known answers and against a brute-force reference
+in rational arithmetic that uses a different algorithm (separating axes, every pair of faces)."""
+
+from __future__ import annotations
+
+import itertools
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from scanreg.intersect import _MEMO, candidate_pairs, orient2d, orient3d, self_intersecting_faces
+
+
+# ------------------------------------------------------------------------------------- rational reference
+
+def _q(p):
+    return tuple(Fraction(float(x)) for x in p)
+
+
+def _sub(a, b):
+    return tuple(x - y for x, y in zip(a, b))
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dot(a, b):
+    return sum(x * y for x, y in zip(a, b))
+
+
+def _convex_sets_meet(A: list, B: list) -> bool:
+    """Closed convex hulls of the point lists ``A`` and ``B`` (a segment or a non-degenerate triangle each)
+    have a common point: no separating axis among the face normals, the edge cross products and the in-plane
+    edge normals (the complete candidate set for such polytopes, also when they are coplanar)."""
+    def edges(P):
+        return [_sub(P[(k + 1) % len(P)], P[k]) for k in range(len(P) if len(P) == 3 else 1)]
+
+    eA, eB = edges(A), edges(B)
+    normals = [_cross(eA[0], eA[1])] if len(A) == 3 else []
+    normals += [_cross(eB[0], eB[1])] if len(B) == 3 else []
+    axes = list(normals) + [_cross(a, b) for a in eA for b in eB]
+    axes += [_cross(n, e) for n in normals for e in eA + eB]
+    for ax in axes:
+        if not any(ax):
+            continue
+        pa = [_dot(ax, p) for p in A]
+        pb = [_dot(ax, p) for p in B]
+        if max(pa) < min(pb) or max(pb) < min(pa):
+            return False
+    return True
+
+
+def reference_self_intersecting(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    V = [_q(p) for p in v]
+    first = {}
+    f = np.array([[first.setdefault(V[x], x) for x in t] for t in f])  # one vertex per position
+    out = np.zeros(len(f), bool)
+    live = [k for k, t in enumerate(f) if len(set(t)) == 3
+            and any(_cross(_sub(V[t[1]], V[t[0]]), _sub(V[t[2]], V[t[0]])))]
+    for a, b in itertools.combinations(live, 2):
+        ta, tb = list(f[a]), list(f[b])
+        shared = set(ta) & set(tb)
+        A, B = [V[x] for x in ta], [V[x] for x in tb]
+        if len(shared) == 3:
+            hit = True
+        elif len(shared) == 0:
+            hit = _convex_sets_meet(A, B)
+        elif len(shared) == 1:
+            s = shared.pop()
+            oa = [V[x] for x in ta if x != s]
+            ob = [V[x] for x in tb if x != s]
+            hit = _convex_sets_meet(oa, B) or _convex_sets_meet(ob, A)
+        else:
+            x, y = [V[k] for k in ta if k in shared]
+            c = V[[k for k in ta if k not in shared][0]]
+            d = V[[k for k in tb if k not in shared][0]]
+            e = _sub(y, x)
+            n1, n2 = _cross(e, _sub(c, x)), _cross(e, _sub(d, x))
+            coplanar = _dot(_cross(e, _sub(c, x)), _sub(d, x)) == 0
+            hit = coplanar and _dot(n1, n2) > 0
+        if hit:
+            out[a] = out[b] = True
+    return out
+
+
+# ------------------------------------------------------------------------------------------ known answers
+
+def _check(v, f, expected):
+    v, f = np.asarray(v, float), np.asarray(f)
+    got = self_intersecting_faces(v, f)
+    assert got.tolist() == expected
+    assert reference_self_intersecting(v, f).tolist() == expected
+
+
+def test_crossing_touching_and_apart():
+    tri = [[0, 0, 0], [4, 0, 0], [0, 4, 0]]
+    _check(tri + [[1, 1, -1], [1, 1, 1], [3, 3, 1]], [[0, 1, 2], [3, 4, 5]], [True, True])  # pierces
+    _check(tri + [[1, 1, 0], [1, 1, 1], [2, 1, 1]], [[0, 1, 2], [3, 4, 5]], [True, True])  # vertex on it
+    _check(tri + [[1, 1, 0.5], [1, 2, 1], [2, 1, 1]], [[0, 1, 2], [3, 4, 5]], [False, False])  # above
+    _check(tri + [[3, 3, -1], [3, 3, 1], [5, 5, 0]], [[0, 1, 2], [3, 4, 5]], [False, False])  # beside
+    _check(tri + [[2, 2, -1], [2, 2, 1], [5, 5, 0]], [[0, 1, 2], [3, 4, 5]], [True, True])  # touches hypotenuse
+
+
+def test_coplanar():
+    tri = [[0, 0, 0], [4, 0, 0], [0, 4, 0]]
+    _check(tri + [[1, 1, 0], [5, 1, 0], [1, 5, 0]], [[0, 1, 2], [3, 4, 5]], [True, True])  # overlapping
+    _check(tri + [[3, 3, 0], [6, 3, 0], [3, 6, 0]], [[0, 1, 2], [3, 4, 5]], [False, False])  # apart in plane
+    _check(tri + [[0.5, 0.5, 0], [1, 0.5, 0], [0.5, 1, 0]], [[0, 1, 2], [3, 4, 5]], [True, True])  # inside
+
+
+def test_shared_vertex_fan_and_fold():
+    # a flat fan around the origin: neighbours meet only at the shared vertex
+    v = [[0, 0, 0], [2, 0, 0], [0, 2, 0], [-2, 0, 0], [0, -2, 0]]
+    _check(v, [[0, 1, 2], [0, 3, 4]], [False, False])
+    # the second face folds back through the first (same wedge, tilted)
+    v = [[0, 0, 0], [2, 0, 0], [0, 2, 0], [2, 1, 1], [1, 2, -1]]
+    _check(v, [[0, 1, 2], [0, 3, 4]], [True, True])
+    # tilted but only touching the shared vertex from above
+    v = [[0, 0, 0], [2, 0, 0], [0, 2, 0], [2, 1, 1], [1, 2, 1]]
+    _check(v, [[0, 1, 2], [0, 3, 4]], [False, False])
+
+
+def test_shared_edge():
+    v = [[0, 0, 0], [2, 0, 0], [0, 2, 0], [1, -2, 0], [1, 1, 0], [1, -2, 1]]
+    _check(v, [[0, 1, 2], [1, 0, 3]], [False, False])  # flat, either side of the edge
+    _check(v, [[0, 1, 2], [1, 0, 4]], [True, True])  # folded flat onto each other
+    _check(v, [[0, 1, 2], [1, 0, 5]], [False, False])  # a hinge
+    _check(v, [[0, 1, 2], [2, 1, 0]], [True, True])  # the same face twice
+
+
+def test_coincident_vertices_are_one_vertex():
+    # two fans split at a pinch (MeshLab's non-manifold vertex repair duplicates the vertex): touching there only
+    v = [[0, 0, 0], [2, 0, 0], [0, 2, 0], [0, 0, 0], [-2, 0, 0], [0, -2, 0], [0, 0, 0], [2, 1, 1], [1, 2, -1]]
+    _check(v, [[0, 1, 2], [3, 4, 5]], [False, False])
+    _check(v, [[0, 1, 2], [6, 7, 8]], [True, True])  # the duplicate's face folds through the first
+
+
+def test_degenerate_faces_take_no_part():
+    v = [[0, 0, 0], [4, 0, 0], [0, 4, 0], [1, 1, -1], [1, 1, 1], [1, 1, 2], [2, 2, 2]]
+    f = [[0, 1, 2], [3, 4, 5], [3, 4, 4]]  # a needle through the triangle (collinear), a repeated index
+    assert self_intersecting_faces(np.asarray(v, float), np.asarray(f)).tolist() == [False, False, False]
+
+
+# ------------------------------------------------------------------------------------------- against it
+
+def _random_soup(rng, n_faces, n_verts, grid):
+    v = rng.integers(0, grid, size=(n_verts, 3)).astype(float)  # integer grid: many exact degeneracies
+    f = np.array([rng.choice(n_verts, 3, replace=False) for _ in range(n_faces)])
+    return v, f
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_random_meshes_match_the_rational_reference(seed):
+    rng = np.random.default_rng(seed)
+    v, f = _random_soup(rng, 40, 30, 6)
+    assert np.array_equal(self_intersecting_faces(v, f), reference_self_intersecting(v, f))
+    # rotated (inexact coordinates, near-degenerate contacts) and scaled by a power of two
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    w = v @ R.T * 0.37 + 0.001
+    got = self_intersecting_faces(w, f)
+    assert np.array_equal(got, reference_self_intersecting(w, f))
+    assert np.array_equal(self_intersecting_faces(w * 2.0 ** -20, f), got)
+    perm = rng.permutation(len(f))
+    assert np.array_equal(self_intersecting_faces(w, f[perm]), got[perm])
+
+
+def test_mesh_pairs_match_the_reference():
+    """A realistic mesh: a sphere and a second, shifted sphere in one vertex array (their faces cross along a
+    circle), with some shared vertices near the crossing; every face pair checked by the reference."""
+    import open3d as o3d
+
+    s = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=4)
+    v1, f1 = np.asarray(s.vertices), np.asarray(s.triangles)
+    v = np.vstack([v1, v1 * 0.9 + [0.8, 0.1, 0.05]])
+    f = np.vstack([f1, f1 + len(v1)])
+    got = self_intersecting_faces(v, f)
+    assert got.any() and not got.all()
+    assert np.array_equal(got, reference_self_intersecting(v, f))
+    assert not self_intersecting_faces(v1, f1).any()  # one closed sphere: none
+
+
+def test_candidate_pairs_are_all_overlapping_boxes():
+    rng = np.random.default_rng(3)
+    lo = rng.uniform(0, 10, (300, 3))
+    size = rng.uniform(0, 0.5, (300, 3)) * rng.choice([1, 1, 1, 8], (300, 1))  # a few long boxes
+    hi = lo + size
+    i, j = candidate_pairs(lo, hi)
+    brute = {(a, b) for a, b in itertools.combinations(range(300), 2)
+             if (lo[a] <= hi[b]).all() and (lo[b] <= hi[a]).all()}
+    assert set(zip(i.tolist(), j.tolist())) == brute and len(i) == len(brute)
+
+
+def test_predicates_are_exact_near_degeneracy():
+    # points on a plane through the origin with rounded coordinates: orient3d's float value is noise, the sign
+    # must be the exact one (checked with fractions)
+    rng = np.random.default_rng(0)
+    n = np.array([0.3, -0.5, 0.8])
+    pts = rng.normal(size=(4000, 3))
+    pts -= np.outer(pts @ n / (n @ n), n)  # on the plane, up to rounding
+    a, b, c, d = pts[:1000], pts[1000:2000], pts[2000:3000], pts[3000:]
+    got = orient3d(a, b, c, d)
+    ref = []
+    for p, q, r, s in zip(a, b, c, d):
+        P, Q, R, S = (_q(x) for x in (p, q, r, s))
+        det = _dot(_sub(P, S), _cross(_sub(Q, S), _sub(R, S)))
+        ref.append((det > 0) - (det < 0))
+    assert got.tolist() == ref
+    a2, b2, c2 = (x[:, :2] for x in (a, b, c))
+    t = np.linspace(0, 1, 1000)[:, None]
+    c2 = a2 + t * (b2 - a2)  # on the line ab, up to rounding
+    got2 = orient2d(a2, b2, c2)
+    ref2 = []
+    for p, q, r in zip(a2, b2, c2):
+        P, Q, R = (_q(x) for x in (p, q, r))
+        det = (P[0] - R[0]) * (Q[1] - R[1]) - (P[1] - R[1]) * (Q[0] - R[0])
+        ref2.append((det > 0) - (det < 0))
+    assert got2.tolist() == ref2
+
+
+def _fresh(v, f):
+    _MEMO.clear()
+    return self_intersecting_faces(v, f)
+
+
+def _two_spheres():
+    import open3d as o3d
+
+    s = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=20)
+    v1, f1 = np.asarray(s.vertices), np.asarray(s.triangles)
+    return np.vstack([v1, v1 * 0.9 + [0.8, 0.1, 0.05]]), np.vstack([f1, f1 + len(v1)])
+
+
+def test_incremental_equals_full():
+    """An edited copy (faces cut out, new faces that cross others, the rest permuted, vertices renumbered)
+    tested right after the original reuses its outcome; the result equals a fresh full test."""
+    rng = np.random.default_rng(5)
+    v, f = _two_spheres()
+    base = _fresh(v, f)
+    assert base.any()
+    keep = rng.random(len(f)) > 0.05
+    extra_v = rng.uniform(-1, 1.5, (30, 3))
+    extra_f = len(v) + rng.integers(0, 30, (10, 3))
+    extra_f = extra_f[(extra_f[:, 0] != extra_f[:, 1]) & (extra_f[:, 1] != extra_f[:, 2]) & (extra_f[:, 0] != extra_f[:, 2])]
+    v2 = np.vstack([v, extra_v])
+    f2 = np.vstack([f[keep], extra_f])
+    renum = rng.permutation(len(v2))  # new vertex order
+    inv = np.argsort(renum)
+    v2, f2 = v2[renum], inv[f2]
+    perm = rng.permutation(len(f2))
+    f2 = f2[perm]
+    _MEMO.clear()
+    self_intersecting_faces(v, f)  # the original first, as a repair's input
+    inc = self_intersecting_faces(v2, f2)
+    assert len(_MEMO._entries) == 2
+    assert np.array_equal(inc, _fresh(v2, f2))
+    # and in another thread, the later test waiting for the earlier one
+    import threading
+
+    _MEMO.clear()
+    out = {}
+    t = threading.Thread(target=lambda: out.setdefault("a", self_intersecting_faces(v, f)))
+    t.start()
+    b = self_intersecting_faces(v2, f2)
+    t.join()
+    assert np.array_equal(out["a"], base) and np.array_equal(b, inc)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_folded_grids_match_the_reference(seed):
+    """Height fields whose vertices are jittered sideways until triangles flip: fans that overlap themselves
+    around a vertex, folds across edges; the fast path for vertices whose fan turns once must agree with the
+    rational reference on every face."""
+    rng = np.random.default_rng(seed)
+    n = 6
+    gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
+    v = np.stack([gx.ravel(), gy.ravel(), np.zeros(n * n)], axis=1)
+    v[:, :2] += rng.uniform(-1.2, 1.2, (n * n, 2)) * (rng.random((n * n, 1)) < 0.3)
+    v[:, 2] = rng.normal(0, 0.3, n * n) * (seed % 2)
+    q = np.arange(n * n).reshape(n, n)
+    a, b, c, d = q[:-1, :-1].ravel(), q[:-1, 1:].ravel(), q[1:, :-1].ravel(), q[1:, 1:].ravel()
+    f = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    got = _fresh(v, f)
+    assert np.array_equal(got, reference_self_intersecting(v, f))
+    if seed % 2 == 0:  # flat: the jitter folds some faces onto others
+        assert got.any() and not got.all()
+
+
+def test_regular_vertices_on_a_sphere_and_a_dent():
+    from scanreg.intersect import regular_vertices
+
+    import open3d as o3d
+
+    s = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=10)
+    v, f = np.asarray(s.vertices).copy(), np.asarray(s.triangles)
+    assert regular_vertices(v, f).all()  # every fan turns once
+    top = int(np.argmax(v[:, 2]))
+    v[top] = [0.6, 0.0, 0.9]  # pushed sideways past its ring of neighbours: its fan folds over itself
+    reg = regular_vertices(v, f)
+    assert not reg[top]
+    got = _fresh(v, f)
+    assert got[(f == top).any(axis=1)].sum() >= 2
+    small = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=4)
+    v, f = np.asarray(small.vertices).copy(), np.asarray(small.triangles)
+    v[int(np.argmax(v[:, 2]))] = [0.9, 0.1, 0.8]
+    assert np.array_equal(_fresh(v, f), reference_self_intersecting(v, f))
+
+
+def _fan(points, closed):
+    """Faces (0, i, i+1) around vertex 0 at the origin over ``points`` (1-based), closed or open."""
+    v = np.vstack([[0.0, 0.0, 0.0], points])
+    k = len(points)
+    f = [[0, 1 + i, 1 + (i + 1) % k] for i in range(k if closed else k - 1)]
+    return v, np.array(f)
+
+
+@pytest.mark.parametrize("case", ["twice_closed", "one_and_a_half_open", "closes_on_its_ray", "two_chains",
+                                  "once_closed", "once_open"])
+def test_fans_that_turn_more_than_once(case):
+    """Fans built to defeat each condition of the fast path for regular vertices (each must be tested pair
+    by pair, and the result must be the reference's), and two that turn once (no face intersects)."""
+    from scanreg.intersect import regular_vertices
+
+    if case == "twice_closed":  # a closed fan around twice; the blades' heights cross
+        a = np.linspace(0, 4 * np.pi, 9)[:-1]
+        pts = np.stack([np.cos(a), np.sin(a), np.sin(a / 2) * 0.5], 1)
+        v, f = _fan(pts, closed=True)
+    elif case == "one_and_a_half_open":  # an open fan around 1.5 times, its end climbing past its start
+        a = np.linspace(0, 3 * np.pi, 8)
+        pts = np.stack([np.cos(a), np.sin(a), 0.5 * np.cos(2 * a / 3)], 1)  # the two layers' heights cross
+        v, f = _fan(pts, closed=False)
+    elif case == "closes_on_its_ray":  # open, its last edge lies on its first edge (a different vertex)
+        a = np.linspace(0, 2 * np.pi, 6)
+        pts = np.stack([np.cos(a), np.sin(a), np.zeros(6)], 1)
+        pts[-1] = [0.5, 0.0, 0.0]  # on the first edge, from (1, 0, 0) to the origin
+        v, f = _fan(pts, closed=False)
+    elif case == "two_chains":  # two open chains at one vertex overlapping in projection at crossing heights
+        a = np.linspace(0, 0.8 * np.pi, 4)
+        p1 = np.stack([np.cos(a), np.sin(a), np.linspace(-0.3, 0.3, 4)], 1)
+        p2 = np.stack([np.cos(a - 0.3), np.sin(a - 0.3), np.linspace(0.3, -0.3, 4)], 1)
+        v = np.vstack([[0.0, 0.0, 0.0], p1, p2])
+        f = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 5, 6], [0, 6, 7], [0, 7, 8]])
+    else:
+        a = np.linspace(0, 2 * np.pi, 8)[:-1] if case == "once_closed" else np.linspace(0, 1.5 * np.pi, 7)
+        pts = np.stack([np.cos(a), np.sin(a), 0.3 * np.cos(3 * a)], 1)
+        v, f = _fan(pts, closed=case == "once_closed")
+    reg = regular_vertices(v, f)
+    ref = reference_self_intersecting(v, f)
+    assert np.array_equal(_fresh(v, f), ref)
+    if case.startswith("once"):
+        assert reg[0] and not ref.any()
+    else:
+        assert not reg[0] and ref.any()
