@@ -536,6 +536,11 @@ class _Memo:
 _MEMO = _Memo()
 
 
+def forget_recent() -> None:
+    """Empty the memo of recently tested meshes (benchmarks that time a test as a run makes it, once)."""
+    _MEMO.clear()
+
+
 def _incremental(v, f, live, keys, prev: _Entry, old) -> np.ndarray | None:
     """The intersecting pairs of ``(v, f)`` from those of the earlier mesh ``prev`` (``old``: its ``(v, f,
     pairs)``), testing only the pairs with a face the earlier mesh did not have; None when it cannot be used."""

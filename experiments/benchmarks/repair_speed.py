@@ -46,7 +46,7 @@ import numpy as np
 
 from scanreg.config import Context, shared_data_dir
 from scanreg.geometry import Mesh
-from scanreg.intersect import _MEMO
+from scanreg.intersect import forget_recent
 from scanreg.io import read_mesh
 from scanreg.registry import REPAIR, load_all, make_params
 
@@ -84,7 +84,7 @@ def fresh(mesh: Mesh) -> Mesh:
     """A copy of ``mesh`` with new arrays: nothing the audit remembered about ``mesh`` applies to it; and the
     exact self-intersection test's memo of recent meshes emptied (it would reuse the previous round's outcome
     for the same faces, which a run, one repair per process, never can)."""
-    _MEMO.clear()
+    forget_recent()
     return Mesh(mesh.vertices.copy(), mesh.faces.copy(), mesh.source)
 
 

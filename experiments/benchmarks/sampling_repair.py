@@ -31,6 +31,7 @@ import numpy as np
 
 from scanreg.config import Context, shared_data_dir
 from scanreg.errors import StageError
+from scanreg.intersect import forget_recent
 from scanreg.io import read_mesh
 from scanreg.registry import REPAIR, SAMPLER, make_params
 
@@ -101,6 +102,7 @@ def bench_repair(repeat: int) -> list[str]:
             for i, (name, kw) in enumerate(configs):
                 cls = REPAIR.get(name)
                 st = cls(make_params(cls.Params, {**kw, "check_only": True}, name))
+                forget_recent()  # as a run: no earlier repair's self-intersection outcome to reuse
                 t0 = time.perf_counter_ns()
                 with contextlib.redirect_stdout(io.StringIO()):
                     try:
@@ -141,6 +143,7 @@ def bench_stanford(borders: list[str]) -> list[str]:
             m.source = name
             cls = REPAIR.get("meshfix")
             st = cls(make_params(cls.Params, {"open_border": border, "check_only": True}, "meshfix"))
+            forget_recent()  # as a run: no earlier repair's self-intersection outcome to reuse
             t0 = time.perf_counter_ns()
             with contextlib.redirect_stdout(io.StringIO()):
                 _, mm = repair_with_audit(st, m, ctx, "r_")

@@ -37,7 +37,7 @@ def main() -> int:
     from scanreg.api import build_stage
     from scanreg.config import Context, shared_data_dir
     from scanreg.geometry import transform_geometry
-    from scanreg.intersect import _MEMO, self_intersecting_faces
+    from scanreg.intersect import forget_recent, self_intersecting_faces
     from scanreg.io import read_mesh
 
     path = shared_data_dir() / "stanford_bunny" / "top3.ply"
@@ -57,9 +57,9 @@ def main() -> int:
         ms.add_mesh(pymeshlab.Mesh(v, f))
         ms.compute_selection_by_self_intersections_per_face()
         counts.append(int(ms.current_mesh().selected_face_number()))
-        _MEMO.clear()
+        forget_recent()
         exact.append(int(self_intersecting_faces(v, f).sum()))
-        _MEMO.clear()
+        forget_recent()
         out, _ = stage.repair(transform_geometry(T, copy.deepcopy(m0)),
                               Context(seed=0, run_dir=pathlib.Path(".")), "repair_")
         hashes.append(hashlib.sha1(out.vertices.tobytes() + out.faces.tobytes()).hexdigest()[:10])
