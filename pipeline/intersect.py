@@ -16,6 +16,10 @@ therefore exact for the floating-point coordinates as given and depends on nothi
 the faces, the process's history or the scale of the coordinates (a ``2^k`` scaling gives the same answer).
 
 Candidate pairs are the faces whose bounding boxes overlap (k-d trees over the box centres, by size level).
+Pairs that share a vertex whose fan turns once around it (:func:`regular_vertices`, decided with the same
+predicates) cannot intersect and are not tested: that settles most neighbours. A mesh that shares most faces
+with one tested shortly before in the process reuses that outcome for the pairs both have
+(:func:`self_intersecting_faces`). Tests: tests/test_intersect.py (a rational brute-force reference).
 """
 
 from __future__ import annotations
