@@ -273,9 +273,8 @@ def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
     return np.concatenate(ii).astype(np.int64), np.concatenate(jj).astype(np.int64)
 
 
-def _member(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``np.isin(a, b)`` for integer arrays, by one sort and a binary search."""
-    srt = np.sort(b)
+def _member(a: np.ndarray, srt: np.ndarray) -> np.ndarray:
+    """``np.isin(a, srt)`` for integer arrays, ``srt`` sorted: by binary search."""
     k = np.minimum(np.searchsorted(srt, a), len(srt) - 1)
     return srt[k] == a
 
@@ -299,40 +298,45 @@ def regular_vertices(v: np.ndarray, fl: np.ndarray) -> np.ndarray:
     c = np.concatenate([fl, fl[:, [1, 2, 0]], fl[:, [2, 0, 1]]])  # rows (v, x, y): each corner's wedge
     vid, x, y = c[:, 0], c[:, 1], c[:, 2]
     # the projection axis per vertex: the largest component of the sum of its faces' normals
-    P = v[fl]
-    n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-    nsum = np.zeros((nv, 3))
-    np.add.at(nsum, vid, np.concatenate([n, n, n]))
-    drop = np.argmax(np.abs(nsum), axis=1)
-    keep = np.array([[1, 2], [0, 2], [0, 1]])[drop[vid]]
-    v2, x2, y2 = (np.take_along_axis(v[a], keep, axis=1) for a in (vid, x, y))
+    e1, e2 = v[fl[:, 1]] - v[fl[:, 0]], v[fl[:, 2]] - v[fl[:, 0]]
+    n = [e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1], e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
+         e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]]
+    fid = np.tile(np.arange(len(fl)), 3)
+    nsum = np.stack([np.bincount(vid, nk[fid], minlength=nv) for nk in n], axis=1)
+    drop = np.argmax(np.abs(nsum), axis=1)[vid]
+    proj = np.stack([v[:, [1, 2]], v[:, [0, 2]], v[:, [0, 1]]])  # (3, nv, 2): every vertex along each axis
+
+    def flat(ids):
+        return proj[drop, ids]
+
+    v2, x2, y2 = flat(vid), flat(x), flat(y)
     o = orient2d(v2, x2, y2)
     ok = np.ones(nv, bool)
     ok[vid[o == 0]] = False
-    pos = np.zeros(nv, np.int64)
-    np.add.at(pos, vid, (o > 0).astype(np.int64))
+    pos = np.bincount(vid, o > 0, minlength=nv)
     deg = np.bincount(vid, minlength=nv)
     ok &= (pos == 0) | (pos == deg)
     sigma = np.where(pos[vid] > 0, 1, -1).astype(np.int8)
     # the chain: starts and ends each once per vertex; at most one start that is no end
     start_key, end_key = vid * nv + x, vid * nv + y
-    for key in (start_key, end_key):
-        srt = np.sort(key)
+    starts, ends = np.sort(start_key), np.sort(end_key)
+    for srt in (starts, ends):
         ok[(srt[1:][srt[1:] == srt[:-1]]) // nv] = False
-    matched = _member(start_key, end_key)
+    matched = _member(start_key, ends)
     loose = np.bincount(vid, ~matched, minlength=nv)
     ok &= loose <= 1
     # the reference direction: the loose start, else any start
     ref = np.full(nv, -1, np.int64)
     ref[vid] = x  # any
     ref[vid[~matched]] = x[~matched]
-    r2 = np.take_along_axis(v[ref[vid]], keep, axis=1)
-    at_start = (ref[vid] == x) | ((orient2d(v2, x2, r2) == 0) & _same_ray(v2, x2, r2))
-    inside = (sigma * orient2d(v2, x2, r2) > 0) & (sigma * orient2d(v2, r2, y2) > 0)
+    r2 = flat(ref[vid])
+    o_xr = orient2d(v2, x2, r2)
+    at_start = (ref[vid] == x) | ((o_xr == 0) & _same_ray(v2, x2, r2))
+    inside = (sigma * o_xr > 0) & (sigma * orient2d(v2, r2, y2) > 0)
     count = np.bincount(vid, at_start | inside, minlength=nv)
     ok &= count == 1
     # a border's last end on the first start's ray: the fan closes onto itself through two distinct edges
-    last = ~_member(end_key, start_key)
+    last = ~_member(end_key, starts)
     if last.any():
         k = np.flatnonzero(last)
         closes = (orient2d(v2[k], y2[k], r2[k]) == 0) & _same_ray(v2[k], y2[k], r2[k])
