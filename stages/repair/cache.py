@@ -58,14 +58,18 @@ def _versions() -> str:
 
 
 def _code_fingerprint() -> str:
-    """A hash of the repair code itself (the backends, the audit, the topology and shell helpers), so that an
-    edited repair never reuses entries made by the old one even at the same version number."""
+    """A hash of the repair code itself (the backends, the audit, the topology, self-intersection, shell and
+    geometry helpers), so that an edited repair never reuses entries made by the old one even at the same
+    version number."""
+    import scanreg.geometry
+    import scanreg.intersect
     import scanreg.shell
     import scanreg.topology
 
     here = Path(__file__).parent
     h = hashlib.sha256()
-    for f in sorted(here.glob("*.py")) + [Path(scanreg.topology.__file__), Path(scanreg.shell.__file__)]:
+    helpers = [scanreg.topology, scanreg.intersect, scanreg.shell, scanreg.geometry]
+    for f in sorted(here.glob("*.py")) + [Path(m.__file__) for m in helpers]:
         h.update(f.read_bytes())
     return h.hexdigest()[:16]
 
