@@ -5,7 +5,7 @@
 Sampling: scanreg's ``barycentric`` against Open3D's ``sample_points_uniformly`` (and the other samplers)
 for N points on pymeshfix's bunny (100k faces), single process, same threads.
 Repair: each backend on the defect meshes, against pymeshfix's stock ``MeshFix.repair()`` on the same mesh,
-with the audit's verdict (default guard limits); open scans also with repair.open_border=open and =shell. Real
+with the audit's verdict (default guard limits); open scans also with repair.open_border=cap and =shell. Real
 scans from ../shared/data are included when present.
 
     ./run python experiments/benchmarks/sampling_repair.py --stanford [--borders auto,shell]
@@ -92,7 +92,8 @@ def bench_repair(repeat: int) -> list[str]:
         m.source = label
         configs = [("meshfix", {}), ("meshlab", {})]
         if not label.startswith("StanfordBunny") and "screwdriver" not in label:
-            configs += [(b, {"open_border": o}) for o in ("open", "shell") for b in ("meshfix", "meshlab")]
+            # the default (auto: open for these) above; capping the outer border and closing a shell here
+            configs += [(b, {"open_border": o}) for o in ("cap", "shell") for b in ("meshfix", "meshlab")]
         anchor, times, audits = [], [[] for _ in configs], [None] * len(configs)
         for _ in range(repeat):  # interleaved: the anchor, then every configuration, in each round
             def stock():
