@@ -336,14 +336,15 @@ def barycentric_sample(
     """
     v, f = mesh.vertices, mesh.faces
     a = v[f[:, 0]]
-    cross = np.cross(v[f[:, 1]] - a, v[f[:, 2]] - a)
+    e1, e2 = v[f[:, 1]] - a, v[f[:, 2]] - a
+    cross = np.cross(e1, e2)
     norm = np.sqrt(np.einsum("ij,ij->i", cross, cross))
     drawn = area_weighted_draws(np.where(0.5 * norm > min_area, norm, 0.0), n_points, rng)
     if drawn is None:
         raise InputError(f"{mesh.source or 'mesh'}: no triangle has an area above {min_area:g}: nothing to sample")
     face, uv = drawn
     normals = cross / np.where(norm > 0, norm, 1.0)[:, None]
-    return points_on_faces(mesh, face, uv), normals[face], face
+    return points_on_faces(mesh, face, uv, (a, e1, e2)), normals[face], face
 
 
 def area_weighted_draws(weights: np.ndarray, n_points: int,
@@ -362,13 +363,20 @@ def area_weighted_draws(weights: np.ndarray, n_points: int,
     return face, uv
 
 
-def points_on_faces(mesh: Mesh, face: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """The points ``a + u (b - a) + v (c - a)`` on the faces ``face`` (corners a, b, c) at ``uv`` (N, 2)."""
-    v, f = mesh.vertices, mesh.faces[face]
-    a = v[f[:, 0]]
-    pts = a.copy()
-    pts += uv[:, :1] * (v[f[:, 1]] - a)
-    pts += uv[:, 1:] * (v[f[:, 2]] - a)
+def points_on_faces(mesh: Mesh, face: np.ndarray, uv: np.ndarray,
+                    edges: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """The points ``a + u (b - a) + v (c - a)`` on the faces ``face`` (corners a, b, c) at ``uv`` (N, 2).
+    ``edges``: every face's ``(a, b - a, c - a)`` when already computed (then gathered per point, the same
+    values: many points per face are cheaper so than subtracting per point)."""
+    if edges is None:
+        v, f = mesh.vertices, mesh.faces[face]
+        a = v[f[:, 0]]
+        e1, e2 = v[f[:, 1]] - a, v[f[:, 2]] - a
+    else:
+        a, e1, e2 = (x[face] for x in edges)
+    pts = a  # a fresh array (gathered), added to in place
+    pts += uv[:, :1] * e1
+    pts += uv[:, 1:] * e2
     return pts
 
 
