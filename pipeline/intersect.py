@@ -43,13 +43,18 @@ def _as_ints(rows: np.ndarray) -> np.ndarray:
     return ints.astype(object) << shift
 
 
+def _signs(det: np.ndarray) -> np.ndarray:
+    """The signs (int8) of an object array of Python integers."""
+    return np.array([(x > 0) - (x < 0) for x in det], np.int8)
+
+
 def _orient3d_exact(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
     r = _as_ints(np.hstack([a, b, c, d])).T
     adx, ady, adz = r[0] - r[9], r[1] - r[10], r[2] - r[11]
     bdx, bdy, bdz = r[3] - r[9], r[4] - r[10], r[5] - r[11]
     cdx, cdy, cdz = r[6] - r[9], r[7] - r[10], r[8] - r[11]
     det = adz * (bdx * cdy - cdx * bdy) + bdz * (cdx * ady - adx * cdy) + cdz * (adx * bdy - bdx * ady)
-    return np.array([(x > 0) - (x < 0) for x in det], np.int8)
+    return _signs(det)
 
 
 def orient3d(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -71,7 +76,7 @@ def orient3d(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.n
         a, b, c, d = a[unsure], b[unsure], c[unsure], d[unsure]
         # every product zero (axis-aligned coplanar points): the determinant is exactly zero, unless a product
         # underflowed, which the exact path settles
-        zero = (perm[unsure] == 0) & _no_underflow(a, b, c, d)
+        zero = (perm[unsure] == 0) & _no_underflow((a, b, c), d, 1e-90)
         sign[unsure[zero]] = 0
         rest = ~zero
         if rest.any():
@@ -79,20 +84,21 @@ def orient3d(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.n
     return sign
 
 
-def _no_underflow(*pts: np.ndarray) -> np.ndarray:
-    """Rows whose nonzero coordinate differences are all large enough that no product of three underflows."""
-    d = pts[-1]
-    ok = np.ones(len(d), bool)
-    for p in pts[:-1]:
-        diff = np.abs(p - d)
-        ok &= ((diff == 0) | (diff > 1e-90)).all(axis=1)
+def _no_underflow(pts: tuple[np.ndarray, ...], base: np.ndarray, floor: float) -> np.ndarray:
+    """Rows whose nonzero coordinate differences from ``base`` are all above ``floor``: no product of the
+    determinant's terms (three differences: 1e-90, two: 1e-150) underflows, so a zero permanent means a zero
+    determinant."""
+    ok = np.ones(len(base), bool)
+    for p in pts:
+        diff = np.abs(p - base)
+        ok &= ((diff == 0) | (diff > floor)).all(axis=1)
     return ok
 
 
 def _orient2d_exact(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     r = _as_ints(np.hstack([a, b, c])).T
     det = (r[0] - r[4]) * (r[3] - r[5]) - (r[1] - r[5]) * (r[2] - r[4])
-    return np.array([(x > 0) - (x < 0) for x in det], np.int8)
+    return _signs(det)
 
 
 def orient2d(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -106,8 +112,7 @@ def orient2d(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     unsure = np.flatnonzero(np.abs(det) <= _O2_BOUND * perm)
     if len(unsure):
         a, b, c = a[unsure], b[unsure], c[unsure]
-        d = np.abs(np.hstack([a - c, b - c]))
-        zero = (perm[unsure] == 0) & ((d == 0) | (d > 1e-150)).all(axis=1)
+        zero = (perm[unsure] == 0) & _no_underflow((a, b), c, 1e-150)
         sign[unsure[zero]] = 0
         rest = ~zero
         if rest.any():
@@ -195,11 +200,8 @@ def degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Faces with a repeated vertex index or three collinear corners (exactly)."""
     f = faces
     bad = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
-    p, q, r = (vertices[f[:, k]] for k in range(3))
-    flat = np.ones(len(f), bool)
-    for keep in ([1, 2], [0, 2], [0, 1]):
-        flat &= orient2d(p[:, keep], q[:, keep], r[:, keep]) == 0
-    return bad | flat
+    _, projects = _projection_axes(*(vertices[f[:, k]] for k in range(3)))
+    return bad | ~projects
 
 
 def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
@@ -273,10 +275,24 @@ def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
     return np.concatenate(ii).astype(np.int64), np.concatenate(jj).astype(np.int64)
 
 
+def _lookup(srt: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each of ``a``, a position in the sorted ``srt`` (non-empty) and whether ``srt`` holds it there."""
+    k = np.minimum(np.searchsorted(srt, a), len(srt) - 1)
+    return k, srt[k] == a
+
+
 def _member(a: np.ndarray, srt: np.ndarray) -> np.ndarray:
     """``np.isin(a, srt)`` for integer arrays, ``srt`` sorted: by binary search."""
-    k = np.minimum(np.searchsorted(srt, a), len(srt) - 1)
-    return srt[k] == a
+    return _lookup(srt, a)[1]
+
+
+def _once(srt: np.ndarray) -> np.ndarray:
+    """Which entries of the sorted ``srt`` occur only once."""
+    dup = srt[1:] == srt[:-1]
+    once = np.ones(len(srt), bool)
+    once[1:] &= ~dup
+    once[:-1] &= ~dup
+    return once
 
 
 def _same_ray(v2, a2, b2) -> np.ndarray:
@@ -443,7 +459,7 @@ def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     try:
         old = prev.wait() if prev is not None else None
         if old is not None:
-            pairs = _incremental(v, f, live, keys, prev, old)
+            pairs = _incremental(v, f, live, keys, entry, prev, old)
         if pairs is None:
             pairs = _all_pairs(v, f, live)
     finally:
@@ -526,8 +542,7 @@ class _Memo:
         for e in earlier:
             if not len(e.sorted):
                 continue
-            k = np.searchsorted(e.sorted, keys)
-            n = int((e.sorted[np.minimum(k, len(e.sorted) - 1)] == keys).sum())
+            n = int(_member(keys, e.sorted).sum())
             if n > best_n:
                 best, best_n = e, n
         return entry, best
@@ -549,24 +564,15 @@ def forget_recent() -> None:
     _MEMO.clear()
 
 
-def _incremental(v, f, live, keys, prev: _Entry, old) -> np.ndarray | None:
-    """The intersecting pairs of ``(v, f)`` from those of the earlier mesh ``prev`` (``old``: its ``(v, f,
-    pairs)``), testing only the pairs with a face the earlier mesh did not have; None when it cannot be used."""
+def _incremental(v, f, live, keys, entry: _Entry, prev: _Entry, old) -> np.ndarray:
+    """The intersecting pairs of ``(v, f)`` (face ``keys``, memo ``entry``) from those of the earlier mesh ``prev``
+    (``old``: its ``(v, f, pairs)``), testing only the pairs with a face the earlier mesh did not have."""
     v0, f0, pairs0 = old
     # a face matches when its key occurs once in each mesh and the corner coordinates are equal
-    k = np.searchsorted(prev.sorted, keys)
-    k = np.minimum(k, len(prev.sorted) - 1)
-    hit = prev.sorted[k] == keys
-    once_old = np.ones(len(prev.sorted), bool)
-    dup = prev.sorted[1:] == prev.sorted[:-1]
-    once_old[1:] &= ~dup
-    once_old[:-1] &= ~dup
-    ks = np.sort(keys)
-    dup_new = np.zeros(len(keys), bool)
-    rep = ks[1:][ks[1:] == ks[:-1]]
-    if len(rep):
-        dup_new = np.isin(keys, rep)
-    match = hit & once_old[k] & ~dup_new
+    once_new = np.empty(len(f), bool)
+    once_new[entry.order] = _once(entry.sorted)
+    k, hit = _lookup(prev.sorted, keys)
+    match = hit & _once(prev.sorted)[k] & once_new
     old_of = np.where(match, prev.order[k], -1)
     m = np.flatnonzero(match)
     same = (_corner_sets(v, f[m]) == _corner_sets(v0, f0[old_of[m]])).all(axis=1)
