@@ -67,8 +67,7 @@ class MeshLab(AuditedRepair):
             ms.meshing_repair_non_manifold_vertices()
         ms.meshing_remove_unreferenced_vertices()
         if p.min_component_share > 0:  # relative to the largest part, not to the bounding box
-            cm = ms.current_mesh()
-            mesh = Mesh(cm.vertex_matrix(), cm.face_matrix())
+            mesh = _current(ms)
             keep = large_components(mesh, p.min_component_share)
             if not keep.all():
                 small = submesh(mesh, keep)
@@ -127,6 +126,19 @@ class MeshLab(AuditedRepair):
         ms.clear()
         ms.add_mesh(pymeshlab.Mesh(v, f.astype(np.int32)))
 
+    def _cut_out(self, ms, now: Mesh, sel: np.ndarray) -> None:
+        """The faces ``sel`` of ``now`` (the MeshSet's current mesh) and ``self_intersection_ring`` rings of
+        neighbours removed, then the topology cleaned up; nothing when ``sel`` is empty. The vertices stay until
+        the clean-up, as with MeshLab's own face removal."""
+        import pymeshlab
+
+        if not sel.any():
+            return
+        ms.clear()
+        kept = now.faces[~dilate_faces(now.faces, sel, self.p.self_intersection_ring)]
+        ms.add_mesh(pymeshlab.Mesh(now.vertices, kept))
+        self._clean_topology(ms)
+
     def run(self, mesh: Mesh, ctx: Context) -> Mesh:
         import pymeshlab
 
@@ -148,25 +160,14 @@ class MeshLab(AuditedRepair):
             if p.close_holes and p.max_hole_edges and stuck:
                 # holes under the limit that the last round's closing left or the clean-up opened again
                 # (a patch MeshLab cannot make manifold): widened by the same rings, then refilled
-                cm = ms.current_mesh()
-                now = Mesh(cm.vertex_matrix(), cm.face_matrix())
+                now = _current(ms)
                 loop, on = _hole_loops(now)
-                small = np.bincount(loop)[loop] <= p.max_hole_edges
                 sel = np.zeros(len(now.faces), bool)
-                sel[on[small]] = True
-                ms.clear()
-                ms.add_mesh(pymeshlab.Mesh(now.vertices, now.faces[~dilate_faces(now.faces, sel,
-                                                                                  p.self_intersection_ring)]))
-                self._clean_topology(ms)
+                sel[on[np.bincount(loop)[loop] <= p.max_hole_edges]] = True
+                self._cut_out(ms, now, sel)
             if p.remove_self_intersections:
-                cm = ms.current_mesh()
-                f = cm.face_matrix()
-                sel = self_intersecting_faces(Mesh(cm.vertex_matrix(), f))
-                if sel.any():
-                    v = cm.vertex_matrix()
-                    ms.clear()  # the faces removed here; the vertices stay until the clean-up, as in MeshLab
-                    ms.add_mesh(pymeshlab.Mesh(v, f[~dilate_faces(f, sel, p.self_intersection_ring)]))
-                    self._clean_topology(ms)
+                now = _current(ms)
+                self._cut_out(ms, now, self_intersecting_faces(now))
             if p.close_holes:
                 self._close(ms, prevent=True)
                 self._clean_topology(ms)
@@ -177,15 +178,14 @@ class MeshLab(AuditedRepair):
                 break
             if p.orient:
                 ms.meshing_re_orient_faces_coherently()
-            now = Mesh(cm.vertex_matrix(), cm.face_matrix())
+            now = _current(ms)
             intersecting = int(self_intersecting_faces(now).sum()) if p.remove_self_intersections else 0
-            stats = mesh_stats(now)
             if not p.close_holes:
                 open_holes = 0
             elif p.max_hole_edges:  # holes under the limit left (or opened again by the clean-up)
                 open_holes = int((boundary_loop_sizes(now) <= p.max_hole_edges).sum())
             else:
-                open_holes = stats["boundary_loops"]
+                open_holes = mesh_stats(now)["boundary_loops"]
             if not intersecting and not open_holes:
                 break
             stuck = open_holes > 0
@@ -196,6 +196,12 @@ class MeshLab(AuditedRepair):
         if p.orient and "volume" in (s := mesh_stats(out)) and s["volume"] < 0:
             out = Mesh(out.vertices, out.faces[:, ::-1].copy(), out.source)  # outward normals
         return out
+
+
+def _current(ms) -> Mesh:
+    """The MeshSet's current mesh as arrays."""
+    cm = ms.current_mesh()
+    return Mesh(cm.vertex_matrix(), cm.face_matrix())
 
 
 def _hole_loops(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
