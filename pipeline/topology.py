@@ -175,11 +175,6 @@ def _meshset(mesh: Mesh):
     return ms
 
 
-def fold_count(mesh: Mesh) -> int:
-    """Self-intersecting faces plus non-manifold edges and vertices: what an edge collapse can add."""
-    return int(fold_counts(mesh).sum())
-
-
 def self_intersecting_faces(mesh: Mesh) -> np.ndarray:
     """Boolean mask of ``mesh``'s self-intersecting faces (:func:`scanreg.intersect.self_intersecting_faces`:
     exact, a function of the coordinates alone)."""
@@ -209,7 +204,7 @@ def dilate_faces(faces: np.ndarray, mask: np.ndarray, rings: int = 1) -> np.ndar
 
 
 def fold_counts(mesh: Mesh) -> np.ndarray:
-    """``[self-intersecting faces, non-manifold edges, non-manifold vertices]``."""
+    """``[self-intersecting faces, non-manifold edges, non-manifold vertices]``: what an edge collapse can add."""
     return np.array([self_intersecting_count(mesh), mesh_stats(mesh)["non_manifold_edges"],
                      non_manifold_vertices(mesh)])
 

@@ -20,8 +20,8 @@ Every repair gets its own copy of the input mesh, as a run reads it: the audit r
 mesh (edge table, components, self-intersections) on the mesh object, and a mesh repaired again would reuse the
 input's; the self-intersection test's memo of recent meshes is emptied before each repair for the same reason.
 The input's self-intersection test runs in a thread beside the backend (both release the GIL), so the CPU time
-of ``repair=meshfix`` includes work that the wall time overlaps. The anchor and ``repair=meshfix`` on the bunny swap places every other round (the later of the two
-calls pays pymeshfix's slowdown from one more use).
+of ``repair=meshfix`` includes work that the wall time overlaps. The anchor and ``repair=meshfix`` on the bunny
+swap places every other round (the later of the two calls pays pymeshfix's slowdown from one more use).
 
 Every repair runs in this process after one warm-up (imports of open3d, pymeshlab and pymeshfix excluded: a run
 of the pipeline pays them once, for every stage). ``backend`` is the backend itself (with the sliver collapse),
