@@ -5,6 +5,8 @@ Shared by the repair stages, the shell closing and the dental case (the geometry
 
 from __future__ import annotations
 
+import heapq
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -66,58 +68,180 @@ def _min_angles_deg(mesh: Mesh) -> np.ndarray:
 
 def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: int = 3) -> Mesh:
     """``mesh`` without slivers (smallest angle below ``angle_deg``), as the paper removes degenerate triangles:
-    MeshLab's T-vertex removal by edge collapse (a cap's apex onto its long edge, a needle's short edge to a
-    point; the ratio of a face's edge to its height at the limit angle), then null faces and unreferenced
-    vertices. The mesh is returned unchanged when it has no sliver."""
-    if not (min_angles_deg(mesh) < angle_deg).any():
+    MeshLab's T-vertex removal by edge collapse (:func:`tvertex_collapse`: a cap's apex onto its long edge, a
+    needle's short edge to a point, at the ratio of a face's edge to its height of the limit angle), then null
+    faces and unreferenced vertices. The mesh is returned unchanged when it has no sliver."""
+    ang = min_angles_deg(mesh)
+    if not (ang < angle_deg).any():
         return mesh
-    import pymeshlab
-
-    # each vertex and face carries its index in ``mesh`` as its quality through the collapse, so that the faces
-    # the collapse changed are known without comparing the meshes (see :func:`collapse_folds`)
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(mesh.vertices, mesh.faces.astype(np.int32),
-                               v_scalar_array=np.arange(len(mesh.vertices), dtype=np.float64),
-                               f_scalar_array=np.arange(len(mesh.faces), dtype=np.float64)))
+    threshold = 1.0 / np.tan(np.radians(angle_deg))
+    # the faces that can pass the T-vertex test: its height / longest side <= tan(limit) bounds the smallest
+    # angle by atan(2 tan(limit)) (2.0 degrees for 1; the margin covers rounding), and zero-area faces
+    maybe = ang < min(90.0, 1.5 * np.degrees(np.arctan(2 * np.tan(np.radians(angle_deg)))))
+    thin = maybe | (ang <= 0)
+    v, f = mesh.vertices, mesh.faces
+    vid, fid = np.arange(len(v)), np.arange(len(f))  # each vertex's and face's index in ``mesh``
+    touched = np.zeros(len(v), bool)  # input vertices moved onto another or joined by one
     for _ in range(rounds):
-        ms.meshing_remove_t_vertices(method="Edge Collapse", threshold=1.0 / np.tan(np.radians(angle_deg)),
-                                     repeat=True)
-        ms.meshing_remove_null_faces()
-        ms.meshing_remove_unreferenced_vertices()
-        cm = ms.current_mesh()
-        out = Mesh(cm.vertex_matrix().astype(np.float64), cm.face_matrix().astype(np.int64), mesh.source)
-        same = _collapse_track(mesh, out, cm)
-        if same is not None:  # the unchanged faces keep their smallest angle (the same corners, the same bits)
-            ang = np.empty(len(out.faces))
-            ang[same[0]] = min_angles_deg(mesh)[same[1]]
-            ang[~same[0]] = _min_angles_deg(Mesh(out.vertices, out.faces[~same[0]]))
-            remember(out, "min_angles", ang)
-        if not (min_angles_deg(out) < angle_deg).any():
+        v, f, kv, kf, joined = tvertex_collapse(v, f, threshold, maybe)
+        vid, fid = vid[kv], fid[kf]
+        touched[vid[joined]] = True
+        changed = touched[vid[f]].any(axis=1)
+        # null faces (MeshLab's meshing_remove_null_faces): among the changed faces and the input's thinnest
+        look = np.flatnonzero(changed | thin[fid])
+        P = v[f[look]]
+        null = look[np.sqrt(_sq_norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]))) <= 0]
+        if len(null):
+            keep = np.ones(len(f), bool)
+            keep[null] = False
+            f, fid, changed = f[keep], fid[keep], changed[keep]
+        used = np.zeros(len(v), bool)
+        used[f.ravel()] = True
+        if not used.all():  # unreferenced vertices
+            v, vid, f = v[used], vid[used], (np.cumsum(used) - 1)[f]
+        out = Mesh(v, f, mesh.source)
+        # the unchanged faces keep their smallest angle (the same corners, the same bits)
+        a = np.empty(len(f))
+        a[~changed] = min_angles_deg(mesh)[fid[~changed]]
+        a[changed] = _min_angles_deg(Mesh(v, f[changed]))
+        remember(out, "min_angles", a)
+        if not (a < angle_deg).any():
             break
-    if same is not None:
-        kept = np.zeros(len(mesh.faces), bool)
-        kept[same[1]] = True
-        # the input face each kept face of ``out`` is (for collapse_folds, which reuses its centre)
-        remember(out, "collapsed_from", ((mesh.vertices, mesh.faces), ~kept, ~same[0], same[1]))
+        maybe = None  # another round (rare): every face tested
+    kept = np.zeros(len(mesh.faces), bool)
+    kept[fid[~changed]] = True
+    # the input face each kept face of ``out`` is (for collapse_folds, which reuses its centre)
+    remember(out, "collapsed_from", ((mesh.vertices, mesh.faces), ~kept, changed, fid[~changed]))
     return out
 
 
-def _collapse_track(mesh: Mesh, out: Mesh, cm) -> tuple[np.ndarray, np.ndarray] | None:
-    """The faces of ``out`` (MeshLab's ``cm``, made from ``mesh`` by :func:`collapse_slivers`) that are faces of
-    ``mesh`` unchanged, and the input face each of them is; None when MeshLab's quality arrays were lost. A face
-    of ``out`` is unchanged when it is the input face it came from with the same vertices (indices mapped back
-    to the input's, in any rotation), none of them moved by the collapse; a face whose vertex was joined to a
-    coincident one counts as changed (its vertex's fan, hence the non-manifold count, did)."""
-    vid, fid = cm.vertex_scalar_array().astype(np.int64), cm.face_scalar_array().astype(np.int64)
-    if len(vid) != len(out.vertices) or len(fid) != len(out.faces):
-        return None
-    moved = (mesh.vertices[vid] != out.vertices).any(axis=1)
-    orig, was = vid[out.faces], mesh.faces[fid]
-    same = np.zeros(len(out.faces), bool)
-    for r in range(3):
-        same |= (orig == np.roll(was, r, axis=1)).all(axis=1)
-    same &= ~moved[out.faces].any(axis=1)
-    return same, fid[same]
+def _sq_norm(x: np.ndarray) -> np.ndarray:
+    """Squared norms of rows of 3, summed as vcglib's ``SquaredNorm`` (x*x + y*y + z*z, left to right)."""
+    return x[:, 0] * x[:, 0] + x[:, 1] * x[:, 1] + x[:, 2] * x[:, 2]
+
+
+def _tvertex_test(P: np.ndarray, threshold: np.float32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """vcglib's T-vertex test of faces ``P`` (n, 3 corners, 3): whether the corner opposite the longest side
+    (side i runs from corner i to corner i+1; the first of equal longest in float, as vcglib stores the
+    lengths) lies within that side's length / ``threshold`` of it (``PSDist * threshold <= side``), the side i,
+    and the corner of that side nearer to the corner's foot (j: i, or i+1 when not strictly nearer to corner i).
+    The same arithmetic as vcglib's, in double precision, operation by operation."""
+    n = len(P)
+    sides = np.stack([np.sqrt(_sq_norm(P[:, (k + 1) % 3] - P[:, k])) for k in range(3)], 1).astype(np.float32)
+    i = np.argmax(sides, axis=1)
+    r = np.arange(n)
+    a, b, p = P[r, i], P[r, (i + 1) % 3], P[r, (i + 2) % 3]
+    e = b - a
+    pa = p - a
+    with np.errstate(invalid="ignore", divide="ignore"):  # a zero-length side: NaN, no T-vertex (as vcglib)
+        t = (pa[:, 0] * e[:, 0] + pa[:, 1] * e[:, 1] + pa[:, 2] * e[:, 2]) / _sq_norm(e)
+        t = np.where(t < 0, 0.0, np.where(t > 1, 1.0, t))  # NaN stays NaN
+        q = a + e * t[:, None]
+        hit = np.sqrt(_sq_norm(p - q)) * np.float64(threshold) <= sides[r, i].astype(np.float64)
+    j = np.where(np.sqrt(_sq_norm(q - a)) < np.sqrt(_sq_norm(q - b)), i, (i + 1) % 3)
+    return hit, i, j
+
+
+def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
+                     maybe: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """vcglib's ``Clean::RemoveTVertexByCollapse(m, threshold, repeat=true)`` (MeshLab's "Remove T-vertices by
+    edge collapse"), computed on the faces that take part only (``maybe``: a mask of the faces that can pass
+    the test at the start, None: any).
+
+    Each round visits the faces in order; a face whose corner opposite its longest side (its apex) is not
+    marked and lies within the side's length / ``threshold`` of it has the apex moved onto the side's corner
+    nearer to the apex's foot; both are marked (the apex moves once per round, and later faces see it moved).
+    At the end of the round the moved vertices are joined to the ones they were moved onto (the lowest index
+    kept), faces with a repeated vertex are deleted, and rounds repeat until one moves nothing.
+
+    One difference from vcglib: it joins every pair of coincident vertices in the mesh after each round
+    (``RemoveDuplicateVertex``), here only the collapsed ones are joined, so that vertices the mesh already had
+    twice (a seam, a pinch split by a non-manifold repair) stay apart. On meshes without coincident vertices
+    the result is MeshLab's (tests/test_slivers.py compares the two).
+
+    Returns the vertices and faces, the indices of the kept input vertices and faces (in order), and which
+    output vertices were moved or joined."""
+    thr = np.float32(threshold)
+    v = np.asarray(v, np.float64)
+    f = np.asarray(f, np.int64)
+    kv, kf = np.arange(len(v)), np.arange(len(f))
+    joined = np.zeros(len(v), bool)
+    look = np.arange(len(f)) if maybe is None else np.flatnonzero(maybe)
+    while len(look):
+        hit, side, near = _tvertex_test(v[f[look]], thr)
+        cand = look[hit]
+        if not len(cand):
+            break
+        hit_of = dict(zip(cand.tolist(), zip(side[hit].tolist(), near[hit].tolist())))
+        # the fans of the candidates' corners (a moved apex's later faces are visited again); a vertex
+        # outside them (the apex of a face that only became a candidate) is looked up on its own
+        inner = np.zeros(len(v), bool)
+        inner[f[cand].ravel()] = True
+        near_faces = np.flatnonzero(inner[f].any(axis=1))
+        corner = f[near_faces].ravel()
+        order = np.argsort(corner, kind="stable")
+        start = np.searchsorted(corner[order], np.arange(len(v) + 1))
+
+        def fan(x: int) -> np.ndarray:
+            if inner[x]:
+                return near_faces[order[start[x]:start[x + 1]] // 3]
+            return np.flatnonzero((f == x).any(axis=1))
+
+        pos = v.copy()
+        marked = np.zeros(len(v), bool)
+        dirty = set()  # faces with a corner moved in this round
+        onto = {}  # apex -> the vertex it was moved onto
+        heap = cand.tolist()
+        queued = set(heap)
+        while heap:
+            fi = heapq.heappop(heap)
+            if fi in dirty:
+                h, s, n = (x[0] for x in _tvertex_test(pos[f[fi]][None], thr))
+                if not h:
+                    continue
+            else:
+                s, n = hit_of[fi]
+            apex = int(f[fi, (s + 2) % 3])
+            if marked[apex]:
+                continue
+            to = int(f[fi, n])
+            marked[apex] = marked[to] = True
+            pos[apex] = pos[to]
+            onto[apex] = to
+            for g in fan(apex).tolist():
+                if g > fi:
+                    dirty.add(g)
+                    if g not in queued:
+                        queued.add(g)
+                        heapq.heappush(heap, g)
+        # join each moved vertex with the one it was moved onto (chains into one group, the lowest index kept)
+        root: dict[int, int] = {}
+
+        def find(x: int) -> int:
+            while root.get(x, x) != x:
+                x = root[x]
+            return x
+
+        for a, b in onto.items():
+            ra, rb = find(a), find(b)
+            if ra != rb:
+                root[max(ra, rb)] = min(ra, rb)
+        members = np.array(sorted(set(onto) | set(onto.values())), np.int64)
+        remap = np.arange(len(v))
+        remap[members] = [find(int(x)) for x in members]
+        keep_v = remap == np.arange(len(v))
+        F = remap[f]
+        keep_f = (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0])
+        touched = np.zeros(len(v), bool)
+        touched[members] = True
+        v, f = pos[keep_v], (np.cumsum(keep_v) - 1)[F[keep_f]]
+        kv, kf = kv[keep_v], kf[keep_f]
+        joined = (joined | touched)[keep_v]
+        # the next round: the faces with a joined corner and the candidates left (their apex was marked)
+        again = np.zeros(len(F), bool)
+        again[cand] = True
+        look = np.flatnonzero((again[keep_f]) | joined[f].any(axis=1))
+    return v, f, kv, kf, joined
 
 
 def mesh_stats(mesh: Mesh) -> dict[str, float]:
