@@ -444,28 +444,196 @@ def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     incrementally: the pairs of faces both meshes have keep their outcome, only pairs with a new face are
     tested. The outcome of a pair depends on its two faces' coordinates alone, so the result is the same as a
     full test, bit for bit (tests/test_intersect.py checks it)."""
-    v = np.ascontiguousarray(vertices, dtype=np.float64)
-    f = np.ascontiguousarray(faces, dtype=np.int64)
-    out = np.zeros(len(f), bool)
-    if len(f) < 2:
-        return out
-    # vertices at the same position are one vertex here (a split pinch, a seam of duplicated vertices)
-    v, canon = np.unique(v, axis=0, return_inverse=True)
-    f = canon.reshape(-1)[f]
-    live = ~degenerate_faces(v, f)
-    keys = _face_keys(v, f)
-    entry, prev = _MEMO.begin(keys)
+    job = _Job(vertices, faces)
+    if job.entry is None:
+        return job.mask(None)
     pairs = None
     try:
-        old = prev.wait() if prev is not None else None
-        if old is not None:
-            pairs = _incremental(v, f, live, keys, entry, prev, old)
-        if pairs is None:
-            pairs = _all_pairs(v, f, live)
+        pairs = job.pairs(job.prev.wait() if job.prev is not None else None)
     finally:
-        _MEMO.finish(entry, None if pairs is None else (v, f, pairs))
-    out[pairs.ravel()] = True
-    return out
+        job.finish(pairs)
+    return job.mask(pairs)
+
+
+class _Job:
+    """One test's input, welded (vertices at the same position are one vertex here: a split pinch, a seam of
+    duplicated vertices), and its place in the memo (``entry``; ``prev``: an earlier mesh sharing most faces)."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        v = np.ascontiguousarray(vertices, dtype=np.float64)
+        f = np.ascontiguousarray(faces, dtype=np.int64)
+        self.n = len(f)
+        self.entry = self.prev = None
+        if len(f) < 2:
+            return
+        v, canon = np.unique(v, axis=0, return_inverse=True)
+        self.v, self.f = v, canon.reshape(-1)[f]
+        self.keys = _face_keys(self.v, self.f)
+        self.entry, self.prev = _MEMO.begin(self.keys)
+
+    def pairs(self, old) -> np.ndarray:
+        """The intersecting pairs, incrementally from ``old`` (``prev``'s outcome) when given."""
+        live = ~degenerate_faces(self.v, self.f)
+        pairs = None
+        if old is not None:
+            pairs = _incremental(self.v, self.f, live, self.keys, self.entry, self.prev, old)
+        return pairs if pairs is not None else _all_pairs(self.v, self.f, live)
+
+    def finish(self, pairs: np.ndarray | None) -> None:
+        _MEMO.finish(self.entry, None if pairs is None else (self.v, self.f, pairs))
+
+    def mask(self, pairs: np.ndarray | None) -> np.ndarray:
+        out = np.zeros(self.n, bool)
+        if pairs is not None:
+            out[pairs.ravel()] = True
+        return out
+
+
+class Beside:
+    """:func:`self_intersecting_faces` of a mesh, computed beside the caller; :meth:`result` waits for the mask.
+    ``extra``, a function of no arguments (more measurements of the same mesh), runs after the test in the same
+    place; :meth:`extra_result` waits for its value (picklable).
+
+    On Linux the work runs in a forked child process (the same code on the same arrays, inherited; the
+    results come back through a pipe), so that it uses another core even while the caller runs a library that
+    keeps the GIL (pymeshfix does, most of the time, which left a thread beside it waiting); elsewhere, or when
+    the child fails, in a thread. The memo of recent meshes gets the outcome as soon as it is known, so that a
+    test in this process that shares most faces waits for it and goes on incrementally. The results are the
+    same either way: functions of the input alone."""
+
+    TIMEOUT_S = 120.0
+    """A child that has not answered after this long plus :attr:`TIMEOUT_S_PER_FACE` per face (about 30 times
+    the test's own time) is stopped and the work done in this process instead."""
+    TIMEOUT_S_PER_FACE = 2e-4
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, extra=None):
+        import threading
+
+        self._job = _Job(vertices, faces)
+        self._extra_fn = extra
+        self._mask = self._error = None
+        self._extra = None  # (value,) once known
+        self._old = None
+        if self._job.entry is not None:
+            # an earlier mesh's outcome the child can use: only one already known (a child cannot wait for this
+            # process's threads)
+            prev = self._job.prev
+            self._old = prev.result if prev is not None and prev.done.is_set() else None
+            if prev is not None and self._old is None:
+                self._job.prev = None
+        elif extra is None:
+            self._mask, self._thread = self._job.mask(None), None
+            return
+        self._child = self._fork()
+        self._thread = threading.Thread(target=self._collect, daemon=True, name="scanreg-beside")
+        self._thread.start()
+
+    def _pairs(self) -> np.ndarray | None:
+        return self._job.pairs(self._old) if self._job.entry is not None else None
+
+    def _fork(self):
+        """The child's pid and the pipe's read end, or None where forking is not used or failed."""
+        import os
+        import pickle
+        import sys
+        import warnings
+
+        if not sys.platform.startswith("linux") or os.environ.get("SCANREG_NO_FORK"):
+            return None
+        try:
+            r, w = os.pipe()
+            with warnings.catch_warnings():  # Python >= 3.12 warns about forking a threaded process; the
+                warnings.simplefilter("ignore", DeprecationWarning)  # child runs NumPy and SciPy code only
+                pid = os.fork()
+        except OSError:
+            return None
+        if pid == 0:  # the child: the pairs, then the extra value, then leave without running the parent's exit code
+            code = 1
+            try:
+                os.close(r)
+                pairs = self._pairs()
+                _send(w, b"" if pairs is None else np.ascontiguousarray(pairs, np.int64).tobytes())
+                if self._extra_fn is not None:
+                    _send(w, pickle.dumps(self._extra_fn(), protocol=pickle.HIGHEST_PROTOCOL))
+                code = 0
+            finally:
+                os._exit(code)
+        os.close(w)
+        return pid, r
+
+    def _receive(self, pid: int, r: int) -> None:
+        """The child's results, the memo told at once; any left unknown (the child failed or took too long, and
+        was stopped) are computed here."""
+        import os
+        import pickle
+        import select
+        import signal
+        import time
+
+        deadline = time.monotonic() + self.TIMEOUT_S + self.TIMEOUT_S_PER_FACE * self._job.n
+        buf, want, got = b"", 2 if self._extra_fn is not None else 1, []
+        try:
+            while len(got) < want:
+                left = deadline - time.monotonic()
+                if left <= 0 or not select.select([r], [], [], left)[0]:
+                    os.kill(pid, signal.SIGKILL)
+                    break
+                chunk = os.read(r, 1 << 20)
+                if not chunk:
+                    break
+                buf += chunk
+                while len(buf) >= 8 and len(buf) >= 8 + int.from_bytes(buf[:8], "little"):
+                    n = int.from_bytes(buf[:8], "little")
+                    got.append(buf[8:8 + n])
+                    buf = buf[8 + n:]
+                    if len(got) == 1 and self._job.entry is not None:
+                        pairs = np.frombuffer(got[0], np.int64).reshape(-1, 2).copy()
+                        self._mask = self._job.mask(pairs)
+                        self._job.finish(pairs)
+        finally:
+            os.close(r)
+            os.waitpid(pid, 0)
+        if len(got) == 2:
+            self._extra = (pickle.loads(got[1]),)
+
+    def _collect(self) -> None:
+        done = False
+        try:
+            if self._child is not None:
+                self._receive(*self._child)
+            if self._mask is None:  # no child, or it failed: here
+                pairs = self._pairs()
+                self._mask = self._job.mask(pairs)
+                if self._job.entry is not None:
+                    self._job.finish(pairs)
+            done = True
+            if self._extra_fn is not None and self._extra is None:
+                self._extra = (self._extra_fn(),)
+        except BaseException as e:  # handed to the caller by result()
+            self._error = e
+        finally:
+            if not done and self._job.entry is not None and not self._job.entry.done.is_set():
+                self._job.finish(None)
+
+    def result(self) -> np.ndarray:
+        if self._thread is not None:
+            self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._mask
+
+    def extra_result(self):
+        self.result()
+        return self._extra[0]
+
+
+def _send(fd: int, payload: bytes) -> None:
+    """One message (its length, then the bytes) into a pipe."""
+    import os
+
+    data = memoryview(len(payload).to_bytes(8, "little") + payload)
+    while len(data):
+        data = data[os.write(fd, data):]
 
 
 def _all_pairs(v: np.ndarray, f: np.ndarray, live: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:

@@ -13,6 +13,7 @@ from scipy.sparse.csgraph import connected_components
 
 from scanreg.geometry import (Mesh, area_weighted_draws, barycentric_sample, points_on_faces, submesh,
                               triangle_areas_normals)
+from scanreg.intersect import Beside as _Beside
 from scanreg.intersect import self_intersecting_faces as _si_mask
 
 
@@ -314,6 +315,33 @@ def self_intersecting_count(mesh: Mesh) -> int:
     return int(si)
 
 
+class AuditBeside:
+    """:func:`audit_mesh` of ``mesh`` computed beside the caller (:class:`scanreg.intersect.Beside`: in another
+    process, or a thread), and ``also()`` (more of the input's measurements; picklable) after it;
+    :meth:`result` waits for both and remembers the self-intersection mask and count on ``mesh``."""
+
+    def __init__(self, mesh: Mesh, also=None):
+        self.mesh = mesh
+        self._si = known(mesh, "self_intersecting_faces")
+        faces = mesh.faces if self._si is None else mesh.faces[:0]  # a count known already: the rest only
+
+        def extra():
+            return audit_mesh(mesh, self_intersections=False), (also() if also is not None else None)
+
+        self._pending = _Beside(mesh.vertices, faces, extra=extra)
+
+    def result(self) -> tuple[dict[str, float], object]:
+        stats, more = self._pending.extra_result()
+        out = dict(stats)
+        if self._si is None:
+            mask = self._pending.result()
+            remember(self.mesh, "self_intersecting_mask", mask)
+            self._si = int(mask.sum())
+            remember(self.mesh, "self_intersecting_faces", self._si)
+        out["self_intersecting_faces"] = int(self._si)
+        return out, more
+
+
 def dilate_faces(faces: np.ndarray, mask: np.ndarray, rings: int = 1) -> np.ndarray:
     """``mask`` grown ``rings`` times by the faces that share a vertex with a face in it (MeshLab's selection
     dilation)."""
@@ -510,10 +538,15 @@ def point_distances(scene, points: np.ndarray) -> np.ndarray:
 
 
 def surface_distances(a: Mesh, b: Mesh, n: int, seed: int, scene=None) -> np.ndarray:
-    """Distances from ``n`` area-weighted random points on ``a`` to the surface of ``b`` (exact point-to-
-    triangle distances, Open3D's raycasting scene; ``scene``: :func:`raycasting_scene` of ``b`` when built)."""
-    pts = _area_sample(a, n, np.random.default_rng([seed, 77]))
-    return point_distances(raycasting_scene(b) if scene is None else scene, pts)
+    """Distances from ``n`` area-weighted random points on ``a`` (:func:`area_samples`) to the surface of ``b``
+    (exact point-to-triangle distances, Open3D's raycasting scene; ``scene``: :func:`raycasting_scene` of ``b``
+    when built)."""
+    return point_distances(raycasting_scene(b) if scene is None else scene, area_samples(a, n, seed))
+
+
+def area_samples(mesh: Mesh, n: int, seed: int) -> np.ndarray:
+    """``n`` area-weighted random points on ``mesh`` for :func:`surface_distances` (seeded by ``seed``)."""
+    return _area_sample(mesh, n, np.random.default_rng([seed, 77]))
 
 
 def _area_sample(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:

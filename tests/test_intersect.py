@@ -267,6 +267,50 @@ def test_incremental_equals_full():
     assert np.array_equal(out["a"], base) and np.array_equal(b, inc)
 
 
+def test_beside_gives_the_same_in_a_child_a_thread_and_after_a_failure(monkeypatch):
+    """Beside (the repair's input test, run beside the backend): in a forked child, in a thread
+    (SCANREG_NO_FORK), after the child failed in its extra work (done here instead) and after a child that took
+    too long (stopped, done here), the mask is the fresh test's and the extra value is returned; the memo gets the
+    outcome, so that an edited copy tested next goes on incrementally (the same as a full test)."""
+    import os
+    import sys
+
+    from scanreg.intersect import Beside
+
+    v, f = _two_spheres()
+    want, edited = _fresh(v, f), f[5:]
+    want_edited = _fresh(v, edited)
+    parent = os.getpid()
+
+    def fails_in_child():
+        if os.getpid() != parent:
+            raise RuntimeError("child")
+        return "here"
+
+    def slow_in_child():
+        if os.getpid() != parent:
+            import time
+            time.sleep(30)
+        return "here"
+
+    cases = [({}, lambda: 7, 7), ({"SCANREG_NO_FORK": "1"}, lambda: 7, 7), ({}, fails_in_child, "here")]
+    for env, extra, value in cases:
+        for k, val in env.items():
+            monkeypatch.setenv(k, val)
+        _MEMO.clear()
+        b = Beside(v, f, extra=extra)
+        assert np.array_equal(b.result(), want) and b.extra_result() == value
+        assert len(_MEMO._entries) == 1 and _MEMO._entries[0].done.is_set()
+        assert np.array_equal(self_intersecting_faces(v, edited), want_edited)
+        assert len(_MEMO._entries) == 2  # the edit went on from the child's outcome (kept in the memo)
+        monkeypatch.delenv("SCANREG_NO_FORK", raising=False)
+    if sys.platform.startswith("linux"):
+        monkeypatch.setattr(Beside, "TIMEOUT_S", 1.0)
+        _MEMO.clear()
+        b = Beside(v, f, extra=slow_in_child)
+        assert np.array_equal(b.result(), want) and b.extra_result() == "here"
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_folded_grids_match_the_reference(seed):
     """Height fields whose vertices are jittered sideways until triangles flip: fans that overlap themselves

@@ -33,7 +33,7 @@ from scanreg.config import Context
 from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.shell import close_as_shell
-from scanreg.topology import collapse_folds, collapse_slivers, audit_mesh, known, remember, point_distances, raycasting_scene, border_loops, component_areas, open_scan_borders, self_intersecting_count, surface_distances
+from scanreg.topology import AuditBeside, collapse_folds, collapse_slivers, audit_mesh, known, remember, point_distances, raycasting_scene, border_loops, component_areas, open_scan_borders, area_samples, surface_distances
 
 
 @dataclass
@@ -163,32 +163,6 @@ def _border_plan(p: GuardParams, mesh: Mesh) -> tuple[str, int | None]:
     return mode, max(int(edges.max()) // 2, 1)  # keep loops over half the longest open
 
 
-class _Background:
-    """``fn(*args)`` in a daemon thread; :meth:`result` waits for it and returns its value or raises its
-    exception. The value does not depend on the thread (a pure function of its arguments)."""
-
-    def __init__(self, fn, *args):
-        import threading
-
-        self._out: list = []
-
-        def work():
-            try:
-                self._out.append((True, fn(*args)))
-            except BaseException as e:  # handed to the caller by result()
-                self._out.append((False, e))
-
-        self._thread = threading.Thread(target=work, daemon=True, name="scanreg-audit")
-        self._thread.start()
-
-    def result(self):
-        self._thread.join()
-        ok, value = self._out[0]
-        if not ok:
-            raise value
-        return value
-
-
 def _run_backend(stage, mesh: Mesh, ctx: Context) -> Mesh:
     """The backend's ``run``; any failure, and an empty result, as one line naming the backend and file."""
     where = f"repair={stage.name}: {mesh.source or 'mesh'}"
@@ -214,9 +188,8 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     if not len(mesh.faces):
         raise StageError(f"{where}: the mesh has no faces to repair (a point cloud? use repair=none)")
     t0 = time.perf_counter()
-    # the input's self-intersection test runs beside the backend (NumPy and pymeshfix release the GIL)
-    si_before = _Background(self_intersecting_count, mesh)
-    before = audit_mesh(mesh, self_intersections=False)
+    # the input's audit runs beside the backend (in another process: pymeshfix keeps the GIL)
+    before_audit = AuditBeside(mesh, also=lambda: _input_side(p, mesh, ctx.seed))
     mode, max_hole = _border_plan(p, mesh)
     run = stage
     if max_hole is not None or p.open_border != "cap":
@@ -243,12 +216,12 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
     t2 = time.perf_counter()
-    before["self_intersecting_faces"] = si_before.result()
+    before, input_side = before_audit.result()
     after = audit_mesh(out)  # the output's one self-intersection pass
     m = {f"{prefix}before_{k}": v for k, v in before.items()}
     m.update({f"{prefix}after_{k}": v for k, v in after.items()})
     m[f"{prefix}open_border_open"] = float(mode in ("open", "shell"))
-    m.update(_audit_distances(p, mesh, out, ctx, prefix, m))
+    m.update(_audit_distances(p, mesh, out, input_side, ctx, prefix))
     m[f"{prefix}backend_time_s"] = t2 - t1 - t_folds  # the repair itself (slivers collapsed, the shell)
     m[f"{prefix}audit_time_s"] = (t1 - t0) + t_folds + (time.perf_counter() - t2)  # the audit and the guard
     problems, hints = [], []
@@ -282,18 +255,13 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     return (mesh if p.check_only else out), m
 
 
-def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ctx: Context, prefix: str,
-                     m: dict) -> dict[str, float]:
-    """The input's parts sorted into removed on purpose, kept, and lost; the distances between the kept input
-    surface and the output (see the module docstring)."""
+def _input_side(p: GuardParams, mesh: Mesh, seed: int) -> dict:
+    """What the audit's distances need of the input alone (computed beside the backend): the parts, which of
+    them are to be kept, the kept parts' diagonal and median edge, the vertices that probe each part, and the
+    samples on the kept surface."""
     lab, ca = component_areas(mesh)
     large = ca >= p.min_component_share * ca.max()  # as large_components
     kept_in = mesh if large.all() else submesh(mesh, large[lab])
-    diag = bbox_diagonal(kept_in.vertices)
-    edge = _median_edge(kept_in)
-    tol = p.removed_tolerance * diag
-    # one raycasting scene of the output for both of its uses (the input's vertices, the input's samples)
-    scene_out = raycasting_scene(out)
     # a part is gone when most of its vertices are farther than the tolerance from the output; "most" is
     # judged on up to VERTICES_PER_PART of each part's vertices (every k-th, in index order)
     vcomp = np.full(len(mesh.vertices), -1, np.int64)
@@ -304,10 +272,24 @@ def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ctx: Context, prefix
     rank = np.arange(len(order)) - np.repeat(np.cumsum(per) - per, per)
     stride = np.maximum(1, -(-per // VERTICES_PER_PART))
     probe = order[rank % stride[vcomp[order]] == 0]
-    far = np.bincount(vcomp[probe], point_distances(scene_out, mesh.vertices[probe]) > tol,
-                      minlength=len(ca)) / np.bincount(vcomp[probe], minlength=len(ca))
+    return {"areas": ca, "large": large, "diag": bbox_diagonal(kept_in.vertices), "edge": _median_edge(kept_in),
+            "probe": probe, "probe_part": vcomp[probe],
+            "samples": area_samples(kept_in, p.audit_samples, seed)}
+
+
+def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, ctx: Context,
+                     prefix: str) -> dict[str, float]:
+    """The input's parts sorted into removed on purpose, kept, and lost; the distances between the kept input
+    surface and the output (see the module docstring); ``ins``: :func:`_input_side`."""
+    ca, large, diag, edge = ins["areas"], ins["large"], ins["diag"], ins["edge"]
+    tol = p.removed_tolerance * diag
+    # one raycasting scene of the output for both of its uses (the input's vertices, the input's samples)
+    scene_out = raycasting_scene(out)
+    probe, part = ins["probe"], ins["probe_part"]
+    far = np.bincount(part, point_distances(scene_out, mesh.vertices[probe]) > tol,
+                      minlength=len(ca)) / np.bincount(part, minlength=len(ca))
     gone = far > 0.5
-    d_in = surface_distances(kept_in, out, p.audit_samples, ctx.seed, scene=scene_out)
+    d_in = point_distances(scene_out, ins["samples"])
     d_out = surface_distances(out, mesh, p.audit_samples, ctx.seed + 1)
     limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
     return {
