@@ -456,30 +456,32 @@ def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
 
 
 class _Job:
-    """One test's input, welded (vertices at the same position are one vertex here: a split pinch, a seam of
-    duplicated vertices), and its place in the memo (``entry``; ``prev``: an earlier mesh sharing most faces)."""
+    """One test's input and its place in the memo (``entry``; ``prev``: an earlier mesh sharing most faces). The
+    faces' keys hash their corner coordinates, so they are computed on the input as given; the test welds it
+    first (vertices at the same position are one vertex there: a split pinch, a seam of duplicated vertices)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        v = np.ascontiguousarray(vertices, dtype=np.float64)
-        f = np.ascontiguousarray(faces, dtype=np.int64)
-        self.n = len(f)
+        self.v = np.ascontiguousarray(vertices, dtype=np.float64)
+        self.f = np.ascontiguousarray(faces, dtype=np.int64)
+        self.n = len(self.f)
         self.entry = self.prev = None
-        if len(f) < 2:
+        if self.n < 2:
             return
-        v, canon = np.unique(v, axis=0, return_inverse=True)
-        self.v, self.f = v, canon.reshape(-1)[f]
         self.keys = _face_keys(self.v, self.f)
         self.entry, self.prev = _MEMO.begin(self.keys)
 
     def pairs(self, old) -> np.ndarray:
         """The intersecting pairs, incrementally from ``old`` (``prev``'s outcome) when given."""
-        live = ~degenerate_faces(self.v, self.f)
+        v, canon = np.unique(self.v, axis=0, return_inverse=True)
+        f = canon.reshape(-1)[self.f]
+        live = ~degenerate_faces(v, f)
         pairs = None
         if old is not None:
-            pairs = _incremental(self.v, self.f, live, self.keys, self.entry, self.prev, old)
-        return pairs if pairs is not None else _all_pairs(self.v, self.f, live)
+            pairs = _incremental(v, f, live, self.keys, self.entry, self.prev, old)
+        return pairs if pairs is not None else _all_pairs(v, f, live)
 
     def finish(self, pairs: np.ndarray | None) -> None:
+        """The outcome into the memo, with the input as given (a later test compares corner coordinates)."""
         _MEMO.finish(self.entry, None if pairs is None else (self.v, self.f, pairs))
 
     def mask(self, pairs: np.ndarray | None) -> np.ndarray:

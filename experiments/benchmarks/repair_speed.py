@@ -6,27 +6,32 @@ Rows, each round interleaved (every method once per round, so that a slow spell 
 them); the table gives the median with the min-max range over the rounds, ratios taken within each round:
 
 - pymeshfix's StanfordBunny.ply (100k faces, a closed model with holes): pymeshfix's stock
-  ``MeshFix(v, f).repair()`` (the anchor) against ``repair=meshfix`` with its audit and guard (defaults), and
-  ``repair=meshlab``;
+  ``MeshFix(v, f).repair()`` with its result read back (``points``, ``faces``; the anchor) against
+  ``repair=meshfix`` with its audit and guard (defaults), and ``repair=meshlab``; and the anchor and
+  ``repair=meshfix`` once each in a fresh process (after the same warm-up), as a run makes them;
 - the raw Stanford scan bun000 (80k faces, an open range scan; ../shared/data): ``repair=meshfix`` (the default
   repair, no override) and ``repair=meshlab``;
 - a cache hit (``repair.cache=on``, the entry made before the rounds): the time to hash the input and read the
   repaired mesh and its metrics back;
-- bun000's default repair in a fresh process (one per round, after the same warm-up), as a run makes it:
-  pymeshfix gets slower with each use in one process (its ``load_array`` leaks its vertex table), so the
-  rows above, in this long process, overstate a run's repair.
+- bun000's default repair in a fresh process (one per round, after the same warm-up), as a run makes it.
+
+pymeshfix gets slower with each use in one process (its ``load_array`` leaks its vertex table: 1.23, 1.47,
+1.76, 2.00 s for four repairs of the bunny in a row), so the rows from this long process overstate a run's
+repair, and the fresh-process rows are the ones a run sees.
 
 Every repair gets its own copy of the input mesh, as a run reads it: the audit remembers its measurements of a
 mesh (edge table, components, self-intersections) on the mesh object, and a mesh repaired again would reuse the
 input's; the self-intersection test's memo of recent meshes is emptied before each repair for the same reason.
-The input's self-intersection test runs in a thread beside the backend (both release the GIL), so the CPU time
-of ``repair=meshfix`` includes work that the wall time overlaps. The anchor and ``repair=meshfix`` on the bunny
+The input's audit (its self-intersection test, statistics and samples) runs in a forked child process beside the
+backend, so the CPU time of ``repair=meshfix`` (which counts the child's) includes work that the wall time
+overlaps. The anchor and ``repair=meshfix`` on the bunny
 swap places every other round (the later of the two calls pays pymeshfix's slowdown from one more use).
 
 Every repair runs in this process after one warm-up (imports of open3d, pymeshlab and pymeshfix excluded: a run
 of the pipeline pays them once, for every stage). ``backend`` is the backend itself (with the sliver collapse),
 ``audit`` the before/after audit and the guard (``repair_backend_time_s``, ``repair_audit_time_s``).
-Each row gives the wall time and the process CPU time (user + system, ``resource.getrusage``) of the same calls:
+Each row gives the wall time and the CPU time (user + system, ``resource.getrusage`` of the process and its
+children) of the same calls:
 on the shared machine the CPU time is the steadier of the two.
 """
 
@@ -62,9 +67,10 @@ def stage(name: str, **kw):
 
 
 def cpu_s() -> float:
-    """This process's CPU time so far (user + system, s)."""
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
+    """This process's CPU time so far (user + system, s), with its finished child processes' (the repair's
+    input audit runs in a forked child beside the backend)."""
+    r, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime + c.ru_utime + c.ru_stime
 
 
 CPU: dict[str, list] = {}
@@ -100,9 +106,14 @@ def timed_repair(st, mesh, ctx, key: str = "warm-up") -> tuple[float, dict]:
 
 FRESH = """
 import contextlib, io, resource, sys, time
+import numpy as np
+import pymeshfix
 from scanreg.config import Context
 from scanreg.io import read_mesh
 from scanreg.registry import REPAIR, load_all, make_params
+def cpu():
+    r, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime + c.ru_utime + c.ru_stime
 load_all()
 cls = REPAIR.get("meshfix")
 st = cls(make_params(cls.Params, {"cache": "off"}, "meshfix"))
@@ -110,16 +121,23 @@ ctx = Context(seed=0, run_dir=None)
 mesh = read_mesh(sys.argv[1])
 with contextlib.redirect_stdout(io.StringIO()):
     st.repair(read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj"), ctx, "r_")  # warm-up: imports
-    r = resource.getrusage(resource.RUSAGE_SELF); c0, t0 = r.ru_utime + r.ru_stime, time.perf_counter_ns()
-    st.repair(mesh, ctx, "r_")
-    t = (time.perf_counter_ns() - t0) / 1e9; r = resource.getrusage(resource.RUSAGE_SELF)
-print(t, r.ru_utime + r.ru_stime - c0)
+    c0, t0 = cpu(), time.perf_counter_ns()
+    if sys.argv[2] == "anchor":
+        fix = pymeshfix.MeshFix(mesh.vertices.copy(), mesh.faces.astype(np.int32))
+        fix.repair()
+        fix.points, fix.faces
+    else:
+        st.repair(mesh, ctx, "r_")
+    t = (time.perf_counter_ns() - t0) / 1e9
+print(t, cpu() - c0)
 """
-"""bun000's default repair as the first repair after the warm-up in a fresh process: prints wall and CPU (s)."""
+"""One repair (``anchor``: pymeshfix alone; else the default repair) as the first after the warm-up in a fresh
+process: prints wall and CPU (s)."""
 
 
-def fresh_repair(path: Path) -> tuple[float, float]:
-    out = subprocess.run([sys.executable, "-c", FRESH, str(path)], capture_output=True, text=True, check=True)
+def fresh_repair(path: Path | str, what: str = "scanreg") -> tuple[float, float]:
+    out = subprocess.run([sys.executable, "-c", FRESH, str(path), what], capture_output=True, text=True,
+                         check=True)
     wall, cpu = (float(x) for x in out.stdout.split()[-2:])
     return wall, cpu
 
@@ -144,12 +162,17 @@ def main() -> None:
         timed_repair(cached, bun000, ctx)  # makes the entry
 
     t = {k: [] for k in ("anchor", "bunny_meshfix", "bunny_meshlab", "bun000_meshfix", "bun000_meshlab", "hit",
-                         "fresh")}
+                         "fresh", "fresh_bunny_anchor", "fresh_bunny_scanreg")}
     parts = {k: [] for k in ("bunny_backend", "bunny_audit", "bun000_backend", "bun000_audit")}
     for r in range(args.repeat):
         def anchor():
             v, f = bunny.vertices.copy(), bunny.faces.astype(np.int32)
-            t["anchor"].append(timed("anchor", lambda: pymeshfix.MeshFix(v, f).repair())[0])
+
+            def alone():  # repair and read the result back, as a user of pymeshfix does
+                fix = pymeshfix.MeshFix(v, f)
+                fix.repair()
+                return fix.points, fix.faces
+            t["anchor"].append(timed("anchor", alone)[0])
 
         def scanreg():
             s, m = timed_repair(meshfix, bunny, ctx, "bunny_meshfix")
@@ -159,6 +182,10 @@ def main() -> None:
 
         for run in ((anchor, scanreg) if r % 2 == 0 else (scanreg, anchor)):
             run()
+        for what in (("anchor", "scanreg") if r % 2 == 0 else ("scanreg", "anchor")):
+            wall, c = fresh_repair("pkg:pymeshfix/examples/StanfordBunny.ply", what)
+            t[f"fresh_bunny_{what}"].append(wall)
+            CPU.setdefault(f"fresh_bunny_{what}", []).append(c)
         t["bunny_meshlab"].append(timed_repair(meshlab, bunny, ctx, "bunny_meshlab")[0])
         if bun000 is not None:
             s, m = timed_repair(meshfix, bun000, ctx, "bun000_meshfix")
@@ -195,6 +222,12 @@ def main() -> None:
         "| anchor (target <= 1.2) |",
         f"| StanfordBunny.ply | ... of which the audit and guard | {spread(parts['bunny_audit'], '.2f')} | - | "
         f"{share('bunny_audit', 'bunny_backend')} | - | its backend (target <= 0.2) |",
+        f"| StanfordBunny.ply | pymeshfix alone, in a fresh process (as a run) | {spread(t['fresh_bunny_anchor'], '.2f')} "
+        f"| {cpu('fresh_bunny_anchor')} | 1.00 | 1.00 | anchor in a fresh process |",
+        f"| StanfordBunny.ply | repair=meshfix, in a fresh process (as a run) | "
+        f"{spread(t['fresh_bunny_scanreg'], '.2f')} | {cpu('fresh_bunny_scanreg')} | "
+        f"{ratio('fresh_bunny_scanreg', 'fresh_bunny_anchor')} | {cpu_ratio('fresh_bunny_scanreg', 'fresh_bunny_anchor')} "
+        "| anchor in a fresh process (target <= 1.2) |",
         f"| StanfordBunny.ply | scanreg repair=meshlab with audit and guard | {spread(t['bunny_meshlab'], '.2f')} | "
         f"{cpu('bunny_meshlab')} | {ratio('bunny_meshlab', 'bunny_meshfix')} | "
         f"{cpu_ratio('bunny_meshlab', 'bunny_meshfix')} | repair=meshfix (target <= 3) |",
