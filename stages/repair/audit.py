@@ -216,12 +216,15 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
     t2 = time.perf_counter()
+    # the output's audit (its one self-intersection pass, when the backend has not made it) beside the distances
+    after_audit = AuditBeside(out)
     before, input_side = before_audit.result()
-    after = audit_mesh(out)  # the output's one self-intersection pass
+    distances = _audit_distances(p, mesh, out, input_side, ctx, prefix)
+    after, _ = after_audit.result()
     m = {f"{prefix}before_{k}": v for k, v in before.items()}
     m.update({f"{prefix}after_{k}": v for k, v in after.items()})
     m[f"{prefix}open_border_open"] = float(mode in ("open", "shell"))
-    m.update(_audit_distances(p, mesh, out, input_side, ctx, prefix))
+    m.update(distances)
     m[f"{prefix}backend_time_s"] = t2 - t1 - t_folds  # the repair itself (slivers collapsed, the shell)
     m[f"{prefix}audit_time_s"] = (t1 - t0) + t_folds + (time.perf_counter() - t2)  # the audit and the guard
     problems, hints = [], []
