@@ -402,6 +402,8 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
         reach.append(np.full(len(a), bound))
     seeds, reach = np.concatenate(seeds), np.concatenate(reach)
     seed_tree = cKDTree(seeds)
+    n_small = int(small.sum())  # the first seeds: the small faces' centroids; then the large faces' grids
+    grid_tree = cKDTree(seeds[n_small:]) if len(seeds) > n_small else None
     # every reach is at most the bound, so a centroid within a seed's reach plus the bound lies in the seed's
     # cell of a grid of side 2 bound or in a neighbouring cell: only the centroids in those cells are looked at
     pts = np.concatenate([xb, xa, seeds])
@@ -426,9 +428,12 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
         looked up the other way."""
         mask = np.zeros(len(x), bool)
         cand = np.flatnonzero(np.isin(keys(grid(x)), around)) if gridded else np.arange(len(x))
-        hits = cKDTree(x[cand]).query_ball_point(seeds, reach + bound) if len(cand) else []
-        idx = np.concatenate([np.asarray(h, np.int64) for h in hits]) if len(hits) else np.zeros(0, np.int64)
-        mask[cand[idx]] = True
+        if len(cand) and n_small:  # the small faces' own reaches
+            hits = cKDTree(x[cand]).query_ball_point(seeds[:n_small], reach[:n_small] + bound)
+            mask[cand[np.concatenate([np.asarray(h, np.int64) for h in hits])]] = True
+        if len(cand) and grid_tree is not None:  # the grid points all reach the bound: the nearest one decides
+            d = grid_tree.query(x[cand], distance_upper_bound=np.nextafter(2 * bound, np.inf))[0]
+            mask[cand[d <= 2 * bound]] = True
         big = np.flatnonzero(r > bound)
         if len(big):  # every reach is at most the bound
             mask[big[seed_tree.query_ball_point(x[big], r[big] + bound, return_length=True) > 0]] = True
