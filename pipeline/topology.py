@@ -67,13 +67,11 @@ def _min_angles_deg(mesh: Mesh) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cmax, -1.0, 1.0)))
 
 
-def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: int = 3,
-                     frozen: np.ndarray | None = None) -> Mesh:
+def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: int = 3) -> Mesh:
     """``mesh`` without slivers (smallest angle below ``angle_deg``), as the paper removes degenerate triangles:
     MeshLab's T-vertex removal by edge collapse (:func:`tvertex_collapse`: a cap's apex onto its long edge, a
     needle's short edge to a point, at the ratio of a face's edge to its height of the limit angle), then null
-    faces and unreferenced vertices. The mesh is returned unchanged when it has no sliver. ``frozen``: a mask of
-    ``mesh``'s vertices that are not moved (see :func:`collapse_kept`)."""
+    faces and unreferenced vertices. The mesh is returned unchanged when it has no sliver."""
     ang = min_angles_deg(mesh)
     if not (ang < angle_deg).any():
         return mesh
@@ -85,13 +83,8 @@ def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: in
     v, f = mesh.vertices, mesh.faces
     vid, fid = np.arange(len(v)), np.arange(len(f))  # each vertex's and face's index in ``mesh``
     touched = np.zeros(len(v), bool)  # input vertices moved onto another or joined by one
-    ends = np.arange(len(v))  # the current vertex each input vertex ended in (-1: gone)
-    apexes = np.zeros(len(v), bool)  # input vertices moved onto another
     for _ in range(rounds):
-        v, f, kv, kf, joined, moved_to, moved = tvertex_collapse(v, f, threshold, maybe,
-                                                                 None if frozen is None else frozen[vid])
-        ends = np.where(ends >= 0, moved_to[np.maximum(ends, 0)], -1)
-        apexes[vid[moved]] = True
+        v, f, kv, kf, joined = tvertex_collapse(v, f, threshold, maybe)
         vid, fid = vid[kv], fid[kf]
         touched[vid[joined]] = True
         changed = touched[vid[f]].any(axis=1)
@@ -106,9 +99,7 @@ def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: in
         used = np.zeros(len(v), bool)
         used[f.ravel()] = True
         if not used.all():  # unreferenced vertices
-            idx = np.where(used, np.cumsum(used) - 1, -1)
-            v, vid, f = v[used], vid[used], idx[f]
-            ends = np.where(ends >= 0, idx[np.maximum(ends, 0)], -1)
+            v, vid, f = v[used], vid[used], (np.cumsum(used) - 1)[f]
         out = Mesh(v, f, mesh.source)
         # the unchanged faces keep their smallest angle (the same corners, the same bits)
         a = np.empty(len(f))
@@ -122,7 +113,6 @@ def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: in
     kept[fid[~changed]] = True
     # the input face each kept face of ``out`` is (for collapse_folds, which reuses its centre)
     remember(out, "collapsed_from", ((mesh.vertices, mesh.faces), ~kept, changed, fid[~changed]))
-    remember(out, "collapse_ends", (ends, apexes))
     return out
 
 
@@ -153,8 +143,8 @@ def _tvertex_test(P: np.ndarray, threshold: np.float32) -> tuple[np.ndarray, np.
     return hit, i, j
 
 
-def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float, maybe: np.ndarray | None = None,
-                     frozen: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
+                     maybe: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """vcglib's ``Clean::RemoveTVertexByCollapse(m, threshold, repeat=true)`` (MeshLab's "Remove T-vertices by
     edge collapse"), computed on the faces that take part only (``maybe``: a mask of the faces that can pass
     the test at the start, None: any).
@@ -170,19 +160,13 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float, maybe: np.n
     twice (a seam, a pinch split by a non-manifold repair) stay apart. On meshes without coincident vertices
     the result is MeshLab's (tests/test_slivers.py compares the two).
 
-    ``frozen``: a mask of vertices never moved (as if marked in every round; they may still be moved onto).
-
-    Returns the vertices and faces, the indices of the kept input vertices and faces (in order), which
-    output vertices were moved or joined, the output vertex each input vertex ended in, and which input
-    vertices were moved."""
+    Returns the vertices and faces, the indices of the kept input vertices and faces (in order), and which
+    output vertices were moved or joined."""
     thr = np.float32(threshold)
     v = np.asarray(v, np.float64)
     f = np.asarray(f, np.int64)
     kv, kf = np.arange(len(v)), np.arange(len(f))
     joined = np.zeros(len(v), bool)
-    ends = np.arange(len(v))  # the output vertex each input vertex ends in
-    moved = np.zeros(len(v), bool)  # input vertices moved (as an apex) in some round
-    still = np.zeros(len(v), bool) if frozen is None else np.asarray(frozen, bool).copy()
     look = np.arange(len(f)) if maybe is None else np.flatnonzero(maybe)
     while len(look):
         hit, side, near = _tvertex_test(v[f[look]], thr)
@@ -205,7 +189,7 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float, maybe: np.n
             return np.flatnonzero((f == x).any(axis=1))
 
         pos = v.copy()
-        marked = still.copy()
+        marked = np.zeros(len(v), bool)
         dirty = set()  # faces with a corner moved in this round
         onto = {}  # apex -> the vertex it was moved onto
         heap = cand.tolist()
@@ -231,9 +215,6 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float, maybe: np.n
                     if g not in queued:
                         queued.add(g)
                         heapq.heappush(heap, g)
-        if not onto:  # a round that moved nothing ends the collapse (vcglib's count == 0)
-            break
-        moved[kv[np.fromiter(onto, np.int64)]] = True
         # join each moved vertex with the one it was moved onto (chains into one group, the lowest index kept)
         root: dict[int, int] = {}
 
@@ -254,17 +235,14 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float, maybe: np.n
         keep_f = (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0])
         touched = np.zeros(len(v), bool)
         touched[members] = True
-        new_index = np.cumsum(keep_v) - 1
-        v, f = pos[keep_v], new_index[F[keep_f]]
+        v, f = pos[keep_v], (np.cumsum(keep_v) - 1)[F[keep_f]]
         kv, kf = kv[keep_v], kf[keep_f]
         joined = (joined | touched)[keep_v]
-        still = still[keep_v]
-        ends = new_index[remap[ends]]
         # the next round: the faces with a joined corner and the candidates left (their apex was marked)
         again = np.zeros(len(F), bool)
         again[cand] = True
         look = np.flatnonzero((again[keep_f]) | joined[f].any(axis=1))
-    return v, f, kv, kf, joined, ends, moved
+    return v, f, kv, kf, joined
 
 
 def mesh_stats(mesh: Mesh) -> dict[str, float]:
@@ -383,52 +361,12 @@ def fold_counts(mesh: Mesh) -> np.ndarray:
                      non_manifold_vertices(mesh)])
 
 
-def fold_faces(mesh: Mesh) -> np.ndarray:
-    """Mask of the faces at a fold of any kind :func:`fold_counts` counts: self-intersecting, on an edge with more
-    than two faces, or at a non-manifold vertex."""
-    directed, edge, counts = _mesh_edges(mesh)
-    nf = len(mesh.faces)
-    on_bad_edge = (counts[edge] > 2).reshape(3, nf).any(axis=0) if nf else np.zeros(0, bool)
-    nmv = non_manifold_vertices(mesh, as_mask=True)
-    return self_intersecting_faces(mesh) | on_bad_edge | nmv[mesh.faces].any(axis=1)
-
-
-def collapse_kept(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, tries: int = 3):
-    """:func:`collapse_slivers` keeping the collapses that add no fold (:func:`collapse_folds`): when the whole
-    collapse adds one, the vertices whose collapse ended at a corner of a new face at a fold are frozen and the
-    collapse made again, up to ``tries`` times. Returns the mesh (``mesh`` itself when no collapse could be kept),
-    ``(folds before, folds after)`` of the kept collapse's neighbourhood (None when none was kept), and the time
-    spent checking for folds (s)."""
-    import time
-
-    frozen = np.zeros(len(mesh.vertices), bool)
-    t_check = 0.0
-    for _ in range(tries):
-        collapsed = collapse_slivers(mesh, angle_deg, frozen=frozen)
-        if collapsed is mesh:
-            break
-        t0 = time.perf_counter()
-        folds_before, folds_after, sites = collapse_folds(mesh, collapsed, sites=True)
-        t_check += time.perf_counter() - t0
-        if (folds_after <= folds_before).all():  # no kind of fold added
-            return collapsed, (folds_before, folds_after), t_check
-        ends, apexes = known(collapsed, "collapse_ends")
-        corner = np.zeros(len(collapsed.vertices), bool)
-        corner[collapsed.faces[sites].ravel()] = True
-        blame = apexes & (ends >= 0) & corner[np.maximum(ends, 0)]  # moved onto a corner of a face at a fold
-        if not blame.any():
-            break
-        frozen |= blame
-    return mesh, None, t_check
-
-
-def collapse_folds(before: Mesh, after: Mesh, sites: bool = False):
+def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
     """:func:`fold_counts` of ``before`` and ``after`` (the same mesh before and after a local edit such as
     :func:`collapse_slivers`) where they differ: both restricted to the faces near a face that is in one mesh
     and not in the other (centroids within the sum of the two faces' circumradii), so that the comparison costs a
     self-intersection test of that neighbourhood, not of the whole mesh. Faces elsewhere are the same in both
-    and would add the same count to each. Both are zeros when no face differs. With ``sites``, also the mask
-    of ``after``'s new faces that are at a fold there (:func:`fold_faces`)."""
+    and would add the same count to each. Both are zeros when no face differs."""
     from scipy.spatial import cKDTree
 
     fb, fa = before.faces, after.faces
@@ -439,8 +377,7 @@ def collapse_folds(before: Mesh, after: Mesh, sites: bool = False):
     else:
         gone, new = _changed_faces(before, after)
     if not gone.any() and not new.any():
-        zero = np.zeros(3, np.int64), np.zeros(3, np.int64)
-        return (*zero, np.zeros(len(fa), bool)) if sites else zero
+        return np.zeros(3, np.int64), np.zeros(3, np.int64)
 
     xb, rb = _centres(before)
     if tracked:  # the faces the collapse kept have before's centres (computed once)
@@ -502,14 +439,7 @@ def collapse_folds(before: Mesh, after: Mesh, sites: bool = False):
             mask[big[seed_tree.query_ball_point(x[big], r[big] + bound, return_length=True) > 0]] = True
         return mask
 
-    around_after = near(xa, ra)
-    sub_after = submesh(after, around_after)
-    counts = fold_counts(submesh(before, near(xb, rb))), fold_counts(sub_after)
-    if not sites:
-        return counts
-    at = np.zeros(len(fa), bool)
-    at[np.flatnonzero(around_after)[fold_faces(sub_after)]] = True
-    return (*counts, at & new)
+    return fold_counts(submesh(before, near(xb, rb))), fold_counts(submesh(after, near(xa, ra)))
 
 
 def _centres(m: Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -557,16 +487,15 @@ def _changed_faces(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return ~np.isin(kb, ka), ~np.isin(ka, kb)
 
 
-def non_manifold_vertices(mesh: Mesh, as_mask: bool = False):
+def non_manifold_vertices(mesh: Mesh) -> int:
     """Vertices whose faces do not form one fan (two cones meeting at a point), not counting the vertices of
     non-manifold edges: MeshLab's ``non_two_manifold_vertices`` (vcg's CountNonManifoldVertexFF), in NumPy.
     The corners of a vertex are joined across each edge with two faces; a vertex whose corners fall into
-    more than one group is non-manifold. With ``as_mask``, the mask of those vertices
-    instead of their number."""
+    more than one group is non-manifold."""
     f = mesh.faces
     nf = len(f)
     if not nf:
-        return np.zeros(len(mesh.vertices), bool) if as_mask else 0
+        return 0
     directed, edge, counts, order = _mesh_edges_sorted(mesh)
     rows = order[counts[edge[order]] == 2]  # grouped by edge (the pair's order does not matter: links are symmetric)
     r1, r2 = rows[0::2], rows[1::2]  # the two faces' directed copies of each two-face edge
@@ -585,7 +514,7 @@ def non_manifold_vertices(mesh: Mesh, as_mask: bool = False):
     several = np.zeros(nv, bool)
     several[vert[fan != one[vert]]] = True
     several[directed[counts[edge] > 2].ravel()] = False
-    return several if as_mask else int(several.sum())
+    return int(several.sum())
 
 
 def audit_mesh(mesh: Mesh, self_intersections: bool = True) -> dict[str, float]:

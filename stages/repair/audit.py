@@ -33,18 +33,17 @@ from scanreg.config import Context
 from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.shell import close_as_shell
-from scanreg.topology import AuditBeside, collapse_kept, audit_mesh, known, remember, point_distances, raycasting_scene, border_loops, component_areas, open_scan_borders, area_samples, surface_distances
+from scanreg.topology import AuditBeside, collapse_folds, collapse_slivers, audit_mesh, known, remember, point_distances, raycasting_scene, border_loops, component_areas, open_scan_borders, area_samples, surface_distances
 
 
 @dataclass
 class GuardParams:
     remove_slivers: bool = True
     """After the backend, remove slivers (faces whose smallest angle is below ``sliver_angle_deg``: caps and
-    needles, which neither MeshFix nor MeshLab's cleaning touch) by edge collapse, as the paper does, leaving
-    out the collapses that would add self-intersecting faces or non-manifold edges or vertices (their vertices
-    are frozen and the collapse made again, :func:`~scanreg.topology.collapse_kept`; when that does not settle
-    it in three tries the backend's mesh is kept); the guard checks that the surface did not move. The audit
-    counts them as ``sliver_faces`` before and after."""
+    needles, which neither MeshFix nor MeshLab's cleaning touch) by edge collapse, as the paper does, unless the
+    collapse would add self-intersecting faces or non-manifold edges or vertices (then the backend's mesh
+    is kept); the guard checks that the
+    surface did not move. The audit counts them as ``sliver_faces`` before and after."""
     sliver_angle_deg: float = 1.0
     """The smallest angle, in degrees, below which a face is a sliver (for ``remove_slivers``)."""
     apply_to: str = "both"
@@ -204,12 +203,16 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     out = _run_backend(run, mesh, ctx)
     t_folds = 0.0
     if p.remove_slivers:  # kept only where the collapse folds nothing (a raw scan's ragged border can)
-        collapsed, folds, t_folds = collapse_kept(out, p.sliver_angle_deg)  # folds: the collapse's neighbourhood
-        if folds is not None:
-            si = known(out, "self_intersecting_faces")
-            if si is not None:  # the collapse's own change to it, measured where it happened
-                remember(collapsed, "self_intersecting_faces", si + int(folds[1][0] - folds[0][0]))
-            out = collapsed
+        collapsed = collapse_slivers(out, p.sliver_angle_deg)
+        if collapsed is not out:
+            tf = time.perf_counter()
+            folds_out, folds_collapsed = collapse_folds(out, collapsed)  # the neighbourhood of the collapse only
+            t_folds = time.perf_counter() - tf
+            if (folds_collapsed <= folds_out).all():  # no kind of fold added
+                si = known(out, "self_intersecting_faces")
+                if si is not None:  # the collapse's own change to it, measured where it happened
+                    remember(collapsed, "self_intersecting_faces", si + int(folds_collapsed[0] - folds_out[0]))
+                out = collapsed
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
     t2 = time.perf_counter()
