@@ -447,11 +447,7 @@ def _centres(m: Mesh) -> tuple[np.ndarray, np.ndarray]:
     v, f = m.vertices, m.faces
     a, b, d = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     c = (a + b + d) / 3.0  # the mean of the corners, added in order (as NumPy's mean of three)
-
-    def sq(x: np.ndarray) -> np.ndarray:
-        x = x - c
-        return x[:, 0] * x[:, 0] + x[:, 1] * x[:, 1] + x[:, 2] * x[:, 2]
-    return c, np.sqrt(np.maximum(np.maximum(sq(a), sq(b)), sq(d)))
+    return c, np.sqrt(np.maximum(np.maximum(_sq_norm(a - c), _sq_norm(b - c)), _sq_norm(d - c)))
 
 
 def _changed_faces(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -547,11 +543,10 @@ def point_distances(scene, points: np.ndarray) -> np.ndarray:
     return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy().astype(np.float64)
 
 
-def surface_distances(a: Mesh, b: Mesh, n: int, seed: int, scene=None) -> np.ndarray:
+def surface_distances(a: Mesh, b: Mesh, n: int, seed: int) -> np.ndarray:
     """Distances from ``n`` area-weighted random points on ``a`` (:func:`area_samples`) to the surface of ``b``
-    (exact point-to-triangle distances, Open3D's raycasting scene; ``scene``: :func:`raycasting_scene` of ``b``
-    when built)."""
-    return point_distances(raycasting_scene(b) if scene is None else scene, area_samples(a, n, seed))
+    (exact point-to-triangle distances, Open3D's raycasting scene)."""
+    return point_distances(raycasting_scene(b), area_samples(a, n, seed))
 
 
 def area_samples(mesh: Mesh, n: int, seed: int) -> np.ndarray:

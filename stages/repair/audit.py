@@ -33,7 +33,9 @@ from scanreg.config import Context
 from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.shell import close_as_shell
-from scanreg.topology import AuditBeside, collapse_folds, collapse_slivers, audit_mesh, known, remember, point_distances, raycasting_scene, border_loops, component_areas, open_scan_borders, area_samples, surface_distances
+from scanreg.topology import (AuditBeside, area_samples, border_loops, collapse_folds, collapse_slivers,
+                              component_areas, known, open_scan_borders, point_distances, raycasting_scene,
+                              remember, surface_distances)
 
 
 @dataclass
