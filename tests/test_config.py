@@ -200,3 +200,30 @@ def test_quick_help_is_hydras_text(tmp_path):
                               capture_output=True, text=True, timeout=300)
         assert hydra.returncode == 0 and ours.returncode == 0, hydra.stderr + ours.stderr
         assert ours.stdout == hydra.stdout and "Config groups" in ours.stdout
+
+
+def test_run_mode_read_off_the_precheck(tmp_path):
+    """Hydra's first composition (``Hydra.get_mode``) is answered from the config the precheck composed: the
+    same mode as Hydra finds itself, from a config file too; unknown when the command line overrides Hydra's
+    own mode or groups; Hydra's method back in place afterwards."""
+    from hydra._internal.hydra import Hydra
+    from hydra.types import RunMode
+
+    from scanreg.app import _UNKNOWN, _hydra_mode_known, _mode_of, compose_checked
+
+    (tmp_path / "experiment").mkdir()
+    (tmp_path / "experiment" / "swept.yaml").write_text(
+        "# @package _global_\nhydra:\n  mode: MULTIRUN\n  sweeper:\n    params:\n      sampler.n_points: 100,200\n")
+    argv = ["--config-dir", str(tmp_path), "experiment=swept"]
+    problem, cfg = compose_checked(argv)
+    assert problem is None and _mode_of(argv, cfg) == RunMode.MULTIRUN
+    problem, cfg = compose_checked(["icp.tau=0.5"])
+    assert problem is None and _mode_of(["icp.tau=0.5"], cfg) is None  # Hydra's default: run
+    for arg in ("hydra.mode=MULTIRUN", "hydra/launcher=basic", "+hydra.mode=RUN"):
+        assert _mode_of([arg], cfg) is _UNKNOWN
+    original = Hydra.get_mode
+    with _hydra_mode_known(RunMode.MULTIRUN):
+        assert Hydra.get_mode(None, "config", []) == RunMode.MULTIRUN
+    assert Hydra.get_mode is original
+    with _hydra_mode_known(_UNKNOWN):
+        assert Hydra.get_mode is original
