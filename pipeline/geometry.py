@@ -110,7 +110,7 @@ def validate_mesh(mesh: Mesh) -> Mesh:
 
 
 def bbox_diagonal(pts: np.ndarray) -> float:
-    return float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    return float(np.linalg.norm(col_max(pts) - col_min(pts)))
 
 
 # ----------------------------------------------------------------------------------------------- transforms
@@ -144,6 +144,35 @@ def row_norms(a: np.ndarray) -> np.ndarray:
     """Euclidean norms along the last axis, of length 3, of any array: 4x faster than
     ``np.linalg.norm(a, axis=-1)``, whose reduction over 3 elements is slow."""
     return np.sqrt(a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2])
+
+
+# NumPy reduces a (N, k) array along a short axis (``a.min(axis=0)``, ``b.any(axis=1)``) 5-15x slower than it
+# reduces its k columns one by one; these give the same values (min, max, any and all do not depend on order).
+
+def col_min(a: np.ndarray) -> np.ndarray:
+    """``a.min(axis=0)`` of a non-empty (N, k) array."""
+    return np.array([a[:, k].min() for k in range(a.shape[1])], dtype=a.dtype)
+
+
+def col_max(a: np.ndarray) -> np.ndarray:
+    """``a.max(axis=0)`` of a non-empty (N, k) array."""
+    return np.array([a[:, k].max() for k in range(a.shape[1])], dtype=a.dtype)
+
+
+def rows_any(a: np.ndarray) -> np.ndarray:
+    """``a.any(axis=1)`` of a (N, k) array, k >= 1."""
+    out = a[:, 0].astype(bool)
+    for k in range(1, a.shape[1]):
+        out |= a[:, k].astype(bool, copy=False)
+    return out
+
+
+def rows_all(a: np.ndarray) -> np.ndarray:
+    """``a.all(axis=1)`` of a (N, k) array, k >= 1."""
+    out = a[:, 0].astype(bool)
+    for k in range(1, a.shape[1]):
+        out &= a[:, k].astype(bool, copy=False)
+    return out
 
 
 def apply_T(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -317,7 +346,7 @@ def vertex_normals(mesh: Mesh) -> np.ndarray:
 def triangle_areas_normals(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     """Per-face areas and unit normals (counter-clockwise winding = outward); degenerate faces get area 0."""
     v, f = mesh.vertices, mesh.faces
-    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    cross = cross3(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     norm = np.sqrt(np.einsum("ij,ij->i", cross, cross))
     normals = np.divide(cross, norm[:, None], out=np.zeros_like(cross), where=norm[:, None] > 0)
     return 0.5 * norm, normals

@@ -1,4 +1,4 @@
-"""Exact self-intersection test of a triangle mesh (the geometry core; NumPy only).
+"""Exact self-intersection test of a triangle mesh (the geometry core; NumPy, no compiled code of its own).
 
 A face is self-intersecting when it has a point in common with another face beyond the vertices they share
 (vertices at the same position count as one: two faces that touch only at a duplicated vertex do not intersect):
@@ -25,6 +25,8 @@ with one tested shortly before in the process reuses that outcome for the pairs 
 from __future__ import annotations
 
 import numpy as np
+
+from scanreg.geometry import rows_all, rows_any
 
 _EPS = np.ldexp(1.0, -53)  # half an ulp of 1.0: Shewchuk's epsilon
 _O3_BOUND = (7.0 + 56.0 * _EPS) * _EPS
@@ -91,7 +93,7 @@ def _no_underflow(pts: tuple[np.ndarray, ...], base: np.ndarray, floor: float) -
     ok = np.ones(len(base), bool)
     for p in pts:
         diff = np.abs(p - base)
-        ok &= ((diff == 0) | (diff > floor)).all(axis=1)
+        ok &= rows_all((diff == 0) | (diff > floor))
     return ok
 
 
@@ -133,7 +135,7 @@ def _projection_axes(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> tuple[np.nd
     score = np.where(ok, np.abs(n), -1.0)
     drop = np.argmax(score, axis=1)
     keep = np.array([[1, 2], [0, 2], [0, 1]])[drop]
-    return keep, ok.any(axis=1)
+    return keep, rows_any(ok)
 
 
 def _take2(x: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -143,7 +145,7 @@ def _take2(x: np.ndarray, keep: np.ndarray) -> np.ndarray:
 def _on_segment(x, y, c) -> np.ndarray:
     """``c`` (collinear with ``x, y``) within the closed segment's bounding box."""
     lo, hi = np.minimum(x, y), np.maximum(x, y)
-    return ((lo <= c) & (c <= hi)).all(axis=1)
+    return rows_all((lo <= c) & (c <= hi))
 
 
 def _segments_meet_2d(x, y, u, w) -> np.ndarray:
@@ -161,7 +163,7 @@ def _segments_meet_2d(x, y, u, w) -> np.ndarray:
 def _inside_2d(p, q, r, x) -> np.ndarray:
     """``x`` in the closed 2-D triangle ``p, q, r`` (non-degenerate)."""
     s = np.stack([orient2d(p, q, x), orient2d(q, r, x), orient2d(r, p, x)], axis=1)
-    return (s >= 0).all(axis=1) | (s <= 0).all(axis=1)
+    return rows_all(s >= 0) | rows_all(s <= 0)
 
 
 def _coplanar_segment_triangle(p, q, r, x, y) -> np.ndarray:
@@ -186,7 +188,7 @@ def segment_meets_triangle(p, q, r, x, y, sx: np.ndarray | None = None,
         i = np.flatnonzero(cross)
         o = np.stack([orient3d(x[i], y[i], p[i], q[i]), orient3d(x[i], y[i], q[i], r[i]),
                       orient3d(x[i], y[i], r[i], p[i])], axis=1)
-        hit[i] = (o >= 0).all(axis=1) | (o <= 0).all(axis=1)
+        hit[i] = rows_all(o >= 0) | rows_all(o <= 0)
     flat = (sx == 0) & (sy == 0)
     if flat.any():
         i = np.flatnonzero(flat)
@@ -217,7 +219,8 @@ def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
     if m < 2 or (among is not None and not among.any()):
         return empty
     ctr = 0.5 * (lo + hi)
-    half = (0.5 * (hi - lo)).max(axis=1)
+    d = hi - lo
+    half = 0.5 * np.maximum(np.maximum(d[:, 0], d[:, 1]), d[:, 2])  # (0.5 d).max(axis=1), the same values
     # a margin for the rounding of the centres (the search only pre-filters; the boxes decide)
     margin = 4 * _EPS * float(np.abs(ctr).max() + half.max())
     base = max(float(np.median(half)), margin, 1e-300)
@@ -297,7 +300,7 @@ def _once(srt: np.ndarray) -> np.ndarray:
 
 def _same_ray(v2, a2, b2) -> np.ndarray:
     """``a`` and ``b`` (2-D, collinear with ``v``) lie on the same half-line from ``v`` (exact comparisons)."""
-    return ((np.sign(a2 - v2) == np.sign(b2 - v2)).all(axis=1))
+    return rows_all(np.sign(a2 - v2) == np.sign(b2 - v2))
 
 
 def regular_vertices(v: np.ndarray, fl: np.ndarray) -> np.ndarray:
@@ -420,10 +423,10 @@ def _pair_hits(P: np.ndarray, fl: np.ndarray, i: np.ndarray, j: np.ndarray,
     if len(s):
         Pi, Pj = P[i[s]], P[j[s]]
         sj = np.stack([orient3d(Pi[:, 0], Pi[:, 1], Pi[:, 2], Pj[:, k]) for k in range(3)], axis=1)
-        apart = (sj > 0).all(axis=1) | (sj < 0).all(axis=1)
+        apart = rows_all(sj > 0) | rows_all(sj < 0)
         t = np.flatnonzero(~apart)
         si = np.stack([orient3d(Pj[t, 0], Pj[t, 1], Pj[t, 2], Pi[t, k]) for k in range(3)], axis=1)
-        apart = (si > 0).all(axis=1) | (si < 0).all(axis=1)
+        apart = rows_all(si > 0) | rows_all(si < 0)
         t, si, sj = t[~apart], si[~apart], sj[t[~apart]]
         Pi, Pj = Pi[t], Pj[t]
         h = np.zeros(len(t), bool)
@@ -468,7 +471,7 @@ class _Job:
         if self.n < 2:
             return
         self.keys = _face_keys(self.v, self.f)
-        self.entry, self.prev = _MEMO.begin(self.keys)
+        self.entry, self.prev = _MEMO.begin(self.keys, use=self.n >= _MEMO.MIN_FACES)
 
     def pairs(self, old) -> np.ndarray:
         """The intersecting pairs, incrementally from ``old`` (``prev``'s outcome) when given."""
@@ -644,7 +647,9 @@ def _all_pairs(v: np.ndarray, f: np.ndarray, live: np.ndarray, among: np.ndarray
     idx = np.flatnonzero(live)
     fl = f[idx]
     P = v[fl]  # (m, 3 corners, 3)
-    i, j = candidate_pairs(P.min(axis=1), P.max(axis=1), None if among is None else among[idx])
+    lo = np.minimum(np.minimum(P[:, 0], P[:, 1]), P[:, 2])  # P.min(axis=1), P.max(axis=1): the same values
+    hi = np.maximum(np.maximum(P[:, 0], P[:, 1]), P[:, 2])
+    i, j = candidate_pairs(lo, hi, None if among is None else among[idx])
     if not len(i):
         return np.zeros((0, 2), np.int64)
     hit = _pair_hits(P, fl, i, j, regular_vertices(v, fl))
@@ -681,10 +686,24 @@ class _Entry:
     def __init__(self, keys: np.ndarray):
         import threading
 
-        self.order = np.argsort(keys, kind="stable")
-        self.sorted = keys[self.order]
+        self.keys = keys
+        self._sorted = None  # (order, sorted keys): made when first needed (often in a child process only)
         self.done = threading.Event()
         self.result = None  # (v, f, pairs) once finished
+
+    def _sort(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._sorted is None:  # two threads may both sort: the same arrays
+            order = np.argsort(self.keys, kind="stable")
+            self._sorted = (order, self.keys[order])
+        return self._sorted
+
+    @property
+    def order(self) -> np.ndarray:
+        return self._sort()[0]
+
+    @property
+    def sorted(self) -> np.ndarray:
+        return self._sort()[1]
 
     def wait(self):
         self.done.wait()
@@ -696,6 +715,14 @@ class _Memo:
     registers its mesh before it starts, so that a later one may wait for it instead of starting afresh."""
 
     SIZE = 4
+    MIN_FACES = 1000
+    """Smaller meshes (the neighbourhood of an edit, say) are tested in full: they neither use the memo nor take
+    a place in it."""
+    MAX_RATIO = 8
+    """An earlier mesh with more than this many times the faces is not looked at."""
+    PROBE = 512
+    """Faces (every k-th) that first tell whether an earlier mesh may share half of them. A wrong call costs
+    only speed: the test then runs in full, with the same result."""
 
     def __init__(self):
         import threading
@@ -703,15 +730,22 @@ class _Memo:
         self._lock = threading.Lock()
         self._entries: list[_Entry] = []
 
-    def begin(self, keys: np.ndarray) -> tuple[_Entry, _Entry | None]:
+    def begin(self, keys: np.ndarray, use: bool = True) -> tuple[_Entry, _Entry | None]:
+        """The new mesh's entry (in the memo when ``use``) and the earlier mesh it shares most faces with, if at
+        least half of them (None when not ``use``)."""
         entry = _Entry(keys)
+        if not use:
+            return entry, None
         with self._lock:
             earlier = list(self._entries)
             self._entries = (self._entries + [entry])[-self.SIZE:]
         best, best_n = None, len(keys) // 2  # worth it when at least half the faces are shared
+        probe = keys[::max(1, len(keys) // self.PROBE)]
         for e in earlier:
-            if not len(e.sorted):
-                continue
+            if not best_n < len(e.keys) <= self.MAX_RATIO * len(keys):
+                continue  # too few faces to share half, or so many that sorting them costs more than it saves
+            if len(probe) < len(keys) and _member(probe, e.sorted).mean() < 0.25:
+                continue  # a spread-out sample of the faces says: far from half shared
             n = int(_member(keys, e.sorted).sum())
             if n > best_n:
                 best, best_n = e, n
@@ -745,14 +779,14 @@ def _incremental(v, f, live, keys, entry: _Entry, prev: _Entry, old) -> np.ndarr
     match = hit & _once(prev.sorted)[k] & once_new
     old_of = np.where(match, prev.order[k], -1)
     m = np.flatnonzero(match)
-    same = (_corner_sets(v, f[m]) == _corner_sets(v0, f0[old_of[m]])).all(axis=1)
+    same = rows_all(_corner_sets(v, f[m]) == _corner_sets(v0, f0[old_of[m]]))
     old_of[m[~same]] = -1
     new_of_old = np.full(len(f0), -1, np.int64)
     kept = old_of >= 0
     new_of_old[old_of[kept]] = np.flatnonzero(kept)
     # the earlier outcome of pairs whose faces are both still here
     mapped = new_of_old[pairs0] if len(pairs0) else np.zeros((0, 2), np.int64)
-    mapped = mapped[(mapped >= 0).all(axis=1)]
+    mapped = mapped[rows_all(mapped >= 0)]
     mapped = np.sort(mapped, axis=1)
     fresh = live & ~kept
     if not fresh.any():

@@ -11,8 +11,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from scanreg.geometry import (Mesh, area_weighted_draws, barycentric_sample, points_on_faces, submesh,
-                              triangle_areas_normals)
+from scanreg.geometry import (Mesh, area_weighted_draws, barycentric_sample, col_max, col_min, cross3,
+                              points_on_faces, rows_any, submesh, triangle_areas_normals)
 from scanreg.intersect import Beside as _Beside
 from scanreg.intersect import self_intersecting_faces as _si_mask
 
@@ -87,7 +87,7 @@ def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: in
         v, f, kv, kf, joined = tvertex_collapse(v, f, threshold, maybe)
         vid, fid = vid[kv], fid[kf]
         touched[vid[joined]] = True
-        changed = touched[vid[f]].any(axis=1)
+        changed = rows_any(touched[vid[f]])
         # null faces (MeshLab's meshing_remove_null_faces): among the changed faces and the input's thinnest
         look = np.flatnonzero(changed | thin[fid])
         P = v[f[look]]
@@ -178,7 +178,7 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
         # outside them (the apex of a face that only became a candidate) is looked up on its own
         inner = np.zeros(len(v), bool)
         inner[f[cand].ravel()] = True
-        near_faces = np.flatnonzero(inner[f].any(axis=1))
+        near_faces = np.flatnonzero(rows_any(inner[f]))
         corner = f[near_faces].ravel()
         order = np.argsort(corner, kind="stable")
         start = np.searchsorted(corner[order], np.arange(len(v) + 1))
@@ -186,7 +186,7 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
         def fan(x: int) -> np.ndarray:
             if inner[x]:
                 return near_faces[order[start[x]:start[x + 1]] // 3]
-            return np.flatnonzero((f == x).any(axis=1))
+            return np.flatnonzero(rows_any(f == x))
 
         pos = v.copy()
         marked = np.zeros(len(v), bool)
@@ -241,7 +241,7 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
         # the next round: the faces with a joined corner and the candidates left (their apex was marked)
         again = np.zeros(len(F), bool)
         again[cand] = True
-        look = np.flatnonzero((again[keep_f]) | joined[f].any(axis=1))
+        look = np.flatnonzero((again[keep_f]) | rows_any(joined[f]))
     return v, f, kv, kf, joined
 
 
@@ -351,7 +351,7 @@ def dilate_faces(faces: np.ndarray, mask: np.ndarray, rings: int = 1) -> np.ndar
             break
         hot = np.zeros(int(faces.max()) + 1, bool)
         hot[faces[mask].ravel()] = True
-        mask = hot[faces].any(axis=1)
+        mask = rows_any(hot[faces])
     return mask
 
 
@@ -408,8 +408,8 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
     # cell of a grid of side 2 bound or in a neighbouring cell: only the centroids in those cells are looked at
     pts = np.concatenate([xb, xa, seeds])
     cell = 2 * bound
-    lo = pts.min(axis=0) - cell
-    dims = np.floor((pts.max(axis=0) - lo) / cell).astype(np.int64) + 3 if cell > 0 else None
+    lo = col_min(pts) - cell
+    dims = np.floor((col_max(pts) - lo) / cell).astype(np.int64) + 3 if cell > 0 else None
     gridded = dims is not None and float(np.prod(dims.astype(float))) < 2.0 ** 62
 
     def grid(p: np.ndarray) -> np.ndarray:
@@ -571,7 +571,7 @@ def _face_areas(mesh: Mesh) -> np.ndarray:
     arithmetic, without the normals), once per mesh."""
     def areas() -> np.ndarray:
         v, f = mesh.vertices, mesh.faces
-        cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        cross = cross3(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
         return 0.5 * np.sqrt(np.einsum("ij,ij->i", cross, cross))
     return _cached(mesh, "areas", areas)
 
@@ -597,9 +597,17 @@ def _edge_table_sorted(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     order), the sort that ``np.unique`` makes and drops, kept for :func:`non_manifold_vertices`."""
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     lo, hi = np.minimum(directed[:, 0], directed[:, 1]), np.maximum(directed[:, 0], directed[:, 1])
-    keys = lo.astype(np.int64) * (int(hi.max()) + 1 if len(hi) else 1) + hi  # _edge_keys of the sorted pairs
-    order = np.argsort(keys)  # the edges' ids do not depend on the order of equal keys
-    sk = keys[order]
+    n = int(hi.max()) + 1 if len(hi) else 1
+    keys = lo.astype(np.int64) * n + hi  # _edge_keys of the sorted pairs
+    bits = max(len(keys) - 1, 1).bit_length()
+    if (n * n - 1).bit_length() + bits <= 63:
+        # each key with its row in the low bits, sorted as plain integers (3x faster than an argsort): the rows
+        # in key order, those of one key ascending (the edges' ids do not depend on the order of equal keys)
+        packed = np.sort((keys << bits) | np.arange(len(keys), dtype=np.int64))
+        order, sk = packed & ((1 << bits) - 1), packed >> bits
+    else:
+        order = np.argsort(keys)
+        sk = keys[order]
     first = np.ones(len(sk), bool)
     first[1:] = sk[1:] != sk[:-1]
     ids = np.cumsum(first) - 1

@@ -267,6 +267,30 @@ def test_incremental_equals_full():
     assert np.array_equal(out["a"], base) and np.array_equal(b, inc)
 
 
+def test_memo_finds_the_mesh_an_edit_came_from():
+    """The memo pairs a mesh with the earlier one that shares at least half its faces, through the sampled
+    pre-check and the full count; an unrelated mesh, or one sharing too few faces, is tested afresh."""
+    from scanreg.intersect import _face_keys
+
+    rng = np.random.default_rng(2)
+    v, f = _two_spheres()
+    keys = _face_keys(v, f.astype(np.int64))
+    assert len(keys) > 2 * _MEMO.PROBE  # the pre-check samples the faces
+    _MEMO.clear()
+    first, prev = _MEMO.begin(keys)
+    assert prev is None
+    edited = keys[rng.permutation(len(keys))[: int(0.7 * len(keys))]]  # 70 % of the faces, reordered
+    assert _MEMO.begin(edited)[1] is first
+    assert _MEMO.begin(keys[: int(0.4 * len(keys))] + 1)[1] is None  # nothing shared
+    few = np.concatenate([keys[: int(0.4 * len(keys))], -1 - np.arange(len(keys))])  # 40 % of these faces
+    assert _MEMO.begin(few)[1] is None
+    n = len(_MEMO._entries)
+    small = f[: _MEMO.MIN_FACES // 2]  # an edit's neighbourhood: tested in full, no place in the memo
+    got = self_intersecting_faces(v, small)
+    assert len(_MEMO._entries) == n and np.array_equal(got, _fresh(v, small))
+    _MEMO.clear()
+
+
 def test_beside_gives_the_same_in_a_child_a_thread_and_after_a_failure(monkeypatch):
     """Beside (the repair's input test, run beside the backend): in a forked child, in a thread
     (SCANREG_NO_FORK), after the child failed in its extra work (done here instead) and after a child that took

@@ -111,6 +111,23 @@ def test_non_manifold_vertices_agree_with_meshlab():
     assert non_manifold_vertices(weld) > non_manifold_vertices(two)
 
 
+def test_edge_table_equals_unique_in_both_sorts():
+    """The one edge table (rows sorted by edge as packed integers, or by an argsort when vertex indices are too
+    large to pack) gives np.unique's edge ids and counts, and its order sorts the keys."""
+    from scanreg.topology import _edge_table_sorted
+
+    rng = np.random.default_rng(3)
+    m = holed_cow()
+    # the last: indices near 2^28, whose keys (under 2^57) leave too few bits for the rows: the argsort
+    for f in (m.faces, np.vstack([m.faces, m.faces[rng.permutation(len(m.faces))[:50]]]), m.faces[:500] * 89_000):
+        directed, edge, counts, order = _edge_table_sorted(f)
+        keys = np.minimum(directed[:, 0], directed[:, 1]).astype(np.int64) * (int(f.max()) + 1) \
+            + np.maximum(directed[:, 0], directed[:, 1])
+        _, inv, cnt = np.unique(keys, return_inverse=True, return_counts=True)
+        assert np.array_equal(edge, inv.ravel()) and np.array_equal(counts, cnt)
+        assert np.array_equal(keys[order], np.sort(keys))
+
+
 def test_non_manifold_vertices_on_raw_scans():
     from scanreg.topology import _meshset, non_manifold_vertices
 
