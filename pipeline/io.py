@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from scanreg.errors import InputError
-from scanreg.geometry import Cloud, Geometry, Mesh, make_T, submesh, validate_mesh, validate_points
+from scanreg.geometry import (Cloud, Geometry, Mesh, make_T, rows_all, rows_any, submesh, validate_mesh,
+                              validate_points)
 
 MESH_EXTS = {".ply", ".stl", ".obj", ".off"}
 CLOUD_EXTS = {".ply", ".pcd", ".xyz", ".txt", ".npy", ".pts", ".csv", ".asc"}
@@ -139,12 +140,12 @@ def _drop_invalid_mesh(m: Mesh, label: str) -> tuple[Mesh, int]:
     v = np.asarray(m.vertices)
     if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
         validate_points(v, label)  # raises the shape / empty error
-    bad = ~np.isfinite(v).all(axis=1)
+    bad = ~rows_all(np.isfinite(v))
     if not bad.any():
         return validate_mesh(m), 0
     # the index checks first, on finite stand-ins, so that a bad index is reported as such
     checked = validate_mesh(Mesh(np.where(bad[:, None], 0.0, v), m.faces, label))
-    keep = ~bad[checked.faces].any(axis=1)
+    keep = ~rows_any(bad[checked.faces])
     n_bad = int(bad.sum())
     if not keep.any():
         raise InputError(f"{label}: {n_bad} point(s) with NaN or infinite coordinates, and every face uses one: "
@@ -159,11 +160,11 @@ def _drop_invalid_cloud(c: Cloud, label: str) -> tuple[Cloud, int]:
     pts = np.asarray(c.points)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
         validate_points(pts, label)  # raises the shape / empty error
-    good_p = np.isfinite(pts).all(axis=1)
+    good_p = rows_all(np.isfinite(pts))
     normals = None if c.normals is None else np.asarray(c.normals, dtype=np.float64)
     if normals is not None and normals.shape != pts.shape:
         raise InputError(f"{label}: {len(normals)} normals for {len(pts)} points")
-    good_n = np.ones(len(pts), bool) if normals is None else np.isfinite(normals).all(axis=1)
+    good_n = np.ones(len(pts), bool) if normals is None else rows_all(np.isfinite(normals))
     good = good_p & good_n
     n, n_bad = len(pts), int((~good).sum())
     parts = [f"{int((~good_p).sum())} point(s) with NaN or infinite coordinates"]

@@ -529,7 +529,7 @@ class GeneralizedICP(IcpBase):
         self._tree = small_gicp.KdTree(self._tgt, num_threads=th)
         self._src = small_gicp.PointCloud(np.ascontiguousarray(source.points))
         small_gicp.estimate_covariances(self._src, num_neighbors=n, num_threads=th)
-        self._diag = float(np.linalg.norm(np.ptp(target.points, axis=0)))
+        self._diag = bbox_diagonal(target.points)
         # the RMS of each iterate is measured against the target points, like GICP's own matching
         return super().iterate(target, source, T_init, ClosestPoints(target), tau, limit, ctx)
 
@@ -583,7 +583,7 @@ class Open3dIcp(IcpBase):
         tau = to_abs(p.tau, p.distances, ctx.spacing)
         maxd = to_abs(p.max_correspondence_distance, p.distances, ctx.spacing)
         self._kscale = to_abs(p.kernel_scale, p.distances, ctx.spacing)
-        diag = float(np.linalg.norm(np.ptp(target.points, axis=0)))
+        diag = bbox_diagonal(target.points)
         limit = self.schedule(target, maxd)
         start_limit = limit.limit
         tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target.points))

@@ -8,7 +8,7 @@ import numpy as np
 
 from scanreg.config import Context
 from scanreg.errors import StageError
-from scanreg.geometry import Mesh, submesh
+from scanreg.geometry import Mesh, bbox_diagonal, submesh
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
 from scanreg.topology import (_meshset, boundary_edges, boundary_loop_sizes, dilate_faces, large_components, mesh_stats,
@@ -106,7 +106,7 @@ class MeshLab(AuditedRepair):
         local = pymeshlab.MeshSet()
         local.add_mesh(m)
         local.compute_selection_by_condition_per_face(condselect="fq > 0.5")
-        diag = float(np.linalg.norm(mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)))
+        diag = bbox_diagonal(mesh.vertices)
         try:
             local.meshing_close_holes(maxholesize=self.p.max_hole_edges or 10**9, selected=True,
                                       selfintersection=prevent, refinehole=self.p.refine_holes,
