@@ -494,6 +494,21 @@ class _Job:
         return out
 
 
+def _keep_freed_memory() -> None:
+    """In a short-lived child process: glibc's malloc keeps freed memory for reuse instead of returning it to
+    the system (arrays up to 1 GB from its heap, no trimming), so that NumPy's temporaries do not fault in fresh
+    pages again and again (measured: the bunny's self-intersection test 42 000 -> 26 000 page faults, 6 % less
+    CPU time). The child exits soon, which gives it all back. Nothing happens where glibc is absent."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 1 << 30)  # M_MMAP_THRESHOLD
+        libc.mallopt(-1, 1 << 31)  # M_TRIM_THRESHOLD
+    except (OSError, AttributeError):
+        pass
+
+
 class Beside:
     """:func:`self_intersecting_faces` of a mesh, computed beside the caller; :meth:`result` waits for the mask.
     ``extra``, a function of no arguments (more measurements of the same mesh), runs after the test in the same
@@ -556,6 +571,7 @@ class Beside:
             code = 1
             try:
                 os.close(r)
+                _keep_freed_memory()
                 pairs = self._pairs()
                 _send(w, b"" if pairs is None else np.ascontiguousarray(pairs, np.int64).tobytes())
                 if self._extra_fn is not None:

@@ -288,7 +288,7 @@ def mesh_stats(mesh: Mesh) -> dict[str, float]:
     out["watertight"] = int(out["boundary_edges"] == 0 and out["non_manifold_edges"] == 0)
     if out["watertight"]:
         v = mesh.vertices
-        out["volume"] = float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
+        out["volume"] = float(np.einsum("ij,ij->i", v[f[:, 0]], cross3(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
     return out
 
 
