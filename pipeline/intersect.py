@@ -512,7 +512,8 @@ def _keep_freed_memory() -> None:
 class Beside:
     """:func:`self_intersecting_faces` of a mesh, computed beside the caller; :meth:`result` waits for the mask.
     ``extra``, a function of no arguments (more measurements of the same mesh), runs after the test in the same
-    place; :meth:`extra_result` waits for its value (picklable).
+    place; :meth:`extra_result` waits for its value (picklable). ``first``, another such function, runs before
+    the test; :meth:`first_result` waits for its value only.
 
     On Linux the work runs in a forked child process (the same code on the same arrays, inherited; the
     results come back through a pipe), so that it uses another core even while the caller runs a library that
@@ -526,13 +527,14 @@ class Beside:
     the test's own time) is stopped and the work done in this process instead."""
     TIMEOUT_S_PER_FACE = 2e-4
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, extra=None):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, extra=None, first=None):
         import threading
 
         self._job = _Job(vertices, faces)
-        self._extra_fn = extra
+        self._extra_fn, self._first_fn = extra, first
         self._mask = self._error = None
-        self._extra = None  # (value,) once known
+        self._extra = self._first = None  # (value,) once known
+        self._first_known = threading.Event()
         self._old = None
         if self._job.entry is not None:
             # an earlier mesh's outcome the child can use: only one already known (a child cannot wait for this
@@ -541,7 +543,7 @@ class Beside:
             self._old = prev.result if prev is not None and prev.done.is_set() else None
             if prev is not None and self._old is None:
                 self._job.prev = None
-        elif extra is None:
+        elif extra is None and first is None:
             self._mask, self._thread = self._job.mask(None), None
             return
         self._child = self._fork()
@@ -567,11 +569,13 @@ class Beside:
                 pid = os.fork()
         except OSError:
             return None
-        if pid == 0:  # the child: the pairs, then the extra value, then leave without running the parent's exit code
+        if pid == 0:  # the child: the first value, the pairs, the extra value; it leaves without the parent's exit code
             code = 1
             try:
                 os.close(r)
                 _keep_freed_memory()
+                if self._first_fn is not None:
+                    _send(w, pickle.dumps(self._first_fn(), protocol=pickle.HIGHEST_PROTOCOL))
                 pairs = self._pairs()
                 _send(w, b"" if pairs is None else np.ascontiguousarray(pairs, np.int64).tobytes())
                 if self._extra_fn is not None:
@@ -592,7 +596,8 @@ class Beside:
         import time
 
         deadline = time.monotonic() + self.TIMEOUT_S + self.TIMEOUT_S_PER_FACE * self._job.n
-        buf, want, got = b"", 2 if self._extra_fn is not None else 1, []
+        k = int(self._first_fn is not None)  # the pairs' message: after the first value's, if any
+        buf, want, got = b"", k + 1 + int(self._extra_fn is not None), []
         try:
             while len(got) < want:
                 left = deadline - time.monotonic()
@@ -607,21 +612,29 @@ class Beside:
                     n = int.from_bytes(buf[:8], "little")
                     got.append(buf[8:8 + n])
                     buf = buf[8 + n:]
-                    if len(got) == 1 and self._job.entry is not None:
-                        pairs = np.frombuffer(got[0], np.int64).reshape(-1, 2).copy()
+                    if k and len(got) == 1:  # the caller may go on with it at once
+                        self._first = (pickle.loads(got[0]),)
+                        self._first_known.set()
+                    if len(got) == k + 1 and self._job.entry is not None:
+                        pairs = np.frombuffer(got[k], np.int64).reshape(-1, 2).copy()
                         self._mask = self._job.mask(pairs)
                         self._job.finish(pairs)
         finally:
             os.close(r)
             os.waitpid(pid, 0)
-        if len(got) == 2:
-            self._extra = (pickle.loads(got[1]),)
+        if len(got) == want and self._extra_fn is not None:
+            self._extra = (pickle.loads(got[-1]),)
 
     def _collect(self) -> None:
         done = False
         try:
             if self._child is not None:
                 self._receive(*self._child)
+            if self._first_fn is not None and self._first is None:  # no child, or it failed: here
+                try:
+                    self._first = (self._first_fn(),)
+                finally:
+                    self._first_known.set()
             if self._mask is None:  # no child, or it failed: here
                 pairs = self._pairs()
                 self._mask = self._job.mask(pairs)
@@ -633,6 +646,7 @@ class Beside:
         except BaseException as e:  # handed to the caller by result()
             self._error = e
         finally:
+            self._first_known.set()
             if not done and self._job.entry is not None and not self._job.entry.done.is_set():
                 self._job.finish(None)
 
@@ -646,6 +660,12 @@ class Beside:
     def extra_result(self):
         self.result()
         return self._extra[0]
+
+    def first_result(self):
+        self._first_known.wait()
+        if self._first is None:  # it failed: the error, as result() hands it over
+            self.result()
+        return self._first[0]
 
 
 def _send(fd: int, payload: bytes) -> None:

@@ -318,9 +318,10 @@ def self_intersecting_count(mesh: Mesh) -> int:
 class AuditBeside:
     """:func:`audit_mesh` of ``mesh`` computed beside the caller (:class:`scanreg.intersect.Beside`: in another
     process, or a thread), and ``also()`` (more of the input's measurements; picklable) after it;
-    :meth:`result` waits for both and remembers the self-intersection mask and count on ``mesh``."""
+    :meth:`result` waits for both and remembers the self-intersection mask and count on ``mesh``. ``first()``,
+    computed there before the rest, is what :meth:`first_result` waits for."""
 
-    def __init__(self, mesh: Mesh, also=None):
+    def __init__(self, mesh: Mesh, also=None, first=None):
         self.mesh = mesh
         self._si = known(mesh, "self_intersecting_faces")
         faces = mesh.faces if self._si is None else mesh.faces[:0]  # a count known already: the rest only
@@ -328,7 +329,10 @@ class AuditBeside:
         def extra():
             return audit_mesh(mesh, self_intersections=False), (also() if also is not None else None)
 
-        self._pending = _Beside(mesh.vertices, faces, extra=extra)
+        self._pending = _Beside(mesh.vertices, faces, extra=extra, first=first)
+
+    def first_result(self):
+        return self._pending.first_result()
 
     def result(self) -> tuple[dict[str, float], object]:
         stats, more = self._pending.extra_result()

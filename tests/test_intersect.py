@@ -293,9 +293,10 @@ def test_memo_finds_the_mesh_an_edit_came_from():
 
 def test_beside_gives_the_same_in_a_child_a_thread_and_after_a_failure(monkeypatch):
     """Beside (the repair's input test, run beside the backend): in a forked child, in a thread
-    (SCANREG_NO_FORK), after the child failed in its extra work (done here instead) and after a child that took
-    too long (stopped, done here), the mask is the fresh test's and the extra value is returned; the memo gets the
-    outcome, so that an edited copy tested next goes on incrementally (the same as a full test)."""
+    (SCANREG_NO_FORK), after the child failed in its first or extra work (done here instead) and after a child
+    that took too long (stopped, done here), the mask is the fresh test's and the first and extra values are
+    returned; the memo gets the outcome, so that an edited copy tested next goes on incrementally (the same as a
+    full test)."""
     import os
     import sys
 
@@ -322,7 +323,8 @@ def test_beside_gives_the_same_in_a_child_a_thread_and_after_a_failure(monkeypat
         for k, val in env.items():
             monkeypatch.setenv(k, val)
         _MEMO.clear()
-        b = Beside(v, f, extra=extra)
+        b = Beside(v, f, extra=extra, first=extra)  # the first value, before the test: the same ways
+        assert b.first_result() == value
         assert np.array_equal(b.result(), want) and b.extra_result() == value
         assert len(_MEMO._entries) == 1 and _MEMO._entries[0].done.is_set()
         assert np.array_equal(self_intersecting_faces(v, edited), want_edited)
@@ -333,6 +335,8 @@ def test_beside_gives_the_same_in_a_child_a_thread_and_after_a_failure(monkeypat
         _MEMO.clear()
         b = Beside(v, f, extra=slow_in_child)
         assert np.array_equal(b.result(), want) and b.extra_result() == "here"
+        b = Beside(v, f, first=slow_in_child)  # a child stuck in the first value: stopped, all made here
+        assert b.first_result() == "here" and np.array_equal(b.result(), want)
 
 
 @pytest.mark.parametrize("seed", range(4))

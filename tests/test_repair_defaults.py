@@ -175,3 +175,42 @@ def test_backend_failures_are_one_line_naming_backend_and_file():
     assert str(e.value).startswith("repair=fake: two_spheres: the backend failed") and "\n" not in str(e.value)
     with pytest.raises(StageError, match=r"^repair=fake: two_spheres: the repair left no face"):
         repair_with_audit(_Fake(lambda mesh: Mesh(mesh.vertices, mesh.faces[:0], mesh.source)), m, CTX, "r_")
+
+
+def test_the_border_plan_reaches_backends_that_ask_late_and_those_that_do_not():
+    """The border plan (open_border=auto: an open scan keeps its outer border, holes under the limit) is made
+    beside the backend; a backend that asks for it mid-run (``planned()``, as MeshFix does after loading the
+    mesh) and one that reads ``p`` from the start both run with it applied, the caller's stage unchanged."""
+    mesh = read_mesh(str(shared("stanford_bunny/bun000.ply")))
+    seen = {}
+
+    @dataclass
+    class HoleParams(GuardParams):
+        fill_holes: bool = True
+        max_hole_edges: int = 0
+
+    class Late(_Fake):
+        asks_for_plan = True
+
+        def __init__(self):
+            self.p = HoleParams()
+
+        def run(self, m, ctx):
+            seen["before"] = self.p.open_border
+            p = self.planned()
+            seen["late"] = (p.open_border, p.max_hole_edges)
+            return m
+
+    class Early(Late):
+        asks_for_plan = False
+
+        def run(self, m, ctx):
+            seen["early"] = (self.p.open_border, self.p.max_hole_edges)
+            return m
+
+    late, early = Late(), Early()
+    _, a = repair_with_audit(late, mesh, CTX, "r_")
+    _, b = repair_with_audit(early, mesh, CTX, "r_")
+    assert seen["before"] == "auto" and seen["late"][0] == "open" and seen["late"][1] > 0
+    assert seen["early"] == seen["late"] and a["r_open_border_open"] == b["r_open_border_open"] == 1
+    assert late.p.open_border == early.p.open_border == "auto"  # the plan went into copies

@@ -190,19 +190,28 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     if not len(mesh.faces):
         raise StageError(f"{where}: the mesh has no faces to repair (a point cloud? use repair=none)")
     t0 = time.perf_counter()
-    # the input's audit runs beside the backend (in another process: pymeshfix keeps the GIL)
-    before_audit = AuditBeside(mesh, also=lambda: _input_side(p, mesh, ctx.seed))
-    mode, max_hole = _border_plan(p, mesh)
-    run = stage
-    if max_hole is not None or p.open_border != "cap":
-        run = copy.copy(stage)
-        run.p = replace(p, open_border=mode, **({} if max_hole is None else {"max_hole_edges": max_hole}))
-    if p.open_border == "auto":
-        print(f"note: {where}: " + ("an open scan (its outer border is long for its area): the border is kept "
-                                    "open" if mode == "open" else "no outer border: every hole is capped")
-              + " (repair.open_border=auto; set cap, open or shell to choose)")
+    # the input's audit runs beside the backend (in another process: pymeshfix keeps the GIL), the border plan
+    # first: a backend that asks for its parameters only when it needs them (after loading the mesh) finds it made
+    before_audit = AuditBeside(mesh, first=lambda: _border_plan(p, mesh),
+                               also=lambda: _input_side(p, mesh, ctx.seed))
+
+    def planned() -> GuardParams:
+        mode, max_hole = before_audit.first_result()
+        if p.open_border == "auto":
+            print(f"note: {where}: " + ("an open scan (its outer border is long for its area): the border is "
+                                        "kept open" if mode == "open" else "no outer border: every hole is capped")
+                  + " (repair.open_border=auto; set cap, open or shell to choose)")
+        if max_hole is None and mode == p.open_border:
+            return p
+        return replace(p, open_border=mode, **({} if max_hole is None else {"max_hole_edges": max_hole}))
+
+    run = copy.copy(stage)
+    run._plan = planned
+    if not stage.asks_for_plan:
+        run.planned()
     t1 = time.perf_counter()
     out = _run_backend(run, mesh, ctx)
+    mode = run.planned().open_border  # (a backend that never asked: made now)
     t_folds = 0.0
     if p.remove_slivers:  # kept only where the collapse folds nothing (a raw scan's ragged border can)
         collapsed = collapse_slivers(out, p.sliver_angle_deg)
@@ -320,6 +329,18 @@ class AuditedRepair:
     """Base of the repair backends: ``run(mesh, ctx)`` is the backend itself, :meth:`repair` the audited run."""
 
     p: GuardParams
+    asks_for_plan = False
+    """True for a backend whose ``run`` reads the parameters the border plan sets (``open_border``,
+    ``max_hole_edges``) through :meth:`planned`, only when it needs them: the plan is then made beside it
+    (:func:`repair_with_audit`). Otherwise ``p`` holds them before ``run`` starts."""
+    _plan = None
+
+    def planned(self) -> GuardParams:
+        """``p`` with the border plan of the audited run applied (the plan made, once, at the first call)."""
+        if self._plan is not None:
+            plan, self._plan = self._plan, None
+            self.p = plan()
+        return self.p
 
     def repair(self, mesh: Mesh, ctx: Context, prefix: str, sweep: bool = False) -> tuple[Mesh, dict[str, float]]:
         """The backend on ``mesh`` with the audit and the guard (:func:`repair_with_audit`), through the cache

@@ -25,6 +25,8 @@ class MeshFix(AuditedRepair):
     ended on the exact test (:mod:`scanreg.intersect`) finding none, the audit takes that count instead of
     testing again."""
 
+    asks_for_plan = True
+
     @dataclass
     class Params(GuardParams):
         keep_largest: bool = False
@@ -80,6 +82,7 @@ class MeshFix(AuditedRepair):
         if p.join_components:
             tin.join_closest_components()
         tin.remove_smallest_components()  # one part here (or the joined ones): bits MeshFix splits off
+        p = self.planned()  # the border plan, made beside the loading above
         if p.fill_holes:
             tin.fill_small_boundaries(nbe=p.max_hole_edges, refine=p.refine)
         clean = False  # True: the result is known to be free of self-intersections

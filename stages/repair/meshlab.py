@@ -22,6 +22,8 @@ class MeshLab(AuditedRepair):
     components (below ``min_component_share`` of the largest part's area) and orients coherently. It then loops, up to ``max_rounds`` times: delete the self-intersecting
     faces and a ring around them, repair again, and close the holes, until the mesh is clean."""
 
+    asks_for_plan = True
+
     @dataclass
     class Params(GuardParams):
         merge_close_vertices: float = 0.0
@@ -142,7 +144,7 @@ class MeshLab(AuditedRepair):
     def run(self, mesh: Mesh, ctx: Context) -> Mesh:
         import pymeshlab
 
-        p = self.p
+        p = self.planned()
         ms = _meshset(mesh)
         if p.merge_close_vertices > 0:
             ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(100 * p.merge_close_vertices))
