@@ -241,6 +241,8 @@ def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
         p = ta.sparse_distance_matrix(tb, r, p=np.inf, output_type="ndarray")
         return ga[p["i"]], gb[p["j"]]
 
+    lo_of = [np.ascontiguousarray(lo[:, k]) for k in range(3)]  # one axis each: faster to gather from
+    hi_of = [np.ascontiguousarray(hi[:, k]) for k in range(3)]
     ii, jj = [], []
     for a, ga in enumerate(groups):
         for b in range(a + 1):
@@ -269,7 +271,7 @@ def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
                     continue
                 A, B = got
                 for k in range(3):  # the exact box test, one axis at a time on the pairs left
-                    keep = (lo[A, k] <= hi[B, k]) & (lo[B, k] <= hi[A, k])
+                    keep = (lo_of[k][A] <= hi_of[k][B]) & (lo_of[k][B] <= hi_of[k][A])
                     A, B = A[keep], B[keep]
                 ii.append(np.minimum(A, B))
                 jj.append(np.maximum(A, B))
@@ -369,18 +371,24 @@ def _pair_hits(P: np.ndarray, fl: np.ndarray, i: np.ndarray, j: np.ndarray,
     """Which candidate pairs ``(i, j)`` of the faces ``fl`` (vertex ids, one per position; corners ``P``)
     intersect. Pairs that share a vertex of ``regular`` (:func:`regular_vertices`) cannot, and are not tested."""
     Fi, Fj = fl[i], fl[j]
-    eq = Fi[:, :, None] == Fj[:, None, :]  # eq[p, a, b]: corner a of i is corner b of j
-    shared = eq.sum(axis=(1, 2))
+    # in_j[a]: corner a of i is a corner of j (column by column: NumPy's reductions over axes of 3 are slow);
+    # a live face's corners are distinct, so their count is the number of shared vertices
+    in_j = [(Fi[:, a] == Fj[:, 0]) | (Fi[:, a] == Fj[:, 1]) | (Fi[:, a] == Fj[:, 2]) for a in range(3)]
+    shared = in_j[0].astype(np.int8) + in_j[1] + in_j[2]
     if regular is not None:
-        at_regular = (regular[Fi] & eq.any(axis=2)).any(axis=1)
-        shared = np.where(at_regular & (shared < 3), -1, shared)  # -1: settled, no hit
+        at_regular = (regular[Fi[:, 0]] & in_j[0]) | (regular[Fi[:, 1]] & in_j[1]) | (regular[Fi[:, 2]] & in_j[2])
+        shared[at_regular & (shared < 3)] = -1  # settled, no hit
+
+    def corners_equal(s: np.ndarray) -> np.ndarray:  # e[p, a, b]: corner a of i is corner b of j
+        return Fi[s][:, :, None] == Fj[s][:, None, :]
+
     hit = np.zeros(len(i), bool)
     hit[shared == 3] = True  # the same face twice
 
     # one shared vertex: the edge opposite it in either face meets the other face
     s = np.flatnonzero(shared == 1)
     if len(s):
-        e = eq[s]
+        e = corners_equal(s)
         ca = e.any(axis=2).argmax(axis=1)  # the shared corner's position in i
         cb = e.any(axis=1).argmax(axis=1)  # ... in j
         r = np.arange(len(s))
@@ -402,7 +410,7 @@ def _pair_hits(P: np.ndarray, fl: np.ndarray, i: np.ndarray, j: np.ndarray,
     # a shared edge: coplanar and on the same side of it
     s = np.flatnonzero(shared == 2)
     if len(s):
-        e = eq[s]
+        e = corners_equal(s)
         ca = (~e.any(axis=2)).argmax(axis=1)  # i's corner not in j
         cb = (~e.any(axis=1)).argmax(axis=1)
         r = np.arange(len(s))
