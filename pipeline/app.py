@@ -393,12 +393,28 @@ _UNKNOWN = object()
 
 def _mode_of(argv: list[str], cfg: DictConfig) -> object:
     """``hydra.mode`` as Hydra's ``get_mode`` would find it, read off the config the precheck composed, or
-    ``_UNKNOWN`` when the command line may set it in a way that composition does not show (an override of
-    ``hydra.mode`` or of a ``hydra/`` group: the precheck leaves Hydra's own overrides out)."""
+    ``_UNKNOWN`` when the precheck may have composed something else: an override of ``hydra.mode`` or of a
+    ``hydra/`` group (the precheck leaves Hydra's own overrides out), a sweep (the precheck takes its first
+    value, Hydra's ``get_mode`` none for a config group), another primary config folder (``--config-path``)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    overrides, skip = [], False
     for a in argv:
+        flag, eq, _ = a.partition("=")
+        if flag in ("-cp", "--config-path"):
+            return _UNKNOWN
+        if skip or a.startswith("-"):  # a flag, or the value of the one before
+            skip = a in _FLAGS_WITH_VALUE and not eq
+            continue
         key = a.lstrip("+~").partition("=")[0].strip()
         if key == "hydra" or key.startswith(("hydra.mode", "hydra/")):
             return _UNKNOWN
+        overrides.append(a)
+    try:
+        if any(o.is_sweep_override() for o in OverridesParser.create().parse_overrides(overrides)):
+            return _UNKNOWN
+    except Exception:  # noqa: BLE001: Hydra reports it
+        return _UNKNOWN
     try:
         return cfg.hydra.mode
     except Exception:  # noqa: BLE001: no hydra node: let Hydra find it
@@ -419,7 +435,7 @@ def _hydra_mode_known(mode: object):
     if original is None:  # another Hydra: leave it alone
         yield
         return
-    Hydra.get_mode = lambda self, config_name, overrides: mode
+    Hydra.get_mode = lambda self, *args, **kwargs: mode
     try:
         yield
     finally:

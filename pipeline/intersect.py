@@ -454,7 +454,8 @@ def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     process (a repair's input and its output, a loop that cuts out and refills a few faces) is tested
     incrementally: the pairs of faces both meshes have keep their outcome, only pairs with a new face are
     tested. The outcome of a pair depends on its two faces' coordinates alone, so the result is the same as a
-    full test, bit for bit (tests/test_intersect.py checks it)."""
+    full test, bit for bit (tests/test_intersect.py checks it). Meshes under ``_Memo.MIN_FACES`` faces (an
+    edit's neighbourhood) are always tested in full."""
     job = _Job(vertices, faces)
     if job.entry is None:
         return job.mask(None)
@@ -502,18 +503,33 @@ class _Job:
         return out
 
 
-def _keep_freed_memory() -> None:
+_MALLOPT: list = []  # glibc's mallopt, looked up once in the parent (no dlopen in a forked child)
+
+
+def _mallopt():
+    """glibc's ``mallopt`` (``int mallopt(int, int)``), or None where there is none."""
+    if not _MALLOPT:
+        try:
+            import ctypes
+
+            fn = ctypes.CDLL(None).mallopt
+            fn.argtypes, fn.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+        except Exception:  # noqa: BLE001: not glibc
+            fn = None
+        _MALLOPT.append(fn)
+    return _MALLOPT[0]
+
+
+def _keep_freed_memory(mallopt) -> None:
     """In a short-lived child process: glibc's malloc keeps freed memory for reuse instead of returning it to
     the system (arrays up to 1 GB from its heap, no trimming), so that NumPy's temporaries do not fault in fresh
     pages again and again (measured: the bunny's self-intersection test 42 000 -> 26 000 page faults, 6 % less
     CPU time). The child exits soon, which gives it all back. Nothing happens where glibc is absent."""
-    import ctypes
-
     try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 1 << 30)  # M_MMAP_THRESHOLD
-        libc.mallopt(-1, 1 << 31)  # M_TRIM_THRESHOLD
-    except (OSError, AttributeError):
+        if mallopt is not None:
+            mallopt(-3, 1 << 30)  # M_MMAP_THRESHOLD
+            mallopt(-1, (1 << 31) - 1)  # M_TRIM_THRESHOLD
+    except Exception:  # noqa: BLE001: only speed is at stake
         pass
 
 
@@ -541,7 +557,7 @@ class Beside:
         self._job = _Job(vertices, faces)
         self._extra_fn, self._first_fn = extra, first
         self._mask = self._error = None
-        self._extra = self._first = None  # (value,) once known
+        self._extra = self._first = self._first_error = None  # (value,) once known; the first one's failure
         self._first_known = threading.Event()
         self._old = None
         if self._job.entry is not None:
@@ -570,18 +586,24 @@ class Beside:
 
         if not sys.platform.startswith("linux") or os.environ.get("SCANREG_NO_FORK"):
             return None
+        mallopt = _mallopt()
         try:
             r, w = os.pipe()
+        except OSError:
+            return None
+        try:
             with warnings.catch_warnings():  # Python >= 3.12 warns about forking a threaded process; the
                 warnings.simplefilter("ignore", DeprecationWarning)  # child runs NumPy and SciPy code only
                 pid = os.fork()
         except OSError:
+            os.close(r)
+            os.close(w)
             return None
         if pid == 0:  # the child: the first value, the pairs, the extra value; it leaves without the parent's exit code
             code = 1
             try:
                 os.close(r)
-                _keep_freed_memory()
+                _keep_freed_memory(mallopt)
                 if self._first_fn is not None:
                     _send(w, pickle.dumps(self._first_fn(), protocol=pickle.HIGHEST_PROTOCOL))
                 pairs = self._pairs()
@@ -637,10 +659,15 @@ class Beside:
         done = False
         try:
             if self._child is not None:
-                self._receive(*self._child)
+                try:
+                    self._receive(*self._child)
+                except Exception:  # noqa: BLE001: the pipe or the child's data failed: what is missing, here
+                    pass
             if self._first_fn is not None and self._first is None:  # no child, or it failed: here
                 try:
                     self._first = (self._first_fn(),)
+                except Exception as e:  # noqa: BLE001: first_result() raises it; the test goes on
+                    self._first_error = e
                 finally:
                     self._first_known.set()
             if self._mask is None:  # no child, or it failed: here
@@ -670,8 +697,12 @@ class Beside:
         return self._extra[0]
 
     def first_result(self):
+        if self._first_fn is None:
+            raise ValueError("Beside.first_result: no first function was given")
         self._first_known.wait()
-        if self._first is None:  # it failed: the error, as result() hands it over
+        if self._first is None:  # it failed: its own error, or the one result() hands over
+            if self._first_error is not None:
+                raise self._first_error
             self.result()
         return self._first[0]
 
@@ -775,8 +806,8 @@ class _Memo:
         self._entries: list[_Entry] = []
 
     def begin(self, keys: np.ndarray, use: bool = True) -> tuple[_Entry, _Entry | None]:
-        """The new mesh's entry (in the memo when ``use``) and the earlier mesh it shares most faces with, if at
-        least half of them (None when not ``use``)."""
+        """The new mesh's entry (in the memo when ``use``) and the earlier mesh it shares most faces with, if
+        more than half of them (None when not ``use``)."""
         entry = _Entry(keys)
         if not use:
             return entry, None

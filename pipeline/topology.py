@@ -20,8 +20,9 @@ from scanreg.intersect import self_intersecting_faces as _si_mask
 def _cached(mesh: Mesh, name: str, compute):
     """``compute()``, remembered on ``mesh`` for as long as its vertex and face arrays are the same objects
     (the repair's audit, border plan, component split and sliver check share one edge table, one component
-    labelling, one set of face angles per mesh). Meshes are not edited in place anywhere; one that were would
-    need a new array to be measured again."""
+    labelling, one set of face angles per mesh within a process; the input audit's child process, which makes
+    the border plan and the statistics, has its own). Meshes are not edited in place anywhere; one that were
+    would need a new array to be measured again."""
     hit = known(mesh, name)
     if hit is not None:
         return hit
@@ -602,7 +603,7 @@ def _edge_table_sorted(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     lo, hi = np.minimum(directed[:, 0], directed[:, 1]), np.maximum(directed[:, 0], directed[:, 1])
     n = int(hi.max()) + 1 if len(hi) else 1
-    keys = lo.astype(np.int64) * n + hi  # _edge_keys of the sorted pairs
+    keys = lo.astype(np.int64) * n + hi.astype(np.int64)  # _edge_keys of the sorted pairs
     bits = max(len(keys) - 1, 1).bit_length()
     if (n * n - 1).bit_length() + bits <= 63:
         # each key with its row in the low bits, sorted as plain integers (3x faster than an argsort): the rows

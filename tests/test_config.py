@@ -219,8 +219,10 @@ def test_run_mode_read_off_the_precheck(tmp_path):
     assert problem is None and _mode_of(argv, cfg) == RunMode.MULTIRUN
     problem, cfg = compose_checked(["icp.tau=0.5"])
     assert problem is None and _mode_of(["icp.tau=0.5"], cfg) is None  # Hydra's default: run
-    for arg in ("hydra.mode=MULTIRUN", "hydra/launcher=basic", "+hydra.mode=RUN"):
-        assert _mode_of([arg], cfg) is _UNKNOWN
+    for args in (["hydra.mode=MULTIRUN"], ["hydra/launcher=basic"], ["+hydra.mode=RUN"], ["icp.tau=0.1,0.2"],
+                 ["experiment=swept,other"], ["-cp", str(tmp_path)], ["--config-path=x"]):
+        assert _mode_of(args, cfg) is _UNKNOWN, args  # Hydra may read another mode than the precheck's config
+    assert _mode_of(["--config-dir", str(tmp_path), "icp.tau=0.5"], cfg) is None  # a flag's value is no override
     original = Hydra.get_mode
     with _hydra_mode_known(RunMode.MULTIRUN):
         assert Hydra.get_mode(None, "config", []) == RunMode.MULTIRUN

@@ -282,7 +282,9 @@ def test_memo_finds_the_mesh_an_edit_came_from():
     edited = keys[rng.permutation(len(keys))[: int(0.7 * len(keys))]]  # 70 % of the faces, reordered
     assert _MEMO.begin(edited)[1] is first
     assert _MEMO.begin(keys[: int(0.4 * len(keys))] + 1)[1] is None  # nothing shared
-    few = np.concatenate([keys[: int(0.4 * len(keys))], -1 - np.arange(len(keys))])  # 40 % of these faces
+    filler = (np.arange(1, len(keys) + 1, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)).astype(keys.dtype)
+    few = np.concatenate([keys[: int(0.4 * len(keys))], filler])  # 40 % of these faces: too few
+    assert few.dtype == keys.dtype
     assert _MEMO.begin(few)[1] is None
     n = len(_MEMO._entries)
     small = f[: _MEMO.MIN_FACES // 2]  # an edit's neighbourhood: tested in full, no place in the memo

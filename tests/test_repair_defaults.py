@@ -214,3 +214,34 @@ def test_the_border_plan_reaches_backends_that_ask_late_and_those_that_do_not():
     assert seen["before"] == "auto" and seen["late"][0] == "open" and seen["late"][1] > 0
     assert seen["early"] == seen["late"] and a["r_open_border_open"] == b["r_open_border_open"] == 1
     assert late.p.open_border == early.p.open_border == "auto"  # the plan went into copies
+
+
+def test_a_border_plan_that_fails_beside_is_made_here_and_a_broken_one_is_named(monkeypatch):
+    """The plan fails in the child (and its thread fallback): it is made in this process, the same repair; it
+    fails here too: one line naming the border plan, not the backend."""
+    import os
+
+    import scanreg.stages.repair.audit as audit
+
+    mesh = read_mesh(str(shared("stanford_bunny/bun000.ply")))
+    _, want = repair_with_audit(stage("meshfix"), mesh, CTX, "r_")
+    real, parent = audit._border_plan, os.getpid()
+    calls = []
+
+    def elsewhere_broken(p, m):
+        calls.append(os.getpid())
+        if os.getpid() != parent or len(calls) == 1:  # the child, or the thread's fallback (the first call here)
+            raise RuntimeError("broken beside")
+        return real(p, m)
+
+    monkeypatch.setattr(audit, "_border_plan", elsewhere_broken)
+    _, got = repair_with_audit(stage("meshfix"), read_mesh(str(shared("stanford_bunny/bun000.ply"))), CTX, "r_")
+    assert len(calls) == 2  # the thread's try, then the one that served
+    assert {k: v for k, v in got.items() if "time" not in k} == {k: v for k, v in want.items() if "time" not in k}
+
+    def broken(p, m):
+        raise RuntimeError("no plan")
+
+    monkeypatch.setattr(audit, "_border_plan", broken)
+    with pytest.raises(StageError, match=r"border plan failed \(RuntimeError: no plan\)"):
+        repair_with_audit(stage("meshfix"), mesh, CTX, "r_")

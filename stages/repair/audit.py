@@ -2,7 +2,8 @@
 :class:`AuditedRepair`, whose :meth:`~AuditedRepair.repair` runs the backend, audits the mesh before and after
 and applies the guard.
 
-Before the backend runs, the repair decides two things from the input alone:
+Before the backend needs them, the repair decides two things from the input alone (the border plan is made
+in the input audit's child process while the backend loads the mesh, see :meth:`AuditedRepair.planned`):
 - which parts are kept: the connected components whose area is at least ``min_component_share`` of the largest
   part's; the others (specks, scanner debris) are removed on purpose and reported as ``removed_components``;
 - what becomes of an open scan's outer border (``open_border``; ``auto`` tells a one-sided scan from a closed
@@ -196,7 +197,14 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
                                also=lambda: _input_side(p, mesh, ctx.seed))
 
     def planned() -> GuardParams:
-        mode, max_hole = before_audit.first_result()
+        try:
+            mode, max_hole = before_audit.first_result()
+        except Exception:  # noqa: BLE001: the child and its fallback failed: made here, where an error is the plan's
+            try:
+                mode, max_hole = _border_plan(p, mesh)
+            except Exception as e:  # not the backend's failure: named as the plan's
+                raise StageError(f"{where}: the repair's border plan failed ({type(e).__name__}: "
+                                 f"{(str(e).strip().splitlines() or [''])[0][:200]})") from e
         if p.open_border == "auto":
             print(f"note: {where}: " + ("an open scan (its outer border is long for its area): the border is "
                                         "kept open" if mode == "open" else "no outer border: every hole is capped")
@@ -207,11 +215,11 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
 
     run = copy.copy(stage)
     run._plan = planned
-    if not stage.asks_for_plan:
-        run.planned()
+    if not getattr(stage, "asks_for_plan", False):
+        AuditedRepair.planned(run)
     t1 = time.perf_counter()
     out = _run_backend(run, mesh, ctx)
-    mode = run.planned().open_border  # (a backend that never asked: made now)
+    mode = AuditedRepair.planned(run).open_border  # (a backend that never asked: made now)
     t_folds = 0.0
     if p.remove_slivers:  # kept only where the collapse folds nothing (a raw scan's ragged border can)
         collapsed = collapse_slivers(out, p.sliver_angle_deg)
@@ -338,8 +346,8 @@ class AuditedRepair:
     def planned(self) -> GuardParams:
         """``p`` with the border plan of the audited run applied (the plan made, once, at the first call)."""
         if self._plan is not None:
-            plan, self._plan = self._plan, None
-            self.p = plan()
+            self.p = self._plan()
+            self._plan = None  # made once, after it succeeded
         return self.p
 
     def repair(self, mesh: Mesh, ctx: Context, prefix: str, sweep: bool = False) -> tuple[Mesh, dict[str, float]]:

@@ -8,7 +8,7 @@ import numpy as np
 
 from scanreg.config import Context
 from scanreg.errors import StageError
-from scanreg.geometry import Mesh, bbox_diagonal, submesh
+from scanreg.geometry import Mesh, submesh
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
 from scanreg.topology import (_meshset, boundary_edges, boundary_loop_sizes, dilate_faces, large_components, mesh_stats,
@@ -21,8 +21,6 @@ class MeshLab(AuditedRepair):
     close vertices, removes duplicate and null faces, repairs non-manifold edges and vertices, removes small
     components (below ``min_component_share`` of the largest part's area) and orients coherently. It then loops, up to ``max_rounds`` times: delete the self-intersecting
     faces and a ring around them, repair again, and close the holes, until the mesh is clean."""
-
-    asks_for_plan = True
 
     @dataclass
     class Params(GuardParams):
@@ -108,7 +106,7 @@ class MeshLab(AuditedRepair):
         local = pymeshlab.MeshSet()
         local.add_mesh(m)
         local.compute_selection_by_condition_per_face(condselect="fq > 0.5")
-        diag = bbox_diagonal(mesh.vertices)
+        diag = float(np.linalg.norm(mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)))
         try:
             local.meshing_close_holes(maxholesize=self.p.max_hole_edges or 10**9, selected=True,
                                       selfintersection=prevent, refinehole=self.p.refine_holes,
@@ -144,7 +142,7 @@ class MeshLab(AuditedRepair):
     def run(self, mesh: Mesh, ctx: Context) -> Mesh:
         import pymeshlab
 
-        p = self.planned()
+        p = self.p
         ms = _meshset(mesh)
         if p.merge_close_vertices > 0:
             ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(100 * p.merge_close_vertices))
