@@ -223,7 +223,10 @@ def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
     half = 0.5 * np.maximum(np.maximum(d[:, 0], d[:, 1]), d[:, 2])  # (0.5 d).max(axis=1), the same values
     # a margin for the rounding of the centres (the search only pre-filters; the boxes decide)
     margin = 4 * _EPS * float(np.abs(ctr).max() + half.max())
-    base = max(float(np.median(half)), margin, 1e-300)
+    # level 0 up to 1.5 times the median half-size: fewer searches between levels (measured on the bunny, raw
+    # Stanford scans and a CT tooth: 8-11 % faster than levels from the median itself; from 2 or 3 times it,
+    # slower again). Any choice finds the same pairs: the boxes decide.
+    base = max(1.5 * float(np.median(half)), margin, 1e-300)
     level = np.ceil(np.log2(np.maximum(half / base, 1.0))).astype(np.int64)
     groups = [np.flatnonzero(level == k) for k in np.unique(level)]
     hmax = [float(half[g].max()) for g in groups]
