@@ -276,17 +276,18 @@ _FLAGS_WITH_VALUE = {"-cn", "--config-name", "-cp", "--config-path", "-cd", "--c
                      "--experimental-rerun"}
 
 
-def _task_overrides(argv: list[str]) -> tuple[str, list[str], list[str]]:
-    """(config name, the command line's overrides with every sweep reduced to its first value, extra config
-    folders from ``--config-dir`` and ``hydra.searchpath``)."""
+def _parse_argv(argv: list[str]) -> tuple[str, list, list[str], bool]:
+    """The command line as Hydra reads it: (config name, the parsed overrides, extra config folders from
+    ``--config-dir``, whether ``--config-path`` names another primary config folder)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    name, raw, dirs, skip = "config", [], [], False
+    name, raw, dirs, skip, config_path = "config", [], [], False, False
     for i, a in enumerate(argv):
         if skip:
             skip = False
             continue
         flag, eq, val = a.partition("=")
+        config_path |= flag in ("-cp", "--config-path")
         if flag in ("-cd", "--config-dir") and eq:
             dirs.append(val)
             continue
@@ -300,8 +301,15 @@ def _task_overrides(argv: list[str]) -> tuple[str, list[str], list[str]]:
         if a.startswith("-"):
             continue
         raw.append(a)
+    return name, OverridesParser.create().parse_overrides(raw), dirs, config_path
+
+
+def _task_overrides(argv: list[str]) -> tuple[str, list[str], list[str]]:
+    """(config name, the command line's overrides with every sweep reduced to its first value, extra config
+    folders from ``--config-dir`` and ``hydra.searchpath``)."""
+    name, parsed, dirs, _ = _parse_argv(argv)
     out = []
-    for o in OverridesParser.create().parse_overrides(raw):
+    for o in parsed:
         if o.key_or_group == "hydra.searchpath":
             v = o.value()
             dirs += [str(x) for x in (v if isinstance(v, list) else [v])]
@@ -396,25 +404,16 @@ def _mode_of(argv: list[str], cfg: DictConfig) -> object:
     ``_UNKNOWN`` when the precheck may have composed something else: an override of ``hydra.mode`` or of a
     ``hydra/`` group (the precheck leaves Hydra's own overrides out), a sweep (the precheck takes its first
     value, Hydra's ``get_mode`` none for a config group), another primary config folder (``--config-path``)."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    overrides, skip = [], False
-    for a in argv:
-        flag, eq, _ = a.partition("=")
-        if flag in ("-cp", "--config-path"):
-            return _UNKNOWN
-        if skip or a.startswith("-"):  # a flag, or the value of the one before
-            skip = a in _FLAGS_WITH_VALUE and not eq
-            continue
-        key = a.lstrip("+~").partition("=")[0].strip()
-        if key == "hydra" or key.startswith(("hydra.mode", "hydra/")):
-            return _UNKNOWN
-        overrides.append(a)
     try:
-        if any(o.is_sweep_override() for o in OverridesParser.create().parse_overrides(overrides)):
-            return _UNKNOWN
+        _, parsed, _, config_path = _parse_argv(argv)
     except Exception:  # noqa: BLE001: Hydra reports it
         return _UNKNOWN
+    if config_path:
+        return _UNKNOWN
+    for o in parsed:
+        key = o.key_or_group
+        if key == "hydra" or key.startswith(("hydra.mode", "hydra/")) or o.is_sweep_override():
+            return _UNKNOWN
     try:
         return cfg.hydra.mode
     except Exception:  # noqa: BLE001: no hydra node: let Hydra find it

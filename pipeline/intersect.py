@@ -24,6 +24,8 @@ with one tested shortly before in the process reuses that outcome for the pairs 
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from scanreg.geometry import rows_all, rows_any
@@ -515,21 +517,18 @@ class _Job:
         return out
 
 
-_MALLOPT: list = []  # glibc's mallopt, looked up once in the parent (no dlopen in a forked child)
-
-
+@functools.cache
 def _mallopt():
-    """glibc's ``mallopt`` (``int mallopt(int, int)``), or None where there is none."""
-    if not _MALLOPT:
-        try:
-            import ctypes
+    """glibc's ``mallopt`` (``int mallopt(int, int)``), or None where there is none; looked up once, in the
+    parent (no dlopen in a forked child)."""
+    try:
+        import ctypes
 
-            fn = ctypes.CDLL(None).mallopt
-            fn.argtypes, fn.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-        except Exception:  # noqa: BLE001: not glibc
-            fn = None
-        _MALLOPT.append(fn)
-    return _MALLOPT[0]
+        fn = ctypes.CDLL(None).mallopt
+        fn.argtypes, fn.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+        return fn
+    except Exception:  # noqa: BLE001: not glibc
+        return None
 
 
 def _keep_freed_memory(mallopt) -> None:
@@ -826,7 +825,7 @@ class _Memo:
         with self._lock:
             earlier = list(self._entries)
             self._entries = (self._entries + [entry])[-self.SIZE:]
-        best, best_n = None, len(keys) // 2  # worth it when at least half the faces are shared
+        best, best_n = None, len(keys) // 2  # worth it when more than half the faces are shared
         probe = keys[::max(1, len(keys) // self.PROBE)]
         for e in earlier:
             if not best_n < len(e.keys) <= self.MAX_RATIO * len(keys):

@@ -166,6 +166,11 @@ def _border_plan(p: GuardParams, mesh: Mesh) -> tuple[str, int | None]:
     return mode, max(int(edges.max()) // 2, 1)  # keep loops over half the longest open
 
 
+def _first_line(e: BaseException) -> str:
+    """The first line of an exception's message, at most 200 characters (for a one-line error)."""
+    return (str(e).strip().splitlines() or [""])[0][:200]
+
+
 def _run_backend(stage, mesh: Mesh, ctx: Context) -> Mesh:
     """The backend's ``run``; any failure, and an empty result, as one line naming the backend and file."""
     where = f"repair={stage.name}: {mesh.source or 'mesh'}"
@@ -174,7 +179,7 @@ def _run_backend(stage, mesh: Mesh, ctx: Context) -> Mesh:
     except ScanregError:
         raise
     except Exception as e:  # a library's exception (PyMeshLabException, ...) becomes one line
-        first = (str(e).strip().splitlines() or [""])[0][:200]
+        first = _first_line(e)
         raise StageError(f"{where}: the backend failed ({type(e).__name__}: {first}); try the other backend "
                          "(repair=meshfix / repair=meshlab) or repair=none") from e
     if not len(out.faces):
@@ -196,7 +201,7 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     before_audit = AuditBeside(mesh, first=lambda: _border_plan(p, mesh),
                                also=lambda: _input_side(p, mesh, ctx.seed))
 
-    def planned() -> GuardParams:
+    def with_plan() -> GuardParams:  # p with the border plan applied (AuditedRepair.planned calls it once)
         try:
             mode, max_hole = before_audit.first_result()
         except Exception:  # noqa: BLE001: the child and its fallback failed: made here, where an error is the plan's
@@ -204,7 +209,7 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
                 mode, max_hole = _border_plan(p, mesh)
             except Exception as e:  # not the backend's failure: named as the plan's
                 raise StageError(f"{where}: the repair's border plan failed ({type(e).__name__}: "
-                                 f"{(str(e).strip().splitlines() or [''])[0][:200]})") from e
+                                 f"{_first_line(e)})") from e
         if p.open_border == "auto":
             print(f"note: {where}: " + ("an open scan (its outer border is long for its area): the border is "
                                         "kept open" if mode == "open" else "no outer border: every hole is capped")
@@ -214,7 +219,7 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
         return replace(p, open_border=mode, **({} if max_hole is None else {"max_hole_edges": max_hole}))
 
     run = copy.copy(stage)
-    run._plan = planned
+    run._plan = with_plan
     if not getattr(stage, "asks_for_plan", False):
         AuditedRepair.planned(run)
     t1 = time.perf_counter()
