@@ -548,7 +548,11 @@ class Beside:
     """:func:`self_intersecting_faces` of a mesh, computed beside the caller; :meth:`result` waits for the mask.
     ``extra``, a function of no arguments (more measurements of the same mesh), runs after the test in the same
     place; :meth:`extra_result` waits for its value (picklable). ``first``, another such function, runs before
-    the test; :meth:`first_result` waits for its value only.
+    the test; :meth:`first_result` waits for its value only. ``then``, a function of no arguments run after
+    ``extra`` in the same place (it prepares, e.g. a search tree of the mesh, while the caller is busy), returns
+    a function of one request (a tuple of NumPy arrays the caller has only later): :meth:`ask` hands it the
+    request, :meth:`then_result` waits for its answer (picklable), and :meth:`close` tells the child that no
+    request will come (it exits; a child never asked also exits when this process does).
 
     On Linux the work runs in a forked child process (the same code on the same arrays, inherited; the
     results come back through a pipe), so that it uses another core even while the caller runs a library that
@@ -562,14 +566,18 @@ class Beside:
     the test's own time) is stopped and the work done in this process instead."""
     TIMEOUT_S_PER_FACE = 2e-4
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, extra=None, first=None):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, extra=None, first=None, then=None):
         import threading
 
         self._job = _Job(vertices, faces)
-        self._extra_fn, self._first_fn = extra, first
+        self._extra_fn, self._first_fn, self._then_fn = extra, first, then
         self._mask = self._error = None
         self._extra = self._first = self._first_error = None  # (value,) once known; the first one's failure
-        self._first_known = threading.Event()
+        self._answer = self._then_error = None  # then's answer (value,) once known; its failure
+        self._first_known, self._known = threading.Event(), threading.Event()  # first; mask and extra
+        self._request = None  # (arrays,) once asked; None: not yet, or closed
+        self._asked = threading.Event()  # set by ask() and by close()
+        self._ask_fd = None  # the write end of the child's request pipe, until asked or closed
         self._old = None
         if self._job.entry is not None:
             # an earlier mesh's outcome the child can use: only one already known (a child cannot wait for this
@@ -578,8 +586,9 @@ class Beside:
             self._old = prev.result if prev is not None and prev.done.is_set() else None
             if prev is not None and self._old is None:
                 self._job.prev = None
-        elif extra is None and first is None:
+        elif extra is None and first is None and then is None:
             self._mask, self._thread = self._job.mask(None), None
+            self._known.set()
             return
         self._child = self._fork()
         self._thread = threading.Thread(target=self._collect, daemon=True, name="scanreg-beside")
@@ -598,22 +607,29 @@ class Beside:
         if not sys.platform.startswith("linux") or os.environ.get("SCANREG_NO_FORK"):
             return None
         mallopt = _mallopt()
+        fds = []
         try:
-            r, w = os.pipe()
+            for _ in range(1 + int(self._then_fn is not None)):  # results; requests (then)
+                fds.extend(os.pipe())
         except OSError:
+            for fd in fds:
+                os.close(fd)
             return None
+        r, w = fds[:2]
         try:
             with warnings.catch_warnings():  # Python >= 3.12 warns about forking a threaded process; the
                 warnings.simplefilter("ignore", DeprecationWarning)  # child runs NumPy and SciPy code only
                 pid = os.fork()
         except OSError:
-            os.close(r)
-            os.close(w)
+            for fd in fds:
+                os.close(fd)
             return None
-        if pid == 0:  # the child: the first value, the pairs, the extra value; it leaves without the parent's exit code
-            code = 1
+        if pid == 0:  # the child: the first value, the pairs, the extra value, then's answer; it leaves without
+            code = 1  # the parent's exit code
             try:
                 os.close(r)
+                if len(fds) > 2:
+                    os.close(fds[3])
                 _keep_freed_memory(mallopt)
                 if self._first_fn is not None:
                     _send(w, pickle.dumps(self._first_fn(), protocol=pickle.HIGHEST_PROTOCOL))
@@ -621,30 +637,49 @@ class Beside:
                 _send(w, b"" if pairs is None else np.ascontiguousarray(pairs, np.int64).tobytes())
                 if self._extra_fn is not None:
                     _send(w, pickle.dumps(self._extra_fn(), protocol=pickle.HIGHEST_PROTOCOL))
+                if self._then_fn is not None:
+                    answer = self._then_fn()
+                    request = _read_arrays(fds[2])
+                    if request is not None:  # None: closed without a request
+                        _send(w, pickle.dumps(answer(request), protocol=pickle.HIGHEST_PROTOCOL))
                 code = 0
             finally:
                 os._exit(code)
         os.close(w)
+        if len(fds) > 2:
+            os.close(fds[2])
+            self._ask_fd = fds[3]
         return pid, r
 
     def _receive(self, pid: int, r: int) -> None:
         """The child's results, the memo told at once; any left unknown (the child failed or took too long, and
-        was stopped) are computed here."""
+        was stopped) are computed here. Then's answer is waited for without a deadline until the request is
+        sent (the caller's own work comes between), then within the same time limit again."""
         import os
         import pickle
         import select
         import signal
         import time
 
-        deadline = time.monotonic() + self.TIMEOUT_S + self.TIMEOUT_S_PER_FACE * self._job.n
+        limit = self.TIMEOUT_S + self.TIMEOUT_S_PER_FACE * self._job.n
+        deadline = time.monotonic() + limit
         k = int(self._first_fn is not None)  # the pairs' message: after the first value's, if any
-        buf, want, got = b"", k + 1 + int(self._extra_fn is not None), []
+        pre = k + 1 + int(self._extra_fn is not None)  # the messages before then's answer
+        buf, want, got = b"", pre + int(self._then_fn is not None), []
+        rearmed = False  # the deadline set again once then's request is sent
         try:
             while len(got) < want:
-                left = deadline - time.monotonic()
-                if left <= 0 or not select.select([r], [], [], left)[0]:
-                    os.kill(pid, signal.SIGKILL)
-                    break
+                waiting = len(got) == pre and not rearmed and not self._asked.is_set()
+                if waiting:  # the caller's own work comes before its request: no deadline (the child may end)
+                    if not select.select([r], [], [], 0.5)[0]:
+                        continue
+                else:
+                    if len(got) == pre and not rearmed:
+                        deadline, rearmed = time.monotonic() + limit, True
+                    left = deadline - time.monotonic()
+                    if left <= 0 or not select.select([r], [], [], left)[0]:
+                        os.kill(pid, signal.SIGKILL)
+                        break
                 chunk = os.read(r, 1 << 20)
                 if not chunk:
                     break
@@ -660,11 +695,18 @@ class Beside:
                         pairs = np.frombuffer(got[k], np.int64).reshape(-1, 2).copy()
                         self._mask = self._job.mask(pairs)
                         self._job.finish(pairs)
+                    if len(got) == pre:
+                        if self._extra_fn is not None:
+                            self._extra = (pickle.loads(got[-1]),)
+                        if self._mask is not None or self._job.entry is None:
+                            if self._mask is None:
+                                self._mask = self._job.mask(None)
+                            self._known.set()  # result() need not wait for then's answer
+                    if len(got) == want and self._then_fn is not None:
+                        self._answer = (pickle.loads(got[-1]),)
         finally:
             os.close(r)
             os.waitpid(pid, 0)
-        if len(got) == want and self._extra_fn is not None:
-            self._extra = (pickle.loads(got[-1]),)
 
     def _collect(self) -> None:
         done = False
@@ -693,12 +735,61 @@ class Beside:
             self._error = e
         finally:
             self._first_known.set()
+            self._known.set()
             if not done and self._job.entry is not None and not self._job.entry.done.is_set():
                 self._job.finish(None)
+        if self._then_fn is not None and self._answer is None:  # no child, or it failed: here
+            try:
+                answer = self._then_fn()
+                self._asked.wait()
+                if self._request is not None:
+                    self._answer = (answer(self._request),)
+            except BaseException as e:  # noqa: BLE001: then_result() raises it
+                self._then_error = e
 
-    def result(self) -> np.ndarray:
+    def ask(self, *arrays: np.ndarray) -> None:
+        """Hand ``then``'s function its request (NumPy arrays; sent to the child by a thread of this process, so
+        that the caller goes on at once). Once only."""
+        import threading
+
+        if self._then_fn is None or self._asked.is_set():
+            raise ValueError("Beside.ask: no then function was given, or asked or closed already")
+        self._request = tuple(np.ascontiguousarray(a) for a in arrays)
+        fd, self._ask_fd = self._ask_fd, None
+        self._asked.set()
+        if fd is not None:
+            threading.Thread(target=_send_arrays, args=(fd, self._request), daemon=True,
+                             name="scanreg-beside-ask").start()
+
+    def close(self) -> None:
+        """No request will come (a child waiting for one exits). Nothing happens once asked."""
+        import os
+
+        fd, self._ask_fd = self._ask_fd, None
+        self._asked.set()
+        if fd is not None:
+            os.close(fd)
+
+    def then_result(self):
+        """``then``'s answer to the request :meth:`ask` handed over (waits for it)."""
+        if self._then_fn is None or self._request is None:
+            raise ValueError("Beside.then_result: no then function was given, or it was not asked")
         if self._thread is not None:
             self._thread.join()
+        if self._answer is None:
+            if self._then_error is not None:
+                raise self._then_error
+            self.result()
+        return self._answer[0]
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001: at interpreter exit
+            pass
+
+    def result(self) -> np.ndarray:
+        self._known.wait()
         if self._error is not None:
             raise self._error
         return self._mask
@@ -725,6 +816,61 @@ def _send(fd: int, payload: bytes) -> None:
     data = memoryview(len(payload).to_bytes(8, "little") + payload)
     while len(data):
         data = data[os.write(fd, data):]
+
+
+def _send_arrays(fd: int, arrays: tuple) -> None:
+    """NumPy arrays into a pipe (their dtypes and shapes, then their bytes, as messages of :func:`_send`) and
+    the pipe closed (its reader sees the end)."""
+    import os
+    import pickle
+
+    try:
+        _send(fd, pickle.dumps([(a.dtype.str, a.shape) for a in arrays]))
+        for a in arrays:
+            _send_view(fd, memoryview(a.reshape(-1).view(np.uint8)))
+    except OSError:  # the child is gone: then's answer is made here
+        pass
+    finally:
+        os.close(fd)
+
+
+def _send_view(fd: int, data: memoryview) -> None:
+    import os
+
+    os.write(fd, len(data).to_bytes(8, "little"))
+    while len(data):
+        data = data[os.write(fd, data):]
+
+
+def _read_arrays(fd: int):
+    """The arrays :func:`_send_arrays` wrote, or None when the pipe was closed without them."""
+    import os
+    import pickle
+
+    def exactly(n: int) -> bytes | None:
+        parts, left = [], n
+        while left:
+            chunk = os.read(fd, min(left, 1 << 22))
+            if not chunk:
+                return None
+            parts.append(chunk)
+            left -= len(chunk)
+        return b"".join(parts)
+
+    def message() -> bytes | None:
+        head = exactly(8)
+        return None if head is None else exactly(int.from_bytes(head, "little"))
+
+    head = message()
+    if head is None:
+        return None
+    out = []
+    for dtype, shape in pickle.loads(head):
+        data = message()
+        if data is None:
+            return None
+        out.append(np.frombuffer(data, dtype=np.dtype(dtype)).reshape(shape))
+    return tuple(out)
 
 
 def _all_pairs(v: np.ndarray, f: np.ndarray, live: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:

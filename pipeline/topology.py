@@ -56,16 +56,31 @@ def min_angles_deg(mesh: Mesh) -> np.ndarray:
 
 
 def _min_angles_deg(mesh: Mesh) -> np.ndarray:
-    P = mesh.vertices[mesh.faces]
-    e = [P[:, (i + 1) % 3] - P[:, i] for i in range(3)]  # edge i runs from corner i to corner i+1
-    L = [np.sqrt(np.einsum("ij,ij->i", x, x)) for x in e]
+    c = _corner_columns(mesh)
+    e = [[c[(i + 1) % 3][k] - c[i][k] for k in range(3)] for i in range(3)]  # edge i: corner i to corner i+1
+    L = [np.sqrt(_dot3(x, x)) for x in e]
     # the smallest angle has the largest cosine (arccos decreases): one arccos per face, the same value
-    cmax = np.full(len(P), -1.0)
+    n = len(mesh.faces)
+    cmax = np.full(n, -1.0)
     for i in range(3):  # the cosine at corner i, between edge i and the reversed edge i-1
         den = L[i] * L[i - 1]
-        c = np.divide(-np.einsum("ij,ij->i", e[i], e[i - 1]), den, out=np.ones(len(P)), where=den > 0)
+        c = np.divide(-_dot3(e[i], e[i - 1]), den, out=np.ones(n), where=den > 0)
         np.maximum(cmax, c, out=cmax)
     return np.degrees(np.arccos(np.clip(cmax, -1.0, 1.0)))
+
+
+def _corner_columns(mesh: Mesh) -> list[list[np.ndarray]]:
+    """``c[i][k]``: coordinate k of corner i of every face, each a contiguous 1-D array (arithmetic on these is
+    several times faster than on (n, 3) rows, and makes fewer temporaries)."""
+    v, f = mesh.vertices, mesh.faces
+    cols = [np.ascontiguousarray(v[:, k]) for k in range(3)]
+    return [[cols[k][idx] for k in range(3)] for idx in (np.ascontiguousarray(f[:, i]) for i in range(3))]
+
+
+def _dot3(a: list[np.ndarray], b: list[np.ndarray]) -> np.ndarray:
+    """Row-wise dot products of vectors given as three coordinate columns, summed as NumPy's
+    ``einsum("ij,ij->i")`` does on rows of 3 ((x + z) + y): the same bits as before this was column-wise."""
+    return (a[0] * b[0] + a[2] * b[2]) + a[1] * b[1]
 
 
 def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: int = 3) -> Mesh:
@@ -288,8 +303,8 @@ def mesh_stats(mesh: Mesh) -> dict[str, float]:
     }
     out["watertight"] = int(out["boundary_edges"] == 0 and out["non_manifold_edges"] == 0)
     if out["watertight"]:
-        v = mesh.vertices
-        out["volume"] = float(np.einsum("ij,ij->i", v[f[:, 0]], cross3(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
+        c = _corner_columns(mesh)  # the triple products column by column, in einsum's order: the same bits
+        out["volume"] = float(_dot3(c[0], _cross_columns(c[1], c[2])).sum() / 6.0)
     return out
 
 
@@ -320,23 +335,38 @@ class AuditBeside:
     """:func:`audit_mesh` of ``mesh`` computed beside the caller (:class:`scanreg.intersect.Beside`: in another
     process, or a thread), and ``also()`` (more of the input's measurements; picklable) after it;
     :meth:`result` waits for both and remembers the self-intersection mask and count on ``mesh``. ``first()``,
-    computed there before the rest, is what :meth:`first_result` waits for."""
+    computed there before the rest, is what :meth:`first_result` waits for; ``then()``, computed there after
+    the rest, returns the function that answers :meth:`ask`'s request (:meth:`then_result`). :meth:`close` when
+    done (a request never made: the child waits for it until then). ``stats=False``: the self-intersection
+    test alone (the rest of :func:`audit_mesh` is measured elsewhere)."""
 
-    def __init__(self, mesh: Mesh, also=None, first=None):
+    def __init__(self, mesh: Mesh, also=None, first=None, then=None, stats: bool = True):
         self.mesh = mesh
         self._si = known(mesh, "self_intersecting_faces")
         faces = mesh.faces if self._si is None else mesh.faces[:0]  # a count known already: the rest only
 
         def extra():
-            return audit_mesh(mesh, self_intersections=False), (also() if also is not None else None)
+            return audit_mesh(mesh, self_intersections=False) if stats else {}, (also() if also is not None else None)
 
-        self._pending = _Beside(mesh.vertices, faces, extra=extra, first=first)
+        self._pending = _Beside(mesh.vertices, faces, extra=extra if stats or also is not None else None,
+                                first=first, then=then)
 
     def first_result(self):
         return self._pending.first_result()
 
+    def ask(self, *arrays: np.ndarray) -> None:
+        self._pending.ask(*arrays)
+
+    def then_result(self):
+        return self._pending.then_result()
+
+    def close(self) -> None:
+        self._pending.close()
+
     def result(self) -> tuple[dict[str, float], object]:
-        stats, more = self._pending.extra_result()
+        """The input's :func:`audit_mesh` (only its ``self_intersecting_faces`` with ``stats=False``) and the
+        value of ``also``."""
+        stats, more = self._pending.extra_result() if self._pending._extra_fn is not None else ({}, None)
         out = dict(stats)
         if self._si is None:
             mask = self._pending.result()
@@ -449,10 +479,14 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
 
 def _centres(m: Mesh) -> tuple[np.ndarray, np.ndarray]:
     """Each face's centroid and circumradius (the largest distance from the centroid to a corner)."""
-    v, f = m.vertices, m.faces
-    a, b, d = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    c = (a + b + d) / 3.0  # the mean of the corners, added in order (as NumPy's mean of three)
-    return c, np.sqrt(np.maximum(np.maximum(_sq_norm(a - c), _sq_norm(b - c)), _sq_norm(d - c)))
+    p = _corner_columns(m)
+    c = [(p[0][k] + p[1][k] + p[2][k]) / 3.0 for k in range(3)]  # the mean of the corners, added in order
+    r2 = None
+    for q in p:  # squared distances summed as _sq_norm (x*x + y*y + z*z, left to right)
+        d = [q[k] - c[k] for k in range(3)]
+        s = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        r2 = s if r2 is None else np.maximum(r2, s)
+    return np.stack(c, axis=1), np.sqrt(r2)
 
 
 def _changed_faces(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -504,11 +538,14 @@ def non_manifold_vertices(mesh: Mesh) -> int:
     c1s, c1e = 3 * (r1 % nf) + j1, 3 * (r1 % nf) + (j1 + 1) % 3
     c2s, c2e = 3 * (r2 % nf) + j2, 3 * (r2 % nf) + (j2 + 1) % 3
     same = directed[r1, 0] == directed[r2, 0]  # traversed the same way (inconsistent orientation)
-    a = np.concatenate([c1s, c1e])
-    b = np.concatenate([np.where(same, c2s, c2e), np.where(same, c2e, c2s)])
-    g = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(3 * nf, 3 * nf)).tocsr()
-    fan = connected_components(g, directed=True, connection="weak")[1]  # weak: as undirected, no transpose
     vert = f.ravel()  # corner 3 * face + k is vertex f[face, k]
+    if not same.any():
+        fan = _fans_turning(nf, vert, c1s, c1e, c2s, c2e)
+    else:
+        a = np.concatenate([c1s, c1e])
+        b = np.concatenate([np.where(same, c2s, c2e), np.where(same, c2e, c2s)])
+        g = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(3 * nf, 3 * nf)).tocsr()
+        fan = connected_components(g, directed=True, connection="weak")[1]  # weak: as undirected, no transpose
     nv = max(len(mesh.vertices), int(vert.max()) + 1)
     one = np.empty(nv, fan.dtype)
     one[vert] = fan  # one of each vertex's groups; a corner in another group makes the vertex non-manifold
@@ -516,6 +553,27 @@ def non_manifold_vertices(mesh: Mesh) -> int:
     several[vert[fan != one[vert]]] = True
     several[directed[counts[edge] > 2].ravel()] = False
     return int(several.sum())
+
+
+def _fans_turning(nf: int, vert: np.ndarray, c1s, c1e, c2s, c2e) -> np.ndarray:
+    """A label per corner, equal for the corners of one fan (the groups :func:`non_manifold_vertices` finds as
+    connected components), for consistently oriented faces: there each corner has at most one next corner
+    around its vertex (across its outgoing edge: ``c1s`` -> ``c2e``, ``c2s`` -> ``c1e``), so the fans are chains
+    and cycles of that map. Pointer doubling: after k rounds a corner knows the smallest corner among its next
+    2^k and the corner 2^k ahead (a chain's last corner stays put); with 2^k at least the most corners of one
+    vertex, a chain's corners all reach its last corner, a cycle's all know its smallest. Several times faster
+    than the graph's components on 100k faces, the same groups."""
+    nc = 3 * nf
+    ptr = np.arange(nc)
+    ptr[c1s], ptr[c2s] = c2e, c1e
+    lab = np.arange(nc)
+    longest = int(np.bincount(vert).max())
+    for _ in range(max(longest - 1, 1).bit_length()):
+        np.minimum(lab, lab[ptr], out=lab)
+        ptr = ptr[ptr]
+    end = np.ones(nc, bool)
+    end[c1s] = end[c2s] = False  # corners with a next one
+    return np.where(end[ptr], ptr, lab)
 
 
 def audit_mesh(mesh: Mesh, self_intersections: bool = True) -> dict[str, float]:
@@ -550,8 +608,25 @@ def point_distances(scene, points: np.ndarray) -> np.ndarray:
 
 def surface_distances(a: Mesh, b: Mesh, n: int, seed: int) -> np.ndarray:
     """Distances from ``n`` area-weighted random points on ``a`` (:func:`area_samples`) to the surface of ``b``
-    (exact point-to-triangle distances, Open3D's raycasting scene)."""
-    return point_distances(raycasting_scene(b), area_samples(a, n, seed))
+    (:func:`distances_to`)."""
+    return distances_to(b)(area_samples(a, n, seed))
+
+
+def distances_to(mesh: Mesh):
+    """The function of points (n, 3) that gives their exact distances to the surface of ``mesh`` (the nearest
+    point on any face, in double precision; libigl's AABB tree, built here once). Unlike Open3D's raycasting
+    scene it uses no thread pool that outlives a call, so it may be built and queried in a forked child
+    process (:class:`AuditBeside`)."""
+    import igl
+
+    v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    tree = igl.AABB()
+    tree.init(v, f)
+
+    def distances(points: np.ndarray) -> np.ndarray:
+        return np.sqrt(tree.squared_distance(v, f, np.ascontiguousarray(points, dtype=np.float64))[0])
+    return distances
 
 
 def area_samples(mesh: Mesh, n: int, seed: int) -> np.ndarray:
@@ -574,11 +649,17 @@ def _area_sample(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:
 def _face_areas(mesh: Mesh) -> np.ndarray:
     """Each face's area, as :func:`~scanreg.geometry.triangle_areas_normals` computes it (the same
     arithmetic, without the normals), once per mesh."""
-    def areas() -> np.ndarray:
-        v, f = mesh.vertices, mesh.faces
-        cross = cross3(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-        return 0.5 * np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    def areas() -> np.ndarray:  # column by column, in cross3's and einsum's order: the same bits
+        c = _corner_columns(mesh)
+        a, b = [c[1][k] - c[0][k] for k in range(3)], [c[2][k] - c[0][k] for k in range(3)]
+        cross = _cross_columns(a, b)
+        return 0.5 * np.sqrt(_dot3(cross, cross))
     return _cached(mesh, "areas", areas)
+
+
+def _cross_columns(a: list[np.ndarray], b: list[np.ndarray]) -> list[np.ndarray]:
+    """:func:`~scanreg.geometry.cross3` of vectors given as three coordinate columns (the same arithmetic)."""
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 
 
 def _mesh_edges(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -670,6 +751,8 @@ def _face_components_uncached(mesh: Mesh) -> np.ndarray:
     g = coo_matrix((np.ones(2 * len(f)), (np.concatenate([f[:, 0], f[:, 1]]), np.concatenate([f[:, 1], f[:, 2]]))),
                    shape=(nv, nv))
     lab = connected_components(g, directed=False)[1][f[:, 0]]
+    if (lab == lab[0]).all():  # one part (unreferenced vertices are parts of their own)
+        return np.zeros(len(f), np.int32)
     uniq, first = np.unique(lab, return_index=True)
     relabel = np.empty(int(uniq.max()) + 1, np.int32)
     relabel[uniq[np.argsort(first)]] = np.arange(len(uniq), dtype=np.int32)
@@ -690,9 +773,11 @@ def large_components(mesh: Mesh, min_share: float) -> np.ndarray:
     """Mask of the faces on components whose area is at least ``min_share`` of the largest component's area
     (relative to the largest part, never to the bounding box: a speck far away does not make the model small).
     ``min_share`` 0 keeps every face, 1 the largest component only (and any of equal area)."""
-    lab, ca = component_areas(mesh)
-    if not len(lab):
+    if not len(mesh.faces):
         return np.zeros(0, bool)
+    if not _face_components(mesh).any():  # one part (label 0 everywhere): kept, its area not needed
+        return np.ones(len(mesh.faces), bool)
+    lab, ca = component_areas(mesh)
     return ca[lab] >= min_share * ca.max()
 
 

@@ -35,8 +35,8 @@ from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.shell import close_as_shell
 from scanreg.topology import (AuditBeside, area_samples, border_loops, collapse_folds, collapse_slivers,
-                              component_areas, known, open_scan_borders, point_distances, raycasting_scene,
-                              remember, surface_distances)
+                              component_areas, distances_to, known, mesh_stats, non_manifold_vertices,
+                              open_scan_borders, point_distances, raycasting_scene, remember)
 
 
 @dataclass
@@ -198,8 +198,21 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     t0 = time.perf_counter()
     # the input's audit runs beside the backend (in another process: pymeshfix keeps the GIL), the border plan
     # first: a backend that asks for its parameters only when it needs them (after loading the mesh) finds it made
+    # first, and the input's search tree last: it answers the output's samples while this process measures the
+    # other way
     before_audit = AuditBeside(mesh, first=lambda: _border_plan(p, mesh),
-                               also=lambda: _input_side(p, mesh, ctx.seed))
+                               also=lambda: _input_side(p, mesh, ctx.seed),
+                               then=lambda: _output_side(mesh, p.audit_samples, ctx.seed + 1))
+    try:
+        return _repair_audited(stage, mesh, ctx, prefix, before_audit, t0)
+    finally:
+        before_audit.close()
+
+
+def _repair_audited(stage, mesh: Mesh, ctx: Context, prefix: str, before_audit: AuditBeside,
+                    t0: float) -> tuple[Mesh, dict[str, float]]:
+    p: GuardParams = stage.p
+    where = f"repair={stage.name}: {mesh.source or 'mesh'}"
 
     def with_plan() -> GuardParams:  # p with the border plan applied (AuditedRepair.planned calls it once)
         try:
@@ -240,11 +253,19 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
     t2 = time.perf_counter()
-    # the output's audit (its one self-intersection pass, when the backend has not made it) beside the distances
-    after_audit = AuditBeside(out)
+    # the output's topology and the distances from its samples to the input, in the input audit's child (it
+    # holds the input's search tree); the output's one self-intersection pass, when the backend has not made
+    # it, in another; the distances the other way here
+    si_out = known(out, "self_intersecting_faces")
+    before_audit.ask(out.vertices, out.faces)
+    after_si = AuditBeside(out, stats=False) if si_out is None else None
     before, input_side = before_audit.result()
-    distances = _audit_distances(p, mesh, out, input_side, ctx, prefix)
-    after, _ = after_audit.result()
+    nmv = non_manifold_vertices(out)  # audit_mesh's last count, here while the child measures the rest
+    distances = _audit_distances(p, mesh, out, input_side, prefix, lambda: before_audit.then_result()[1])
+    after = dict(before_audit.then_result()[0])
+    after["non_manifold_vertices"] = nmv
+    after["self_intersecting_faces"] = int(si_out) if after_si is None else \
+        after_si.result()[0]["self_intersecting_faces"]
     m = {f"{prefix}before_{k}": v for k, v in before.items()}
     m.update({f"{prefix}after_{k}": v for k, v in after.items()})
     m[f"{prefix}open_border_open"] = float(mode in ("open", "shell"))
@@ -304,10 +325,25 @@ def _input_side(p: GuardParams, mesh: Mesh, seed: int) -> dict:
             "samples": area_samples(kept_in, p.audit_samples, seed)}
 
 
-def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, ctx: Context,
-                     prefix: str) -> dict[str, float]:
+def _output_side(mesh: Mesh, n: int, seed: int):
+    """The function of the output's arrays that gives its :func:`mesh_stats` and the distances from ``n``
+    samples on it (:func:`area_samples`, ``seed``) to the input ``mesh`` (large where holes were filled); the
+    input's search tree is built here, beside the backend (:func:`distances_to`). (The rest of the output's
+    :func:`audit_mesh`, its non-manifold vertices and self-intersections, is measured elsewhere, so that the
+    three processes finish at about the same time.)"""
+    to_input = distances_to(mesh)
+
+    def answer(request: tuple[np.ndarray, np.ndarray]) -> tuple[dict[str, float], np.ndarray]:
+        out = Mesh(*request)
+        return mesh_stats(out), to_input(area_samples(out, n, seed))
+    return answer
+
+
+def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, prefix: str,
+                     added) -> dict[str, float]:
     """The input's parts sorted into removed on purpose, kept, and lost; the distances between the kept input
-    surface and the output (see the module docstring); ``ins``: :func:`_input_side`."""
+    surface and the output (see the module docstring); ``ins``: :func:`_input_side`; ``added()``: the other
+    way, from the output's samples to the input (:func:`_output_side`)."""
     ca, large, diag, edge = ins["areas"], ins["large"], ins["diag"], ins["edge"]
     tol = p.removed_tolerance * diag
     # one raycasting scene of the output for both of its uses (the input's vertices, the input's samples)
@@ -317,7 +353,7 @@ def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, ctx: Cont
                       minlength=len(ca)) / np.bincount(part, minlength=len(ca))
     gone = far > 0.5
     d_in = point_distances(scene_out, ins["samples"])
-    d_out = surface_distances(out, mesh, p.audit_samples, ctx.seed + 1)
+    d_out = added()
     limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
     return {
         f"{prefix}components_kept": float((~gone).sum()),
