@@ -534,11 +534,13 @@ def non_manifold_vertices(mesh: Mesh) -> int:
     directed, edge, counts, order = _mesh_edges_sorted(mesh)
     rows = order[counts[edge[order]] == 2]  # grouped by edge (the pair's order does not matter: links are symmetric)
     r1, r2 = rows[0::2], rows[1::2]  # the two faces' directed copies of each two-face edge
-    j1, j2 = r1 // nf, r2 // nf  # local edge j runs from corner j to corner j + 1 of face r % nf
-    c1s, c1e = 3 * (r1 % nf) + j1, 3 * (r1 % nf) + (j1 + 1) % 3
-    c2s, c2e = 3 * (r2 % nf) + j2, 3 * (r2 % nf) + (j2 + 1) % 3
-    same = directed[r1, 0] == directed[r2, 0]  # traversed the same way (inconsistent orientation)
+    nxt = np.array([1, 2, 0])
+    j1, k1 = np.divmod(r1, nf)  # local edge j runs from corner j to corner j + 1 of face r % nf
+    j2, k2 = np.divmod(r2, nf)
+    c1s, c1e = 3 * k1 + j1, 3 * k1 + nxt[j1]
+    c2s, c2e = 3 * k2 + j2, 3 * k2 + nxt[j2]
     vert = f.ravel()  # corner 3 * face + k is vertex f[face, k]
+    same = vert[c1s] == vert[c2s]  # traversed the same way (inconsistent orientation)
     if not same.any():
         fan = _fans_turning(nf, vert, c1s, c1e, c2s, c2e)
     else:

@@ -349,10 +349,10 @@ def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, prefix: s
     # one raycasting scene of the output for both of its uses (the input's vertices, the input's samples)
     scene_out = raycasting_scene(out)
     probe, part = ins["probe"], ins["probe_part"]
-    far = np.bincount(part, point_distances(scene_out, mesh.vertices[probe]) > tol,
-                      minlength=len(ca)) / np.bincount(part, minlength=len(ca))
+    d = point_distances(scene_out, np.concatenate([mesh.vertices[probe], ins["samples"]]))  # one query
+    far = np.bincount(part, d[:len(probe)] > tol, minlength=len(ca)) / np.bincount(part, minlength=len(ca))
     gone = far > 0.5
-    d_in = point_distances(scene_out, ins["samples"])
+    d_in = d[len(probe):]
     d_out = added()
     limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
     return {
