@@ -341,6 +341,80 @@ def test_beside_gives_the_same_in_a_child_a_thread_and_after_a_failure(monkeypat
         assert b.first_result() == "here" and np.array_equal(b.result(), want)
 
 
+def test_beside_answers_a_later_request_in_a_child_a_thread_and_after_a_failure(monkeypatch):
+    """Beside's then/ask (the repair's output measured against the input audit's search tree): the answer is
+    the same whether the child makes it, a thread does (SCANREG_NO_FORK), or this process after the child
+    failed in its preparation or its answer; a request sent after longer than the time limit (the backend's
+    own time) is still answered by the child, which is not stopped meanwhile; a Beside closed without a
+    request leaves no child behind; the mask and extra value come without waiting for the request."""
+    import os
+    import sys
+    import time
+
+    from scanreg.intersect import Beside
+
+    v, f = _two_spheres()
+    want = _fresh(v, f)
+    parent = os.getpid()
+    request = (np.arange(12.0).reshape(4, 3), np.array([[0, 1, 2]], np.int64))
+
+    def prepare():  # a value only the preparation has, and where it was made
+        base = float(v.sum())
+
+        def answer(req):
+            pts, tri = req
+            return base + float(pts.sum()) + tri.sum(), os.getpid() == parent
+        return answer
+
+    def fails_in_child():
+        if os.getpid() != parent:
+            raise RuntimeError("child")
+        return prepare()
+
+    def answer_fails_in_child():
+        a = prepare()
+
+        def answer(req):
+            if os.getpid() != parent:
+                raise RuntimeError("child")
+            return a(req)
+        return answer
+
+    expect = float(v.sum()) + 66.0 + 3
+    cases = [({}, prepare, False), ({"SCANREG_NO_FORK": "1"}, prepare, True), ({}, fails_in_child, True),
+             ({}, answer_fails_in_child, True)]
+    for env, then, here in cases:
+        for k, val in env.items():
+            monkeypatch.setenv(k, val)
+        _MEMO.clear()
+        b = Beside(v, f, extra=lambda: 7, then=then)
+        assert np.array_equal(b.result(), want) and b.extra_result() == 7  # before any request
+        b.ask(*request)
+        value, made_here = b.then_result()
+        assert value == expect and made_here == (here or not sys.platform.startswith("linux")), (env, then)
+        b.close()
+        monkeypatch.delenv("SCANREG_NO_FORK", raising=False)
+    with pytest.raises(ValueError):
+        b.ask(*request)  # once only
+    if sys.platform.startswith("linux"):
+        monkeypatch.setattr(Beside, "TIMEOUT_S", 0.5)
+        monkeypatch.setattr(Beside, "TIMEOUT_S_PER_FACE", 0.0)
+        _MEMO.clear()
+        b = Beside(v, f, then=prepare)
+        time.sleep(1.5)  # longer than the limit: the child waits for the request, not stopped
+        b.ask(*request)
+        assert b.then_result() == (expect, False)
+        _MEMO.clear()
+        b = Beside(v, f, then=prepare)
+        pid = b._child[0]
+        b.result()
+        b.close()  # no request: the child leaves
+        b._thread.join(10)
+        assert not b._thread.is_alive()
+        with pytest.raises(ChildProcessError):
+            os.waitpid(pid, os.WNOHANG)  # reaped
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_folded_grids_match_the_reference(seed):
     """Height fields whose vertices are jittered sideways until triangles flip: fans that overlap themselves

@@ -120,6 +120,39 @@ def test_audit_counts_self_intersections_and_nonmanifold_vertices():
 # ---------------------------------------------------------------------------------------------- open scans as shells
 
 
+def test_distances_to_are_exact_point_to_triangle_distances():
+    """distances_to (libigl's AABB tree, which the audit's child builds): the known distances to a unit square
+    of two triangles (above its face, beside an edge, beyond a corner), and Open3D's float32 distances on the
+    bunny to within float32 rounding; built and queried in a forked child, the same bits as here."""
+    import os
+    import pickle
+
+    from scanreg.geometry import Mesh, bbox_diagonal
+    from scanreg.topology import area_samples, distances_to, point_distances, raycasting_scene
+
+    square = Mesh(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
+    q = np.array([[0.3, 0.4, 0.5], [2, 0.5, 0], [2, 2, 0], [-1, -1, 1], [0.5, 0.5, 0]])
+    assert np.allclose(distances_to(square)(q), [0.5, 1.0, np.sqrt(2), np.sqrt(3), 0.0], rtol=0, atol=1e-15)
+    bunny = load("pkg:pymeshfix/examples/StanfordBunny.ply")
+    pts = area_samples(bunny, 3000, 1) + np.random.default_rng(0).normal(0, 1e-3, (3000, 3))
+    d = distances_to(bunny)(pts)
+    assert np.abs(d - point_distances(raycasting_scene(bunny), pts)).max() < 1e-6 * bbox_diagonal(bunny.vertices)
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        try:
+            os.write(w, pickle.dumps(distances_to(bunny)(pts)))
+        finally:
+            os._exit(0)
+    os.close(w)
+    data = b""
+    while chunk := os.read(r, 1 << 20):
+        data += chunk
+    os.close(r)
+    os.waitpid(pid, 0)
+    assert np.array_equal(pickle.loads(data), d)
+
+
 def test_close_as_shell_on_an_open_surface():
     """A bumpy open sheet closed as a thin shell: watertight, outward oriented, no self-intersection, the
     scanned side unchanged and recovered by Mesh.scanned()."""

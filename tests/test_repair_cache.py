@@ -111,6 +111,59 @@ def test_non_manifold_vertices_agree_with_meshlab():
     assert non_manifold_vertices(weld) > non_manifold_vertices(two)
 
 
+def _fan_groups_by_graph(mesh: Mesh) -> int:
+    """non_manifold_vertices' count with the fans found as the corner graph's connected components (its way
+    for inconsistently oriented faces), for any mesh."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    import scanreg.topology as topo
+
+    def by_graph(nf, vert, c1s, c1e, c2s, c2e):
+        a, b = np.concatenate([c1s, c1e]), np.concatenate([c2e, c2s])
+        g = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(3 * nf, 3 * nf)).tocsr()
+        return connected_components(g, directed=True, connection="weak")[1]
+    fast, topo._fans_turning = topo._fans_turning, by_graph
+    try:
+        return topo.non_manifold_vertices(Mesh(mesh.vertices, mesh.faces))
+    finally:
+        topo._fans_turning = fast
+
+
+def test_fans_by_pointer_doubling_are_the_graph_components():
+    """non_manifold_vertices finds the fans of consistently oriented faces by pointer doubling: the same count
+    as the corner graph's components on a holed cow with vertices welded into pinches, a cone whose apex has
+    200 corners (8 doubling rounds), open fans at a border, and a pinch of two cones; a flipped face takes the
+    graph's way, and MeshLab agrees."""
+    from scanreg.topology import _meshset, non_manifold_vertices
+
+    rng = np.random.default_rng(5)
+    m = holed_cow()
+    n = 200
+    ring = np.stack([np.cos(np.linspace(0, 2 * np.pi, n, endpoint=False)),
+                     np.sin(np.linspace(0, 2 * np.pi, n, endpoint=False)), np.zeros(n)], axis=1)
+    k = np.arange(n)
+    cone = Mesh(np.vstack([[0, 0, 1.0], ring]), np.stack([np.zeros(n, int), 1 + k, 1 + (k + 1) % n], axis=1))
+    open_cone = Mesh(cone.vertices, cone.faces[: n // 2])
+    twin = Mesh(np.vstack([cone.vertices, cone.vertices * [1, 1, -1] + [0, 0, 2]]),
+                np.vstack([cone.faces, cone.faces[:, ::-1] + n + 1]))
+    pinch = Mesh(twin.vertices, np.where(twin.faces == n + 1, 0, twin.faces))  # the apexes welded: two fans
+    meshes = [m, cone, open_cone, pinch]
+    for _ in range(3):
+        f = m.faces.copy()
+        for a, b in rng.integers(0, len(m.vertices), (4, 2)):
+            f[f == b] = a
+        meshes.append(Mesh(m.vertices, f))
+    flipped = m.faces.copy()
+    flipped[10] = flipped[10, ::-1]
+    meshes.append(Mesh(m.vertices, flipped))
+    counts = [non_manifold_vertices(x) for x in meshes]
+    assert counts == [_fan_groups_by_graph(x) for x in meshes]
+    assert counts[1:4] == [0, 0, 1] and max(counts[4:7]) > 0
+    for x in meshes[3:]:
+        assert non_manifold_vertices(x) == _meshset(x).get_topological_measures()["non_two_manifold_vertices"]
+
+
 def test_edge_table_equals_unique_in_both_sorts():
     """The one edge table (rows sorted by edge as packed integers, or by an argsort when vertex indices are too
     large to pack) gives np.unique's edge ids and counts, and its order sorts the keys."""

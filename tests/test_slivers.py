@@ -126,6 +126,17 @@ def test_audit_shortcuts_give_the_plain_computations_answers():
             assert np.array_equal(_area_sample(m, 500, np.random.default_rng(seed)),
                                   barycentric_sample(m, 500, np.random.default_rng(seed))[0])
     assert non_manifold_vertices(odd) == 1  # vertex 5 (0 and 1 are on the non-manifold edge, not counted)
+    from scanreg.geometry import cross3, triangle_areas_normals
+    from scanreg.topology import _face_areas
+    volumes = 0
+    for m in (sl, odd, sliver_sphere()[0]):  # face areas and volume column by column: the same bits as on rows
+        v, f = m.vertices, m.faces
+        assert np.array_equal(_face_areas(Mesh(v, f)), triangle_areas_normals(m)[0])
+        rows = float(np.einsum("ij,ij->i", v[f[:, 0]], cross3(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
+        if mesh_stats(m)["watertight"]:
+            assert mesh_stats(Mesh(v, f))["volume"] == rows
+            volumes += 1
+    assert volumes == 2  # the two spheres
     out = collapse_slivers(sl, 1.0)
     from scanreg.topology import known
     assert known(out, "collapsed_from") is not None  # the kept faces' angles were copied, not recomputed
