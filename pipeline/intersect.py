@@ -789,7 +789,10 @@ class Beside:
             pass
 
     def result(self) -> np.ndarray:
-        self._known.wait()
+        if self._then_fn is None and self._thread is not None:
+            self._thread.join()  # the child reaped too (its CPU time counted where it ran)
+        else:
+            self._known.wait()  # then's answer comes later
         if self._error is not None:
             raise self._error
         return self._mask

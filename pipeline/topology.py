@@ -415,10 +415,10 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(3, np.int64), np.zeros(3, np.int64)
 
     xb, rb = _centres(before)
-    if tracked:  # the faces the collapse kept have before's centres (computed once)
-        xa, ra = np.empty((len(fa), 3)), np.empty(len(fa))
-        xa[~new], ra[~new] = xb[track[3]], rb[track[3]]
-        xa[new], ra[new] = _centres(Mesh(after.vertices, fa[new]))
+    if tracked:  # the faces the collapse kept have before's centres (computed once), and get before's verdict
+        x_new, r_new = _centres(Mesh(after.vertices, fa[new]))
+        ra = np.empty(len(fa))
+        ra[~new], ra[new] = rb[track[3]], r_new
     else:
         xa, ra = _centres(after)
     bound = max(np.quantile(rb, 0.99), np.quantile(ra, 0.99)) if len(fa) else np.quantile(rb, 0.99)
@@ -441,10 +441,11 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
     grid_tree = cKDTree(seeds[n_small:]) if len(seeds) > n_small else None
     # every reach is at most the bound, so a centroid within a seed's reach plus the bound lies in the seed's
     # cell of a grid of side 2 bound or in a neighbouring cell: only the centroids in those cells are looked at
-    pts = np.concatenate([xb, xa, seeds])
+    parts = [xb, x_new, seeds] if tracked else [xb, xa, seeds]  # (a kept face's centre is one of xb's)
     cell = 2 * bound
-    lo = col_min(pts) - cell
-    dims = np.floor((col_max(pts) - lo) / cell).astype(np.int64) + 3 if cell > 0 else None
+    lo = np.min([col_min(q) for q in parts if len(q)], axis=0) - cell
+    dims = np.floor((np.max([col_max(q) for q in parts if len(q)], axis=0) - lo) / cell).astype(np.int64) + 3 \
+        if cell > 0 else None
     gridded = dims is not None and float(np.prod(dims.astype(float))) < 2.0 ** 62
 
     def grid(p: np.ndarray) -> np.ndarray:
@@ -455,14 +456,26 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
 
     if gridded:
         off = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3)
-        around = np.unique(keys(grid(seeds)[:, None] + off))
+        seed_cells = grid(seeds)
+        around = np.unique(keys(seed_cells[:, None] + off))
+        box = col_min(seed_cells) - 1, col_max(seed_cells) + 1  # the cells of ``around`` lie in this box
+
+    def candidates(x: np.ndarray) -> np.ndarray:
+        """The faces whose centroid lies in a cell of ``around`` (first those in its box, column by column:
+        the same cells as ``grid``)."""
+        if not gridded:
+            return np.arange(len(x))
+        g = [np.floor((x[:, k] - lo[k]) / cell).astype(np.int64) for k in range(3)]
+        idx = np.flatnonzero((g[0] >= box[0][0]) & (g[0] <= box[1][0]) & (g[1] >= box[0][1])
+                             & (g[1] <= box[1][1]) & (g[2] >= box[0][2]) & (g[2] <= box[1][2]))
+        return idx[np.isin(keys(np.stack([q[idx] for q in g], axis=1)), around)]
 
     def near(x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Faces (centroids ``x``, circumradii ``r``) that can touch a changed face: centroids within the sum of
         the two reaches; faces up to the common bound found around the seeds, the few larger ones (1 %)
         looked up the other way."""
         mask = np.zeros(len(x), bool)
-        cand = np.flatnonzero(np.isin(keys(grid(x)), around)) if gridded else np.arange(len(x))
+        cand = candidates(x)
         if len(cand) and n_small:  # the small faces' own reaches
             hits = cKDTree(x[cand]).query_ball_point(seeds[:n_small], reach[:n_small] + bound)
             mask[cand[np.concatenate([np.asarray(h, np.int64) for h in hits])]] = True
@@ -474,7 +487,13 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
             mask[big[seed_tree.query_ball_point(x[big], r[big] + bound, return_length=True) > 0]] = True
         return mask
 
-    return fold_counts(submesh(before, near(xb, rb))), fold_counts(submesh(after, near(xa, ra)))
+    near_b = near(xb, rb)
+    if tracked:  # a face's verdict depends on its own centre and radius alone
+        near_a = np.empty(len(fa), bool)
+        near_a[~new], near_a[new] = near_b[track[3]], near(x_new, r_new)
+    else:
+        near_a = near(xa, ra)
+    return fold_counts(submesh(before, near_b)), fold_counts(submesh(after, near_a))
 
 
 def _centres(m: Mesh) -> tuple[np.ndarray, np.ndarray]:
