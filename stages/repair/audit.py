@@ -87,10 +87,13 @@ class GuardParams:
     the ``max_removed_area`` limit 0.10 with 20000 (0.003 with 10000); the ``displacement_quantile`` 0.99 is
     read between the true 0.9886 and 0.9914 quantiles (+-2 standard errors of the 1 % tail's count) with 20000;
     the sampled Hausdorff maximum misses a displaced region of area share a with probability (1 - a)^n, 5 % for
-    a = 1.5e-4 of the kept surface with 20000. Distances themselves are Open3D's float32 point-to-triangle
-    distances (exact up to float32 rounding of the coordinates, about 1e-7 of their magnitude). A query costs
-    about 1.2 us per point, 24 ms for 20000 on the 2-core machine (experiments/benchmarks/repair_speed.md), a
-    tenth of the audit; the raycasting scenes (about 33 ms per 100k faces) are built once per mesh."""
+    a = 1.5e-4 of the kept surface with 20000. Distances themselves are exact point-to-triangle distances:
+    from the input to the output Open3D's (float32 coordinates, exact up to about 1e-7 of their magnitude; its
+    raycasting scene, about 30 ms per 100k faces, serves the samples and the parts' vertices in one query),
+    from the output to the input libigl's in double precision (:func:`~scanreg.topology.distances_to`: the
+    input's tree is built in the input audit's child process while the backend runs, and answers there). A
+    query costs about 1 us per point, 20 ms for 20000 on the 2-core machine
+    (experiments/benchmarks/repair_speed.md)."""
     open_border: str = "auto"
     """What becomes of an open scan's outer border. ``auto``: a mesh with an outer border (a boundary loop at
     least ``open_border_ratio`` times as long as the square root of its part's area,
