@@ -635,10 +635,14 @@ class Beside:
                     _send(w, pickle.dumps(self._first_fn(), protocol=pickle.HIGHEST_PROTOCOL))
                 pairs = self._pairs()
                 _send(w, b"" if pairs is None else np.ascontiguousarray(pairs, np.int64).tobytes())
-                if self._extra_fn is not None:
-                    _send(w, pickle.dumps(self._extra_fn(), protocol=pickle.HIGHEST_PROTOCOL))
+                extra = None if self._extra_fn is None else \
+                    pickle.dumps(self._extra_fn(), protocol=pickle.HIGHEST_PROTOCOL)
+                # then's preparation before the extra value is sent: a message larger than the pipe's buffer
+                # waits until this process reads it, which a backend that keeps the GIL delays to its end
+                answer = None if self._then_fn is None else self._then_fn()
+                if extra is not None:
+                    _send(w, extra)
                 if self._then_fn is not None:
-                    answer = self._then_fn()
                     request = _read_arrays(fds[2])
                     if request is not None:  # None: closed without a request
                         _send(w, pickle.dumps(answer(request), protocol=pickle.HIGHEST_PROTOCOL))
