@@ -96,7 +96,8 @@ def _per_face(mesh: Mesh, fn, n_out: int) -> list[np.ndarray]:
 
 def _dot3(a: list[np.ndarray], b: list[np.ndarray]) -> np.ndarray:
     """Row-wise dot products of vectors given as three coordinate columns, summed as NumPy's
-    ``einsum("ij,ij->i")`` does on rows of 3 ((x + z) + y): the same bits as before this was column-wise."""
+    ``einsum("ij,ij->i")`` does on rows of 3 on x86-64 ((x + z) + y, its two-lane loop without fused
+    multiply-add): the same bits as before this was column-wise, and a fixed order on any machine."""
     return (a[0] * b[0] + a[2] * b[2]) + a[1] * b[1]
 
 

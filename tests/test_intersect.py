@@ -404,15 +404,44 @@ def test_beside_answers_a_later_request_in_a_child_a_thread_and_after_a_failure(
         time.sleep(1.5)  # longer than the limit: the child waits for the request, not stopped
         b.ask(*request)
         assert b.then_result() == (expect, False)
+        made = []
+
+        def counted():
+            made.append(os.getpid())
+            return prepare()
         _MEMO.clear()
-        b = Beside(v, f, then=prepare)
+        b = Beside(v, f, then=counted)
         pid = b._child[0]
         b.result()
-        b.close()  # no request: the child leaves
+        b.close()  # no request: the child leaves, and nothing is prepared here
         b._thread.join(10)
-        assert not b._thread.is_alive()
+        assert not b._thread.is_alive() and parent not in made
         with pytest.raises(ChildProcessError):
             os.waitpid(pid, os.WNOHANG)  # reaped
+        _MEMO.clear()  # this side fails on the child's extra value: the child stopped, the value made here
+        b = Beside(v, f, extra=lambda: _LoadsOnlyInAChild(parent), then=prepare)
+        assert b._known.wait(30)  # (it used to wait for the child, which waited for the request)
+        assert np.array_equal(b.result(), want) and isinstance(b.extra_result(), _LoadsOnlyInAChild)
+        b.ask(*request)
+        assert b.then_result() == (expect, True)
+
+
+def _fail_in(pid: int):
+    import os
+
+    if os.getpid() == pid:
+        raise RuntimeError("this value cannot be loaded here")
+    return _LoadsOnlyInAChild(pid)
+
+
+class _LoadsOnlyInAChild:
+    """A value whose unpickling fails in the process ``pid`` (a failure on the receiving side)."""
+
+    def __init__(self, pid: int):
+        self.pid = pid
+
+    def __reduce__(self):
+        return _fail_in, (self.pid,)
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -128,15 +128,20 @@ def test_audit_shortcuts_give_the_plain_computations_answers():
     assert non_manifold_vertices(odd) == 1  # vertex 5 (0 and 1 are on the non-manifold edge, not counted)
     from scanreg.geometry import cross3, triangle_areas_normals
     from scanreg.topology import _face_areas
+    from scipy.spatial import ConvexHull
+    rng = np.random.default_rng(7)  # a closed hull of 3000 points on an ellipsoid of mixed scales: 5996 faces
+    pts = rng.normal(size=(3000, 3))
+    pts = pts / np.linalg.norm(pts, axis=1)[:, None] * [1.0, 1e-3, 1e3]
+    hull = Mesh(pts, ConvexHull(pts).simplices.astype(np.int64))
     volumes = 0
-    for m in (sl, odd, sliver_sphere()[0]):  # face areas and volume column by column: the same bits as on rows
+    for m in (sl, odd, sliver_sphere()[0], hull):  # areas and volume column by column: the same bits as on rows
         v, f = m.vertices, m.faces
         assert np.array_equal(_face_areas(Mesh(v, f)), triangle_areas_normals(m)[0])
         rows = float(np.einsum("ij,ij->i", v[f[:, 0]], cross3(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
         if mesh_stats(m)["watertight"]:
             assert mesh_stats(Mesh(v, f))["volume"] == rows
             volumes += 1
-    assert volumes == 2  # the two spheres
+    assert volumes == 3  # the two spheres and the hull
     out = collapse_slivers(sl, 1.0)
     from scanreg.topology import known
     assert known(out, "collapsed_from") is not None  # the kept faces' angles were copied, not recomputed

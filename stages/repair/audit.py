@@ -198,6 +198,10 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     where = f"repair={stage.name}: {mesh.source or 'mesh'}"
     if not len(mesh.faces):
         raise StageError(f"{where}: the mesh has no faces to repair (a point cloud? use repair=none)")
+    try:  # loaded here, before the fork: the child that uses it does not load libraries
+        import igl  # noqa: F401
+    except ImportError as e:
+        raise StageError(f"{where}: the repair's audit needs libigl ({_first_line(e)}): pip install libigl") from e
     t0 = time.perf_counter()
     # the input's audit runs beside the backend (in another process: pymeshfix keeps the GIL), the border plan
     # first: a backend that asks for its parameters only when it needs them (after loading the mesh) finds it made
@@ -256,17 +260,16 @@ def _repair_audited(stage, mesh: Mesh, ctx: Context, prefix: str, before_audit: 
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
     t2 = time.perf_counter()
-    # the output's topology and the distances from its samples to the input, in the input audit's child (it
-    # holds the input's search tree); the output's one self-intersection pass, when the backend has not made
-    # it, in another; the distances the other way here
+    # the output's non-manifold vertices and the distances from its samples to the input in the input audit's
+    # child (it holds the input's search tree); the output's one self-intersection pass, when the backend has
+    # not made it, in another; the output's statistics and the distances the other way here
     si_out = known(out, "self_intersecting_faces")
     before_audit.ask(out.vertices, out.faces)
     after_si = AuditBeside(out, stats=False) if si_out is None else None
     before, input_side = before_audit.result()
-    nmv = non_manifold_vertices(out)  # audit_mesh's last count, here while the child measures the rest
+    after = mesh_stats(out)  # here, where the output's smallest angles are known from the sliver collapse
     distances = _audit_distances(p, mesh, out, input_side, prefix, lambda: before_audit.then_result()[1])
-    after = dict(before_audit.then_result()[0])
-    after["non_manifold_vertices"] = nmv
+    after["non_manifold_vertices"] = before_audit.then_result()[0]
     after["self_intersecting_faces"] = int(si_out) if after_si is None else \
         after_si.result()[0]["self_intersecting_faces"]
     m = {f"{prefix}before_{k}": v for k, v in before.items()}
@@ -329,16 +332,15 @@ def _input_side(p: GuardParams, mesh: Mesh, seed: int) -> dict:
 
 
 def _output_side(mesh: Mesh, n: int, seed: int):
-    """The function of the output's arrays that gives its :func:`mesh_stats` and the distances from ``n``
-    samples on it (:func:`area_samples`, ``seed``) to the input ``mesh`` (large where holes were filled); the
-    input's search tree is built here, beside the backend (:func:`distances_to`). (The rest of the output's
-    :func:`audit_mesh`, its non-manifold vertices and self-intersections, is measured elsewhere, so that the
-    three processes finish at about the same time.)"""
+    """The function of the output's arrays that gives its :func:`non_manifold_vertices` and the distances from
+    ``n`` samples on it (:func:`area_samples`, ``seed``) to the input ``mesh`` (large where holes were filled);
+    the input's search tree is built here, beside the backend (:func:`distances_to`). (The rest of the output's
+    :func:`audit_mesh` is measured elsewhere, so that the processes finish at about the same time.)"""
     to_input = distances_to(mesh)
 
-    def answer(request: tuple[np.ndarray, np.ndarray]) -> tuple[dict[str, float], np.ndarray]:
+    def answer(request: tuple[np.ndarray, np.ndarray]) -> tuple[int, np.ndarray]:
         out = Mesh(*request)
-        return mesh_stats(out), to_input(area_samples(out, n, seed))
+        return non_manifold_vertices(out), to_input(area_samples(out, n, seed))
     return answer
 
 
