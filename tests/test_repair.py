@@ -265,3 +265,54 @@ def test_meshlab_closes_holes_on_their_neighbourhood_as_on_the_whole_mesh():
     assert local.face_number() > len(m.faces)  # patched
     assert faces(local) == faces(whole)
     assert list(boundary_loop_sizes(Mesh(local.vertex_matrix(), local.face_matrix()))) == [160]
+
+
+@pytest.mark.parametrize("backend,mesh", [
+    ("meshfix", "meshlab_defects/screwdriver.ply"),
+    ("meshlab", "meshlab_defects/non_manif_hole.ply"),  # the output needs its own self-intersection test
+])
+def test_audit_is_the_same_in_child_processes_and_in_threads(backend, mesh, monkeypatch):
+    """The audited repair gives the same mesh and the same metrics, bit for bit, whether its audits run in
+    forked child processes (the input audit's child also answering the output's request) or in threads
+    (SCANREG_NO_FORK); and no child process is left behind, also when the backend fails while the input
+    audit's child waits for its request."""
+    import os
+    from pathlib import Path
+
+    def children() -> set[int]:  # this process's child processes, zombies included (Linux's /proc)
+        me, found = str(os.getpid()), set()
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if fields[1] == me:
+                found.add(int(stat.parent.name))
+        return found
+
+    def run():
+        out, metrics = repair_with_audit(stage(backend), load(mesh), CTX, "r_")
+        return out, {k: v for k, v in metrics.items() if not k.endswith("_time_s")}
+
+    before = children()
+    forked = run()
+    monkeypatch.setenv("SCANREG_NO_FORK", "1")
+    threaded = run()
+    assert np.array_equal(forked[0].vertices, threaded[0].vertices)
+    assert np.array_equal(forked[0].faces, threaded[0].faces)
+    assert forked[1] == threaded[1]
+    if Path("/proc/self/stat").exists():
+        assert children() <= before  # no child process left behind, not even a zombie
+        monkeypatch.delenv("SCANREG_NO_FORK")
+        def breaks(mesh, ctx):
+            raise RuntimeError("the backend broke")
+        broken = stage(backend)
+        broken.run = breaks
+        with pytest.raises(StageError, match="the backend failed"):  # the child waits for a request in vain
+            repair_with_audit(broken, load(mesh), CTX, "r_")
+        import time
+        for _ in range(100):  # the child sees the request pipe closed and leaves; its reaper thread follows
+            if children() <= before:
+                break
+            time.sleep(0.05)
+        assert children() <= before
