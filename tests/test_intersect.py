@@ -232,6 +232,19 @@ def _two_spheres():
     return np.vstack([v1, v1 * 0.9 + [0.8, 0.1, 0.05]]), np.vstack([f1, f1 + len(v1)])
 
 
+def test_pair_blocks_give_the_same_faces(monkeypatch):
+    """The exact pair test runs in blocks of candidate pairs (PAIR_BLOCK): blocks of 7 pairs find the same
+    faces as one block, on two interpenetrating spheres and on random triangles."""
+    import scanreg.intersect as intersect
+
+    rng = np.random.default_rng(11)
+    cases = [_two_spheres(), (rng.random((90, 3)), rng.integers(0, 90, (60, 3)))]
+    whole = [_fresh(v, f) for v, f in cases]
+    monkeypatch.setattr(intersect, "PAIR_BLOCK", 7)
+    assert all(np.array_equal(_fresh(v, f), w) for (v, f), w in zip(cases, whole))
+    assert whole[0].sum() > 0 and whole[1].sum() > 0
+
+
 def test_incremental_equals_full():
     """An edited copy (faces cut out, new faces that cross others, the rest permuted, vertices renumbered)
     tested right after the original reuses its outcome; the result equals a fresh full test."""
