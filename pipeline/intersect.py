@@ -518,7 +518,7 @@ class _Job:
 
 
 @functools.cache
-def _mallopt():
+def _malloc_controls():
     """glibc's ``mallopt`` (``int mallopt(int, int)``) and ``malloc_trim`` (``int malloc_trim(size_t)``), or None
     where there are none; looked up once, in the parent (no dlopen in a forked child)."""
     try:
@@ -620,7 +620,7 @@ class Beside:
 
         if not sys.platform.startswith("linux") or os.environ.get("SCANREG_NO_FORK"):
             return None
-        mallopt = _mallopt()
+        malloc = _malloc_controls()
         fds = []
         try:
             for _ in range(1 + int(self._then_fn is not None)):  # results; requests (then)
@@ -644,7 +644,7 @@ class Beside:
                 os.close(r)
                 if len(fds) > 2:
                     os.close(fds[3])
-                _keep_freed_memory(mallopt)
+                _keep_freed_memory(malloc)
                 if self._first_fn is not None:
                     _send(w, pickle.dumps(self._first_fn(), protocol=pickle.HIGHEST_PROTOCOL))
                 pairs = self._pairs()
@@ -658,7 +658,7 @@ class Beside:
                     _send(w, extra)
                 if self._then_fn is not None:
                     del extra
-                    _give_back_freed_memory(mallopt)  # it may wait long
+                    _give_back_freed_memory(malloc)  # it may wait long
                     request = _read_arrays(fds[2])
                     if request is not None:  # None: closed without a request
                         _send(w, pickle.dumps(answer(request), protocol=pickle.HIGHEST_PROTOCOL))
@@ -842,11 +842,13 @@ class Beside:
         return self._first[0]
 
 
-def _send(fd: int, payload: bytes) -> None:
-    """One message (its length, then the bytes) into a pipe."""
+def _send(fd: int, payload) -> None:
+    """One message (its length, then the bytes: ``bytes`` or a byte ``memoryview``, written without a copy) into
+    a pipe."""
     import os
 
-    data = memoryview(len(payload).to_bytes(8, "little") + payload)
+    data = memoryview(payload)
+    os.write(fd, len(data).to_bytes(8, "little"))  # 8 bytes: one write, whole (under the pipe's atomic size)
     while len(data):
         data = data[os.write(fd, data):]
 
@@ -860,19 +862,11 @@ def _send_arrays(fd: int, arrays: tuple) -> None:
     try:
         _send(fd, pickle.dumps([(a.dtype.str, a.shape) for a in arrays]))
         for a in arrays:
-            _send_view(fd, memoryview(a.reshape(-1).view(np.uint8)))
+            _send(fd, memoryview(a.reshape(-1).view(np.uint8)))
     except OSError:  # the child is gone: then's answer is made here
         pass
     finally:
         os.close(fd)
-
-
-def _send_view(fd: int, data: memoryview) -> None:
-    import os
-
-    os.write(fd, len(data).to_bytes(8, "little"))
-    while len(data):
-        data = data[os.write(fd, data):]
 
 
 def _read_arrays(fd: int):

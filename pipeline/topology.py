@@ -367,7 +367,8 @@ class AuditBeside:
         def extra():
             return audit_mesh(mesh, self_intersections=False) if stats else {}, (also() if also is not None else None)
 
-        self._pending = _Beside(mesh.vertices, faces, extra=extra if stats or also is not None else None,
+        self._has_extra = stats or also is not None
+        self._pending = _Beside(mesh.vertices, faces, extra=extra if self._has_extra else None,
                                 first=first, then=then)
 
     def first_result(self):
@@ -385,7 +386,7 @@ class AuditBeside:
     def result(self) -> tuple[dict[str, float], object]:
         """The input's :func:`audit_mesh` (only its ``self_intersecting_faces`` with ``stats=False``) and the
         value of ``also``."""
-        stats, more = self._pending.extra_result() if self._pending._extra_fn is not None else ({}, None)
+        stats, more = self._pending.extra_result() if self._has_extra else ({}, None)
         out = dict(stats)
         if self._si is None:
             mask = self._pending.result()

@@ -211,15 +211,16 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
                                also=lambda: _input_side(p, mesh, ctx.seed),
                                then=lambda: _output_side(mesh, p.audit_samples, ctx.seed + 1))
     try:
-        return _repair_audited(stage, mesh, ctx, prefix, before_audit, t0)
+        return _repair_audited(stage, mesh, ctx, prefix, before_audit, t0, where)
     finally:
         before_audit.close()
 
 
-def _repair_audited(stage, mesh: Mesh, ctx: Context, prefix: str, before_audit: AuditBeside,
-                    t0: float) -> tuple[Mesh, dict[str, float]]:
+def _repair_audited(stage, mesh: Mesh, ctx: Context, prefix: str, before_audit: AuditBeside, t0: float,
+                    where: str) -> tuple[Mesh, dict[str, float]]:
+    """:func:`repair_with_audit` once the input's audit runs beside (``before_audit``, started at ``t0``);
+    ``where`` names the backend and the file in error lines."""
     p: GuardParams = stage.p
-    where = f"repair={stage.name}: {mesh.source or 'mesh'}"
 
     def with_plan() -> GuardParams:  # p with the border plan applied (AuditedRepair.planned calls it once)
         try:
