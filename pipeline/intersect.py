@@ -29,6 +29,8 @@ import functools
 import numpy as np
 
 from scanreg.geometry import rows_all, rows_any
+from scanreg.isolate import forking, read_message
+from scanreg.isolate import send_message as _send
 
 _EPS = np.ldexp(1.0, -53)  # half an ulp of 1.0: Shewchuk's epsilon
 _O3_BOUND = (7.0 + 56.0 * _EPS) * _EPS
@@ -615,10 +617,9 @@ class Beside:
         """The child's pid and the pipe's read end, or None where forking is not used or failed."""
         import os
         import pickle
-        import sys
         import warnings
 
-        if not sys.platform.startswith("linux") or os.environ.get("SCANREG_NO_FORK"):
+        if not forking():
             return None
         malloc = _malloc_controls()
         fds = []
@@ -842,17 +843,6 @@ class Beside:
         return self._first[0]
 
 
-def _send(fd: int, payload) -> None:
-    """One message (its length, then the bytes: ``bytes`` or a byte ``memoryview``, written without a copy) into
-    a pipe."""
-    import os
-
-    data = memoryview(payload)
-    os.write(fd, len(data).to_bytes(8, "little"))  # 8 bytes: one write, whole (under the pipe's atomic size)
-    while len(data):
-        data = data[os.write(fd, data):]
-
-
 def _send_arrays(fd: int, arrays: tuple) -> None:
     """NumPy arrays into a pipe (their dtypes and shapes, then their bytes, as messages of :func:`_send`) and
     the pipe closed (its reader sees the end)."""
@@ -871,29 +861,14 @@ def _send_arrays(fd: int, arrays: tuple) -> None:
 
 def _read_arrays(fd: int):
     """The arrays :func:`_send_arrays` wrote, or None when the pipe was closed without them."""
-    import os
     import pickle
 
-    def exactly(n: int) -> bytes | None:
-        parts, left = [], n
-        while left:
-            chunk = os.read(fd, min(left, 1 << 22))
-            if not chunk:
-                return None
-            parts.append(chunk)
-            left -= len(chunk)
-        return b"".join(parts)
-
-    def message() -> bytes | None:
-        head = exactly(8)
-        return None if head is None else exactly(int.from_bytes(head, "little"))
-
-    head = message()
+    head = read_message(fd)
     if head is None:
         return None
     out = []
     for dtype, shape in pickle.loads(head):
-        data = message()
+        data = read_message(fd)
         if data is None:
             return None
         out.append(np.frombuffer(data, dtype=np.dtype(dtype)).reshape(shape))

@@ -15,7 +15,7 @@ LAYERS = [
     ("runner", {"scanreg.runner", "scanreg.deviation", "scanreg.view3d"}),
     ("stages", {"scanreg.stages"}),  # and every module below it
     ("core", {"scanreg.registry", "scanreg.config", "scanreg.errors", "scanreg.geometry", "scanreg.io",
-              "scanreg.metrics", "scanreg.checks", "scanreg.closest", "scanreg.topology", "scanreg.intersect", "scanreg.shell", "scanreg.uncertainty", "scanreg.conf",
+              "scanreg.metrics", "scanreg.checks", "scanreg.closest", "scanreg.topology", "scanreg.intersect", "scanreg.isolate", "scanreg.shell", "scanreg.uncertainty", "scanreg.conf",
               "scanreg._o3d_lazy"}),
 ]
 

@@ -9,6 +9,7 @@ import numpy as np
 from scanreg.config import Context
 from scanreg.errors import StageError
 from scanreg.geometry import Mesh, submesh, triangle_areas_normals
+from scanreg.isolate import run_isolated
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
 from scanreg.topology import (_face_components, _meshset, dilate_faces, large_components, mesh_stats, remember,
@@ -72,27 +73,20 @@ class MeshFix(AuditedRepair):
         return out
 
     def _run_one(self, mesh: Mesh, ctx: Context) -> Mesh:
-        """MeshFix on one part (or on every part with ``join_components``); may return no face."""
-        import pymeshfix
+        """MeshFix on one part (or on every part with ``join_components``); may return no face. MeshFix runs in
+        a child process of its own (:func:`~scanreg.isolate.run_isolated`: the same speed in every repair of a
+        long-lived process, its memory given back at once, a crash one error line); the border plan, made
+        beside it in this process, is handed to it when it asks (after loading the mesh)."""
+        import pymeshfix  # noqa: F401: loaded here, before the fork (no library loading in a child)
 
-        p = self.p
-        tin = pymeshfix.PyTMesh()
-        tin.set_quiet(not (ctx.verbose if ctx else False))
-        tin.load_array(mesh.vertices, mesh.faces.astype(np.int32))
-        if p.join_components:
-            tin.join_closest_components()
-        tin.remove_smallest_components()  # one part here (or the joined ones): bits MeshFix splits off
-        p = self.planned()  # the border plan, made beside the loading above
-        if p.fill_holes:
-            tin.fill_small_boundaries(nbe=p.max_hole_edges, refine=p.refine)
-        clean = False  # True: the result is known to be free of self-intersections
-        if p.clean_iterations > 0 and not (p.fill_holes and p.max_hole_edges > 0):
-            clean = bool(tin.clean(max_iters=p.clean_iterations, inner_loops=3))
-        v, f = tin.return_arrays()
+        quiet = not (ctx.verbose if ctx else False)
+        v, f, clean = run_isolated(
+            lambda plan: _meshfix_session(mesh.vertices, mesh.faces, self.p, quiet, plan), ask=self.planned)
+        p = self.planned()  # made when the child asked for it
         if p.clean_iterations > 0 and p.fill_holes and p.max_hole_edges > 0:
             # MeshFix's clean() fills every boundary while it removes intersections, capping the outer border
             # that max_hole_edges keeps open; remove intersections here and refill only holes under the limit.
-            v, f, clean = self._clean_keeping_borders(np.asarray(v), np.asarray(f), ctx)
+            v, f, clean = self._clean_keeping_borders(v, f, ctx)
         out = Mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), mesh.source)
         if clean:  # the audit need not test it again (its one self-intersection pass is this one)
             remember(out, "self_intersecting_faces", 0)
@@ -102,7 +96,7 @@ class MeshFix(AuditedRepair):
                                ctx: Context) -> tuple[np.ndarray, np.ndarray, bool]:
         """Intersections removed, holes under the limit refilled; and whether the exact test found the result
         free of self-intersections."""
-        import pymeshfix
+        import pymeshfix  # noqa: F401: loaded here, before the forks
         import pymeshlab
 
         clean = False
@@ -118,18 +112,59 @@ class MeshFix(AuditedRepair):
             ms.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PercentageValue(50))
             ms.meshing_remove_unreferenced_vertices()
             cm = ms.current_mesh()
-            tin = pymeshfix.PyTMesh()
-            tin.set_quiet(not (ctx.verbose if ctx else False))
-            tin.load_array(cm.vertex_matrix(), cm.face_matrix().astype(np.int32))
-            tin.fill_small_boundaries(nbe=self.p.max_hole_edges, refine=self.p.refine)
-            v, f = (np.asarray(a) for a in tin.return_arrays())
+            v, f = run_isolated(lambda _: _fill_session(cm.vertex_matrix(), cm.face_matrix(), self.p.max_hole_edges,
+                                                        self.p.refine, not (ctx.verbose if ctx else False)))
         repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
         if (repeated | (triangle_areas_normals(Mesh(v, f))[0] <= 0)).any():  # mesh_stats' degenerate faces
-            tin = pymeshfix.PyTMesh()
-            tin.set_quiet(True)
-            tin.load_array(v, f.astype(np.int32))
-            tin.strong_degeneracy_removal(3)
-            v2, f2 = (np.asarray(a) for a in tin.return_arrays())
+            v2, f2 = run_isolated(lambda _: _degeneracy_session(v, f))
             if mesh_stats(Mesh(v2, f2))["boundary_loops"] <= mesh_stats(Mesh(v, f))["boundary_loops"]:
                 v, f, clean = v2, f2, False  # changed after the test
         return v, f, clean
+
+
+# pymeshfix's sessions, each run in a child process of its own (run_isolated): arrays in, arrays out
+
+def _meshfix_session(vertices: np.ndarray, faces: np.ndarray, p, quiet: bool, plan):
+    """MeshFix on one mesh: loaded, parts joined (``join_components``), the smaller parts MeshFix splits off
+    removed, then (with the border plan, ``plan()``: the parameters with ``open_border`` and ``max_hole_edges``
+    decided) holes filled and, unless a hole limit keeps borders open, MeshFix's cleaning. Returns the vertices,
+    the faces and whether the cleaning reported success."""
+    import pymeshfix
+
+    tin = pymeshfix.PyTMesh()
+    tin.set_quiet(quiet)
+    tin.load_array(vertices, faces.astype(np.int32))
+    if p.join_components:
+        tin.join_closest_components()
+    tin.remove_smallest_components()  # one part here (or the joined ones): bits MeshFix splits off
+    p = plan()  # the border plan, made beside the loading above
+    if p.fill_holes:
+        tin.fill_small_boundaries(nbe=p.max_hole_edges, refine=p.refine)
+    clean = False  # True: the result is known to be free of self-intersections
+    if p.clean_iterations > 0 and not (p.fill_holes and p.max_hole_edges > 0):
+        clean = bool(tin.clean(max_iters=p.clean_iterations, inner_loops=3))
+    v, f = tin.return_arrays()
+    return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), clean
+
+
+def _fill_session(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, refine: bool,
+                  quiet: bool) -> tuple[np.ndarray, np.ndarray]:
+    """MeshFix's hole filling alone (holes with at most ``max_hole_edges`` edges)."""
+    import pymeshfix
+
+    tin = pymeshfix.PyTMesh()
+    tin.set_quiet(quiet)
+    tin.load_array(vertices, faces.astype(np.int32))
+    tin.fill_small_boundaries(nbe=max_hole_edges, refine=refine)
+    return tuple(np.asarray(a) for a in tin.return_arrays())
+
+
+def _degeneracy_session(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MeshFix's strong degeneracy removal (3 iterations)."""
+    import pymeshfix
+
+    tin = pymeshfix.PyTMesh()
+    tin.set_quiet(True)
+    tin.load_array(vertices, faces.astype(np.int32))
+    tin.strong_degeneracy_removal(3)
+    return tuple(np.asarray(a) for a in tin.return_arrays())

@@ -1,0 +1,163 @@
+"""scanreg.isolate: work in a forked child process (values and arrays back, questions to the parent, errors and
+crashes as exceptions, the same results without forking), and the meshfix backend run that way."""
+
+from __future__ import annotations
+
+import faulthandler
+import os
+import signal
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scanreg.isolate import IsolatedCrash, forking, run_isolated
+
+linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked children on Linux only")
+
+
+def children() -> set[int]:
+    """This process's child processes, zombies included (Linux's /proc)."""
+    me, found = str(os.getpid()), set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[1] == me:
+            found.add(int(stat.parent.name))
+    return found
+
+
+def settled(before: set[int]) -> bool:
+    """Whether every child started since ``before`` is gone (reaped by its thread), waiting up to 5 s."""
+    import time
+
+    for _ in range(100):
+        if children() <= before:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@linux
+def test_value_arrays_and_questions_come_back():
+    """The child's value (arrays on writable memory of their own, several MB) and its questions answered by the
+    parent, in order; the work runs in another process, in a thread of its own there."""
+    import threading
+
+    rng = np.random.default_rng(0)
+    big = rng.normal(size=(300_000, 3))  # 7 MB: more than the pipe's buffer
+    asked_here = []
+
+    def ask():
+        asked_here.append(len(asked_here))
+        return {"n": len(asked_here)}
+
+    def work(asked):
+        first, second = asked(), asked()
+        return os.getpid(), threading.current_thread().name, big * 2.0, (first["n"], second["n"]), np.int32(7)
+
+    before = children()
+    pid, thread, doubled, answers, seven = run_isolated(work, ask=ask)
+    assert pid != os.getpid() and thread == "scanreg-isolated"
+    assert np.array_equal(doubled, big * 2.0) and doubled.flags.writeable
+    doubled[0, 0] = 1.0  # its own memory
+    assert answers == (1, 2) and asked_here == [0, 1] and seven == 7
+    assert settled(before)
+
+
+def test_the_same_without_forking(monkeypatch):
+    """SCANREG_NO_FORK: the function runs in this process and thread, ``asked`` calling ``ask`` directly; the
+    same value as in a child."""
+    def work(asked):
+        return np.arange(5) * asked(), os.getpid()
+
+    monkeypatch.setenv("SCANREG_NO_FORK", "1")
+    assert not forking()
+    value, pid = run_isolated(work, ask=lambda: 3)
+    assert pid == os.getpid() and np.array_equal(value, np.arange(5) * 3)
+    assert run_isolated(lambda asked: asked()) is None  # no ask: None
+    monkeypatch.delenv("SCANREG_NO_FORK")
+    if sys.platform.startswith("linux"):
+        forked, pid = run_isolated(work, ask=lambda: 3)
+        assert pid != os.getpid() and np.array_equal(forked, value)
+
+
+class NeedsTwo(Exception):
+    def __init__(self, a, b):  # pickling calls the class with args (a message only): unpickling fails
+        super().__init__(f"{a} and {b}")
+
+
+@linux
+def test_errors_in_the_child_are_raised_here():
+    """An exception in the child is raised here: the same type and message when it survives pickling, else a
+    RuntimeError naming its type and first line."""
+    def fails(asked):
+        raise ValueError("no faces left")
+
+    with pytest.raises(ValueError, match="no faces left"):
+        run_isolated(fails)
+
+    def fails_oddly(asked):
+        raise NeedsTwo("one", "two")
+
+    with pytest.raises(RuntimeError, match="NeedsTwo: one and two"):
+        run_isolated(fails_oddly)
+
+
+@linux
+def test_a_failing_question_stops_the_child():
+    """An exception in ``ask`` (here, in the parent) is raised, and the child waiting for the answer is stopped
+    and reaped."""
+    def ask():
+        raise KeyError("the plan failed")
+
+    before = children()
+    with pytest.raises(KeyError, match="the plan failed"):
+        run_isolated(lambda asked: asked(), ask=ask)
+    assert settled(before)
+
+
+@linux
+def test_a_crash_is_an_error_not_the_end_of_the_run():
+    """A child killed by a signal (a segmentation fault in a library) raises IsolatedCrash naming the signal;
+    this process goes on."""
+    def crashes(asked):
+        faulthandler.disable()  # (pytest's would print the child's stack)
+        os.kill(os.getpid(), signal.SIGSEGV)
+
+    before = children()
+    with pytest.raises(IsolatedCrash, match=r"killed by signal 11 \(SIGSEGV\)"):
+        run_isolated(crashes)
+    assert settled(before)
+    assert run_isolated(lambda asked: 5) == 5
+
+
+@linux
+def test_meshfix_crash_is_one_error_line(monkeypatch):
+    """A crash inside MeshFix (simulated: its session kills its own process) fails the repair with the
+    backend's one error line, and leaves no child process behind."""
+    from scanreg.config import Context
+    from scanreg.errors import StageError
+    from scanreg.io import read_mesh
+    from scanreg.registry import REPAIR, load_all, make_params
+    import scanreg.stages.repair.meshfix as meshfix_module
+
+    load_all()
+    cls = REPAIR.get("meshfix")
+    st = cls(make_params(cls.Params, {"cache": "off"}, "meshfix"))
+
+    def crashes(*args):
+        faulthandler.disable()  # (pytest's would print the child's stack)
+        os.kill(os.getpid(), signal.SIGSEGV)
+
+    monkeypatch.setattr(meshfix_module, "_meshfix_session", crashes)
+    mesh = read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj")
+    before = children()
+    with pytest.raises(StageError, match=r"repair=meshfix: .*cow\.obj: the backend failed \(IsolatedCrash: "
+                                         r"the child process that ran it was killed by signal 11") as err:
+        st.repair(mesh, Context(seed=0, run_dir=None), "r_")
+    assert "\n" not in str(err.value)
+    assert settled(before)
