@@ -16,16 +16,19 @@ them); the table gives the median with the min-max range over the rounds, ratios
   repaired mesh and its metrics back;
 - bun000's default repair in a fresh process (one per round, after the same warm-up), as a run makes it.
 
-pymeshfix gets slower with each use in one process (its ``load_array`` leaks its vertex table: 1.23, 1.47,
-1.76, 2.00 s for four repairs of the bunny in a row), so the rows from this long process overstate a run's
-repair, and the fresh-process rows are the ones a run sees.
+pymeshfix gets slower with each use in one process (it leaks about 13 MB per repair of the bunny, and its
+mesh's many small blocks land scattered in a heap that other work has used: 1.09, 1.43, 1.64, 1.87, 1.84, 1.95 s
+for six repairs in a row), so the anchor's row from this long process drifts over the rounds (the row "first
+and last round" shows by how much). ``repair=meshfix`` runs MeshFix in a child process per repair, in a thread
+of its own there (:func:`scanreg.isolate.run_isolated`: a fresh malloc arena, the memory given back at exit),
+and keeps its speed. The fresh-process rows are the ones a single run sees.
 
 Every repair gets its own copy of the input mesh, as a run reads it: the audit remembers its measurements of a
 mesh (edge table, components, self-intersections) on the mesh object, and a mesh repaired again would reuse the
 input's; the self-intersection test's memo of recent meshes is emptied before each repair for the same reason.
 The input's audit (its self-intersection test, statistics and samples) runs in a forked child process beside the
-backend, so the CPU time of ``repair=meshfix`` (which counts the child's) includes work that the wall time
-overlaps. The anchor and ``repair=meshfix`` on the bunny
+backend (itself in another child), so the CPU time of ``repair=meshfix`` (which counts the children's) includes
+work that the wall time overlaps. The anchor and ``repair=meshfix`` on the bunny
 swap places every other round (the later of the two calls pays pymeshfix's slowdown from one more use).
 
 Every repair runs in this process after one warm-up (imports of open3d, pymeshlab and pymeshfix excluded: a run
@@ -222,6 +225,10 @@ def main() -> None:
         f"| StanfordBunny.ply | scanreg repair=meshfix with audit and guard | {spread(t['bunny_meshfix'], '.2f')} | "
         f"{cpu('bunny_meshfix')} | {ratio('bunny_meshfix', 'anchor')} | {cpu_ratio('bunny_meshfix', 'anchor')} "
         "| anchor (target <= 1.2) |",
+        f"| StanfordBunny.ply | ... the first and the last round in this process (pymeshfix alone drifts in a long "
+        f"process; repair=meshfix runs it in a child process per repair) | anchor {t['anchor'][0]:.2f} -> "
+        f"{t['anchor'][-1]:.2f}; repair=meshfix {t['bunny_meshfix'][0]:.2f} -> {t['bunny_meshfix'][-1]:.2f} | - | - "
+        "| - | - |",
         f"| StanfordBunny.ply | ... of which the audit and guard | {spread(parts['bunny_audit'], '.2f')} | - | "
         f"{share('bunny_audit', 'bunny_backend')} | - | its backend (target <= 0.2) |",
         f"| StanfordBunny.ply | pymeshfix alone, in a fresh process (as a run) | {spread(t['fresh_bunny_anchor'], '.2f')} "
