@@ -90,7 +90,7 @@ THREAD_STACK = 1 << 26
 process's usual main thread (8 MB), for libraries that recurse deeply on large meshes."""
 
 
-def run_isolated(fn, ask=None, own_heap: bool = True):
+def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
     """``fn(asked)`` in a child process forked for it; its value (picklable) returned here. ``asked()``, called
     in the child, returns ``ask()`` computed in this process (None without ``ask``). An exception in ``fn`` is
     raised here (the same exception when it can be pickled, else a RuntimeError with its type and message), and
@@ -102,15 +102,23 @@ def run_isolated(fn, ask=None, own_heap: bool = True):
     side by side as in a fresh process, not scattered through the free space of this process's heap. Measured
     (the bunny, one long process that also ran MeshLab and the audits): MeshFix in the child's main thread
     1.36, 1.36, 1.74, 1.61, 1.74, 1.73 s; in a new thread 1.18, 1.10, 1.13, 1.12, 1.10, 1.15 s (in this process
-    itself it went from 1.0 to 1.9 s)."""
+    itself it went from 1.0 to 1.9 s).
+
+    ``started()``, when given, is called here once the child runs (before ``fn`` without forking): work to
+    start beside it (the repair's input audit)."""
     import os
     import signal
 
     def here():
         return None if ask is None else ask()
 
-    if not forking():
+    def run_here():
+        if started is not None:
+            started()
         return fn(here)
+
+    if not forking():
+        return run_here()
     up_r, up_w = os.pipe()  # child -> here: questions, then the answer
     _widen(up_w)
     try:
@@ -118,13 +126,13 @@ def run_isolated(fn, ask=None, own_heap: bool = True):
     except OSError:
         os.close(up_r)
         os.close(up_w)
-        return fn(here)
+        return run_here()
     try:
         pid = os.fork()
     except OSError:
         for fd in (up_r, up_w, down_r, down_w):
             os.close(fd)
-        return fn(here)
+        return run_here()
     if pid == 0:  # the child: it never returns into the caller's code
         code = 1
         try:
@@ -163,6 +171,8 @@ def run_isolated(fn, ask=None, own_heap: bool = True):
     os.close(down_r)
     done = False
     try:
+        if started is not None:
+            started()
         while True:
             msg, ok = read_value(up_r)
             if not ok:

@@ -203,22 +203,43 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     except ImportError as e:
         raise StageError(f"{where}: the repair's audit needs libigl ({_first_line(e)}): pip install libigl") from e
     t0 = time.perf_counter()
-    # the input's audit runs beside the backend (in another process: pymeshfix keeps the GIL), the border plan
-    # first: a backend that asks for its parameters only when it needs them (after loading the mesh) finds it made
-    # first, and the input's search tree last: it answers the output's samples while this process measures the
-    # other way
-    before_audit = AuditBeside(mesh, first=lambda: _border_plan(p, mesh),
-                               also=lambda: _input_side(p, mesh, ctx.seed),
-                               then=lambda: _output_side(mesh, p.audit_samples, ctx.seed + 1))
+    # the input's audit runs beside the backend (in another process), the border plan first: a backend that asks
+    # for its parameters only when it needs them (after loading the mesh) finds it made first, and the input's
+    # search tree last: it answers the output's samples while this process measures the other way. A backend that
+    # starts its own child process starts the audit right after it (``start_audit``), so that the backend's work
+    # begins first; for the others it starts here, before the backend
+    before_audit = _Deferred(lambda: AuditBeside(mesh, first=lambda: _border_plan(p, mesh),
+                                                 also=lambda: _input_side(p, mesh, ctx.seed),
+                                                 then=lambda: _output_side(mesh, p.audit_samples, ctx.seed + 1)))
     try:
         return _repair_audited(stage, mesh, ctx, prefix, before_audit, t0, where)
     finally:
         before_audit.close()
 
 
-def _repair_audited(stage, mesh: Mesh, ctx: Context, prefix: str, before_audit: AuditBeside, t0: float,
+class _Deferred:
+    """An :class:`AuditBeside` made by ``make()`` at :meth:`start` or at its first use; :meth:`close` closes it
+    only if it was made."""
+
+    def __init__(self, make):
+        self._make, self._audit = make, None
+
+    def start(self) -> AuditBeside:
+        if self._audit is None:
+            self._audit = self._make()
+        return self._audit
+
+    def __getattr__(self, name: str):  # first_result, ask, result, then_result
+        return getattr(self.start(), name)
+
+    def close(self) -> None:
+        if self._audit is not None:
+            self._audit.close()
+
+
+def _repair_audited(stage, mesh: Mesh, ctx: Context, prefix: str, before_audit: _Deferred, t0: float,
                     where: str) -> tuple[Mesh, dict[str, float]]:
-    """:func:`repair_with_audit` once the input's audit runs beside (``before_audit``, started at ``t0``);
+    """:func:`repair_with_audit` once the input's audit is set to run beside (``before_audit``, from ``t0``);
     ``where`` names the backend and the file in error lines."""
     p: GuardParams = stage.p
 
@@ -241,6 +262,10 @@ def _repair_audited(stage, mesh: Mesh, ctx: Context, prefix: str, before_audit: 
 
     run = copy.copy(stage)
     run._plan = with_plan
+    if getattr(stage, "starts_audit", False):
+        run.start_audit = before_audit.start
+    else:
+        before_audit.start()
     if not getattr(stage, "asks_for_plan", False):
         AuditedRepair.planned(run)
     t1 = time.perf_counter()
@@ -389,6 +414,12 @@ class AuditedRepair:
     ``max_hole_edges``) through :meth:`planned`, only when it needs them: the plan is then made beside it
     (:func:`repair_with_audit`). Otherwise ``p`` holds them before ``run`` starts."""
     _plan = None
+    starts_audit = False
+    """True for a backend that runs in a child process of its own and calls :attr:`start_audit` right after
+    forking it (the input's audit, in another child, then starts after the backend's work has begun)."""
+    start_audit = None
+    """Set by the audited run (:func:`repair_with_audit`) on a backend with :attr:`starts_audit`: starts the
+    input's audit (once; later calls do nothing)."""
 
     def planned(self) -> GuardParams:
         """``p`` with the border plan of the audited run applied (the plan made, once, at the first call)."""

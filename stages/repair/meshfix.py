@@ -27,6 +27,7 @@ class MeshFix(AuditedRepair):
     testing again."""
 
     asks_for_plan = True
+    starts_audit = True
 
     @dataclass
     class Params(GuardParams):
@@ -81,7 +82,8 @@ class MeshFix(AuditedRepair):
 
         quiet = not (ctx.verbose if ctx else False)
         v, f, clean = run_isolated(
-            lambda plan: _meshfix_session(mesh.vertices, mesh.faces, self.p, quiet, plan), ask=self.planned)
+            lambda plan: _meshfix_session(mesh.vertices, mesh.faces, self.p, quiet, plan), ask=self.planned,
+            started=self.start_audit)
         p = self.planned()  # made when the child asked for it
         if p.clean_iterations > 0 and p.fill_holes and p.max_hole_edges > 0:
             # MeshFix's clean() fills every boundary while it removes intersections, capping the outer border
