@@ -29,7 +29,7 @@ import functools
 import numpy as np
 
 from scanreg.geometry import rows_all, rows_any
-from scanreg.isolate import forking, read_message
+from scanreg.isolate import forking, keep_from_children, read_message, release
 from scanreg.isolate import send_message as _send
 
 _EPS = np.ldexp(1.0, -53)  # half an ulp of 1.0: Shewchuk's epsilon
@@ -572,8 +572,10 @@ class Beside:
 
     On Linux the work runs in a forked child process (the same code on the same arrays, inherited; the
     results come back through a pipe), so that it uses another core even while the caller runs a library that
-    keeps the GIL (pymeshfix does, most of the time, which left a thread beside it waiting); elsewhere, or when
-    the child fails, in a thread. The memo of recent meshes gets the outcome as soon as it is known, so that a
+    keeps the GIL (pymeshlab's filters; pymeshfix with ``SCANREG_NO_FORK``, which otherwise runs in a child of
+    its own, :mod:`scanreg.isolate`), which would leave a thread beside it waiting; elsewhere, or when the child
+    fails, in a thread. This process's ends of its pipes are closed in children forked later
+    (:func:`~scanreg.isolate.keep_from_children`). The memo of recent meshes gets the outcome as soon as it is known, so that a
     test in this process that shares most faces waits for it and goes on incrementally. The results are the
     same either way: functions of the input alone."""
 
@@ -670,6 +672,7 @@ class Beside:
         if len(fds) > 2:
             os.close(fds[2])
             self._ask_fd = fds[3]
+        keep_from_children(*fds[:1], *fds[3:])  # closed in children forked later (a backend's)
         return pid, r
 
     def _receive(self, pid: int, r: int) -> None:
@@ -732,7 +735,7 @@ class Beside:
                 pass
             raise
         finally:
-            os.close(r)
+            release(r)
             os.waitpid(pid, 0)
 
     def _collect(self) -> None:
@@ -794,12 +797,10 @@ class Beside:
 
     def close(self) -> None:
         """No request will come (a child waiting for one exits). Nothing happens once asked."""
-        import os
-
         fd, self._ask_fd = self._ask_fd, None
         self._asked.set()
         if fd is not None:
-            os.close(fd)
+            release(fd)
 
     def then_result(self):
         """``then``'s answer to the request :meth:`ask` handed over (waits for it)."""
@@ -846,7 +847,6 @@ class Beside:
 def _send_arrays(fd: int, arrays: tuple) -> None:
     """NumPy arrays into a pipe (their dtypes and shapes, then their bytes, as messages of :func:`_send`) and
     the pipe closed (its reader sees the end)."""
-    import os
     import pickle
 
     try:
@@ -856,7 +856,7 @@ def _send_arrays(fd: int, arrays: tuple) -> None:
     except OSError:  # the child is gone: then's answer is made here
         pass
     finally:
-        os.close(fd)
+        release(fd)
 
 
 def _read_arrays(fd: int):

@@ -14,6 +14,8 @@ Messages: a length (8 bytes, little-endian), then that many bytes (:func:`send_m
 
 from __future__ import annotations
 
+import functools
+
 
 class IsolatedCrash(RuntimeError):
     """The child process ended without an answer (killed by a signal, or exited)."""
@@ -93,21 +95,29 @@ process's usual main thread (8 MB), for libraries that recurse deeply on large m
 def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
     """``fn(asked)`` in a child process forked for it; its value (picklable) returned here. ``asked()``, called
     in the child, returns ``ask()`` computed in this process (None without ``ask``). An exception in ``fn`` is
-    raised here (the same exception when it can be pickled, else a RuntimeError with its type and message), and
-    so is one in ``ask`` (the child is then stopped). A child that ends without an answer raises
-    :class:`IsolatedCrash`. Without forking (:func:`forking`), ``fn`` runs here, ``asked`` calling ``ask``.
+    raised here (the same exception when it can be pickled, else a RuntimeError with its type and message; so
+    is the error of pickling a value that cannot be), and so is one in ``ask`` (the child is then
+    stopped). A child that ends without an answer raises :class:`IsolatedCrash`. Without forking
+    (:func:`forking`), ``fn`` runs here, ``asked`` calling ``ask``. There is no time limit: a function that hangs
+    hangs the caller, as it would in this process.
 
-    ``own_heap``: ``fn`` runs in a new thread of the child, which glibc's malloc serves from an arena of its own,
-    so that a library that allocates many small blocks (MeshFix's mesh: about 600 000 for 100k faces) gets them
-    side by side as in a fresh process, not scattered through the free space of this process's heap. Measured
-    (the bunny, one long process that also ran MeshLab and the audits): MeshFix in the child's main thread
-    1.36, 1.36, 1.74, 1.61, 1.74, 1.73 s; in a new thread 1.18, 1.10, 1.13, 1.12, 1.10, 1.15 s (in this process
-    itself it went from 1.0 to 1.9 s).
+    ``own_heap``: ``fn`` runs in a new thread of the child, which glibc's malloc serves from an arena that no
+    other running thread uses (a fresh one, or one a finished thread of this process left), never from the main
+    heap: a library that allocates many small blocks (MeshFix's mesh: about 600 000 for 100k faces) gets them
+    side by side, not scattered through the free space of a heap that other work has used. Measured (the
+    bunny, one long process that also ran MeshLab and the audits): MeshFix in the child's main thread 1.36, 1.36,
+    1.74, 1.61, 1.74, 1.73 s; in a new thread 1.18, 1.10, 1.13, 1.12, 1.10, 1.15 s (in this process itself it
+    went from 1.0 to 1.9 s).
 
     ``started()``, when given, is called here once the child runs (before ``fn`` without forking): work to
-    start beside it (the repair's input audit)."""
+    start beside it (the repair's input audit). The pipes' ends this process keeps are closed in every child
+    forked later (:func:`keep_from_children`), so that such a child never holds them open.
+
+    Standard output and error are flushed before the fork and in the child before it leaves (MeshFix's messages
+    with ``verbose``, printed by C code, reach a file or a pipe)."""
     import os
     import signal
+    import warnings
 
     def here():
         return None if ask is None else ask()
@@ -119,18 +129,24 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
 
     if not forking():
         return run_here()
-    up_r, up_w = os.pipe()  # child -> here: questions, then the answer
+    flush = _flush_all
+    flush()
+    fds: list[int] = []
+    try:
+        for _ in range(2):  # child -> here: questions, then the answer; here -> child: the replies
+            fds.extend(os.pipe())
+    except OSError:
+        for fd in fds:
+            os.close(fd)
+        return run_here()
+    up_r, up_w, down_r, down_w = fds
     _widen(up_w)
     try:
-        down_r, down_w = os.pipe()  # here -> child: the replies to its questions
+        with warnings.catch_warnings():  # Python >= 3.12 warns about forking a threaded process; the child runs
+            warnings.simplefilter("ignore", DeprecationWarning)  # fn in a thread of its own and leaves
+            pid = os.fork()
     except OSError:
-        os.close(up_r)
-        os.close(up_w)
-        return run_here()
-    try:
-        pid = os.fork()
-    except OSError:
-        for fd in (up_r, up_w, down_r, down_w):
+        for fd in fds:
             os.close(fd)
         return run_here()
     if pid == 0:  # the child: it never returns into the caller's code
@@ -163,12 +179,17 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
                 t.join()
             else:
                 work()
-            send_value(up_w, box[0])
+            try:  # (send_value pickles before it writes: nothing is written when that fails)
+                send_value(up_w, box[0])
+            except Exception as e:  # noqa: BLE001: a value that cannot be pickled
+                send_value(up_w, ("error", _picklable(e)))
             code = 0
         finally:
+            flush()
             os._exit(code)
     os.close(up_w)
     os.close(down_r)
+    keep_from_children(up_r, down_w)
     done = False
     try:
         if started is not None:
@@ -181,7 +202,11 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
                 raise IsolatedCrash(_ended(status))
             kind, value = msg
             if kind == "ask":
-                send_value(down_w, here())
+                reply = here()
+                try:
+                    send_value(down_w, reply)
+                except OSError:  # the child is gone: the next read finds the pipe's end, and says how it ended
+                    pass
                 continue
             if kind == "error":
                 raise value
@@ -194,12 +219,85 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
                 pass
         raise
     finally:
-        os.close(up_r)
-        os.close(down_w)
+        release(up_r, down_w)
         if not done:  # reaped by a thread: its exit (unmapping its memory) is not waited for here
             import threading
 
             threading.Thread(target=os.waitpid, args=(pid, 0), daemon=True, name="scanreg-reap").start()
+
+
+_KEPT: set[int] = set()
+"""File descriptors of pipes to and from child processes that this process keeps (its ends): every child forked
+later closes them at once (an ``os.register_at_fork`` hook), so that no other child holds a pipe open and its
+reader or writer sees the pipe's end when its process does."""
+
+
+def keep_from_children(*fds: int) -> None:
+    """Mark ``fds`` (this process's ends of pipes to a child, made before that child was forked) to be closed in
+    every child forked from now on; :func:`release` closes them here."""
+    _hook()
+    _KEPT.update(fds)
+
+
+def release(*fds: int) -> None:
+    """Close ``fds`` here (ends marked with :func:`keep_from_children`, or not) and forget them."""
+    import os
+
+    for fd in fds:
+        _KEPT.discard(fd)
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+
+
+def _close_kept_in_child() -> None:
+    import os
+
+    for fd in list(_KEPT):
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _KEPT.clear()
+
+
+@functools.cache
+def _hook() -> None:
+    import os
+
+    if hasattr(os, "register_at_fork"):
+        os.register_at_fork(after_in_child=_close_kept_in_child)
+
+
+@functools.cache
+def _fflush():
+    """C's ``fflush`` (None where there is no C library to look up), looked up once, before any fork."""
+    try:
+        import ctypes
+
+        fn = ctypes.CDLL(None).fflush
+        fn.argtypes, fn.restype = [ctypes.c_void_p], ctypes.c_int
+        return fn
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def _flush_all() -> None:
+    """Python's standard streams and every C stdio stream flushed (``fflush(NULL)``)."""
+    import sys
+
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:  # noqa: BLE001: closed or replaced by something without flush
+            pass
+    fn = _fflush()
+    if fn is not None:
+        try:
+            fn(None)
+        except Exception:  # noqa: BLE001
+            pass
 
 
 PIPE_BYTES = 1 << 20

@@ -161,3 +161,123 @@ def test_meshfix_crash_is_one_error_line(monkeypatch):
         st.repair(mesh, Context(seed=0, run_dir=None), "r_")
     assert "\n" not in str(err.value)
     assert settled(before)
+
+
+@linux
+def test_started_runs_once_beside_and_a_failure_stops_the_child():
+    """``started`` runs here once the child runs (before ``fn`` without forking); a later child does not hold
+    this process's ends of the pipes (they are closed in it at once); a failure in ``started`` stops the child."""
+    import scanreg.isolate as iso
+
+    calls = []
+
+    def started():
+        calls.append(set(iso._KEPT))
+        r, w = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # a child forked beside (as the repair's audit is): are this process's ends open in it?
+            open_here = sum(1 for fd in calls[-1] if _is_open(fd))
+            os.write(w, bytes([open_here]))
+            os._exit(0)
+        os.close(w)
+        calls.append(os.read(r, 1)[0])
+        os.close(r)
+        os.waitpid(pid, 0)
+
+    assert run_isolated(lambda asked: 3, started=started) == 3
+    kept, open_in_later_child = calls
+    assert len(kept) == 2 and open_in_later_child == 0  # the answer's read end and the replies' write end
+
+    def fails():
+        raise OSError("could not start the audit")
+
+    before = children()
+    with pytest.raises(OSError, match="could not start the audit"):
+        run_isolated(lambda asked: asked(), ask=lambda: 1, started=fails)
+    assert settled(before)
+    order = []
+    os.environ["SCANREG_NO_FORK"] = "1"
+    try:
+        run_isolated(lambda asked: order.append("fn"), started=lambda: order.append("started"))
+    finally:
+        del os.environ["SCANREG_NO_FORK"]
+    assert order == ["started", "fn"]
+
+
+def _is_open(fd: int) -> bool:
+    try:
+        os.fstat(fd)
+        return True
+    except OSError:
+        return False
+
+
+@linux
+def test_a_value_that_cannot_be_pickled_is_named():
+    """A value the child cannot send back raises the pickling error here (it names the reason), not a crash."""
+    import pickle
+    import threading
+
+    with pytest.raises((TypeError, pickle.PicklingError), match="pickle"):
+        run_isolated(lambda asked: threading.Lock())
+
+
+def _meshfix_stage():
+    from scanreg.registry import REPAIR, load_all, make_params
+
+    load_all()
+    cls = REPAIR.get("meshfix")
+    return cls(make_params(cls.Params, {"cache": "off"}, "meshfix"))
+
+
+@linux
+def test_meshfix_failure_in_its_child_leaves_no_process(monkeypatch):
+    """An exception inside MeshFix's session is the backend's one error line, and the input audit's child,
+    started beside it and waiting for its request, is closed and reaped."""
+    from scanreg.config import Context
+    from scanreg.errors import StageError
+    from scanreg.io import read_mesh
+    import scanreg.stages.repair.meshfix as meshfix_module
+
+    def breaks(*args):
+        raise RuntimeError("MeshFix broke")
+
+    monkeypatch.setattr(meshfix_module, "_meshfix_session", breaks)
+    before = children()
+    with pytest.raises(StageError, match=r"the backend failed \(RuntimeError: MeshFix broke\)"):
+        _meshfix_stage().repair(read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj"),
+                                Context(seed=0, run_dir=None), "r_")
+    assert settled(before)
+
+
+def test_meshfix_in_children_is_meshfix_here(monkeypatch):
+    """MeshFix in child processes gives the same mesh and metrics, bit for bit, as in this process
+    (SCANREG_NO_FORK), on a mesh of two parts (two sessions) and, with ../shared/data, on MeshLab's
+    non-manifold hole (the degeneracy session)."""
+    from scanreg.config import Context, shared_data_dir
+    from scanreg.geometry import Mesh
+    from scanreg.io import read_mesh
+
+    cow = read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj")
+    shift = cow.vertices.max(axis=0) - cow.vertices.min(axis=0)
+    two = Mesh(np.vstack([cow.vertices, cow.vertices + 1.5 * shift]),
+               np.vstack([cow.faces, cow.faces + len(cow.vertices)]), "two cows")
+    meshes = [two]
+    hole = shared_data_dir() / "meshlab_defects" / "non_manif_hole.ply"
+    if hole.exists():
+        meshes.append(read_mesh(str(hole)))
+
+    def run(mesh):
+        out, m = _meshfix_stage().repair(Mesh(mesh.vertices.copy(), mesh.faces.copy(), mesh.source),
+                                         Context(seed=0, run_dir=None), "r_")
+        return out, {k: v for k, v in m.items() if not k.endswith("_time_s")}
+
+    for mesh in meshes:
+        monkeypatch.delenv("SCANREG_NO_FORK", raising=False)
+        forked = run(mesh)
+        monkeypatch.setenv("SCANREG_NO_FORK", "1")
+        here = run(mesh)
+        assert np.array_equal(forked[0].vertices, here[0].vertices)
+        assert np.array_equal(forked[0].faces, here[0].faces)
+        assert forked[1] == here[1]
+    assert forked[1]["r_before_components"] >= 1

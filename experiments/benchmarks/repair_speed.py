@@ -19,7 +19,7 @@ them); the table gives the median with the min-max range over the rounds, ratios
 pymeshfix gets slower with each use in one process (it leaks about 13 MB per repair of the bunny, and its
 mesh's many small blocks land scattered in a heap that other work has used: 1.09, 1.43, 1.64, 1.87, 1.84, 1.95 s
 for six repairs in a row), so the anchor's row from this long process drifts over the rounds (the row "first
-and last round" shows by how much). ``repair=meshfix`` runs MeshFix in a child process per repair, in a thread
+and last round" shows by how much). ``repair=meshfix`` runs MeshFix in a child process per session, in a thread
 of its own there (:func:`scanreg.isolate.run_isolated`: a fresh malloc arena, the memory given back at exit),
 and keeps its speed. The fresh-process rows are the ones a single run sees.
 
@@ -28,8 +28,9 @@ mesh (edge table, components, self-intersections) on the mesh object, and a mesh
 input's; the self-intersection test's memo of recent meshes is emptied before each repair for the same reason.
 The input's audit (its self-intersection test, statistics and samples) runs in a forked child process beside the
 backend (itself in another child), so the CPU time of ``repair=meshfix`` (which counts the children's) includes
-work that the wall time overlaps. The anchor and ``repair=meshfix`` on the bunny
-swap places every other round (the later of the two calls pays pymeshfix's slowdown from one more use).
+work that the wall time overlaps (a child's CPU time counts once it is reaped: the MeshFix child's by a
+thread within milliseconds of its exit, well before the repair's audit ends). The anchor and
+``repair=meshfix`` on the bunny swap places every other round.
 
 Every repair runs in this process after one warm-up (imports of open3d, pymeshlab and pymeshfix excluded: a run
 of the pipeline pays them once, for every stage). ``backend`` is the backend itself (with the sliver collapse),
@@ -226,7 +227,7 @@ def main() -> None:
         f"{cpu('bunny_meshfix')} | {ratio('bunny_meshfix', 'anchor')} | {cpu_ratio('bunny_meshfix', 'anchor')} "
         "| anchor (target <= 1.2) |",
         f"| StanfordBunny.ply | ... the first and the last round in this process (pymeshfix alone drifts in a long "
-        f"process; repair=meshfix runs it in a child process per repair) | anchor {t['anchor'][0]:.2f} -> "
+        f"process; repair=meshfix runs it in a child process per session) | anchor {t['anchor'][0]:.2f} -> "
         f"{t['anchor'][-1]:.2f}; repair=meshfix {t['bunny_meshfix'][0]:.2f} -> {t['bunny_meshfix'][-1]:.2f} | - | - "
         "| - | - |",
         f"| StanfordBunny.ply | ... of which the audit and guard | {spread(parts['bunny_audit'], '.2f')} | - | "

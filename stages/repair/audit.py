@@ -219,14 +219,18 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
 
 class _Deferred:
     """An :class:`AuditBeside` made by ``make()`` at :meth:`start` or at its first use; :meth:`close` closes it
-    only if it was made."""
+    only if it was made. ``backend_s``: the time it took to make when a backend started it (counted as the
+    audit's, not the backend's)."""
 
     def __init__(self, make):
-        self._make, self._audit = make, None
+        self._make, self._audit, self.backend_s = make, None, 0.0
 
-    def start(self) -> AuditBeside:
+    def start(self, by_backend: bool = False) -> AuditBeside:
         if self._audit is None:
+            t = time.perf_counter()
             self._audit = self._make()
+            if by_backend:
+                self.backend_s = time.perf_counter() - t
         return self._audit
 
     def __getattr__(self, name: str):  # first_result, ask, result, then_result
@@ -263,7 +267,7 @@ def _repair_audited(stage, mesh: Mesh, ctx: Context, prefix: str, before_audit: 
     run = copy.copy(stage)
     run._plan = with_plan
     if getattr(stage, "starts_audit", False):
-        run.start_audit = before_audit.start
+        run.start_audit = lambda: before_audit.start(by_backend=True)
     else:
         before_audit.start()
     if not getattr(stage, "asks_for_plan", False):
@@ -302,8 +306,9 @@ def _repair_audited(stage, mesh: Mesh, ctx: Context, prefix: str, before_audit: 
     m.update({f"{prefix}after_{k}": v for k, v in after.items()})
     m[f"{prefix}open_border_open"] = float(mode in ("open", "shell"))
     m.update(distances)
-    m[f"{prefix}backend_time_s"] = t2 - t1 - t_folds  # the repair itself (slivers collapsed, the shell)
-    m[f"{prefix}audit_time_s"] = (t1 - t0) + t_folds + (time.perf_counter() - t2)  # the audit and the guard
+    t_start = before_audit.backend_s  # the audit started by the backend, within its time
+    m[f"{prefix}backend_time_s"] = t2 - t1 - t_folds - t_start  # the repair itself (slivers collapsed, the shell)
+    m[f"{prefix}audit_time_s"] = (t1 - t0) + t_folds + t_start + (time.perf_counter() - t2)  # audit and guard
     problems, hints = [], []
     removed, lost = m[f"{prefix}removed_area_share"], m[f"{prefix}removed_kept_components"]
     if removed > p.max_removed_area:

@@ -74,10 +74,11 @@ class MeshFix(AuditedRepair):
         return out
 
     def _run_one(self, mesh: Mesh, ctx: Context) -> Mesh:
-        """MeshFix on one part (or on every part with ``join_components``); may return no face. MeshFix runs in
-        a child process of its own (:func:`~scanreg.isolate.run_isolated`: the same speed in every repair of a
-        long-lived process, its memory given back at once, a crash one error line); the border plan, made
-        beside it in this process, is handed to it when it asks (after loading the mesh)."""
+        """MeshFix on one part (or on every part with ``join_components``); may return no face. Each MeshFix
+        session (this one, and the refills of :meth:`_clean_keeping_borders`) runs in a child process forked for
+        it (:func:`~scanreg.isolate.run_isolated`, about 4 ms: the same speed in every repair of a long-lived
+        process, its memory given back at once, a crash one error line); the border plan, made beside it, is
+        handed to it when it asks (after loading the mesh), and the input's audit starts right after the fork."""
         import pymeshfix  # noqa: F401: loaded here, before the fork (no library loading in a child)
 
         quiet = not (ctx.verbose if ctx else False)
@@ -114,8 +115,9 @@ class MeshFix(AuditedRepair):
             ms.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PercentageValue(50))
             ms.meshing_remove_unreferenced_vertices()
             cm = ms.current_mesh()
-            v, f = run_isolated(lambda _: _fill_session(cm.vertex_matrix(), cm.face_matrix(), self.p.max_hole_edges,
-                                                        self.p.refine, not (ctx.verbose if ctx else False)))
+            vm, fm = cm.vertex_matrix(), cm.face_matrix()  # here: MeshLab is not called in the child
+            v, f = run_isolated(lambda _: _fill_session(vm, fm, self.p.max_hole_edges, self.p.refine,
+                                                        not (ctx.verbose if ctx else False)))
         repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
         if (repeated | (triangle_areas_normals(Mesh(v, f))[0] <= 0)).any():  # mesh_stats' degenerate faces
             v2, f2 = run_isolated(lambda _: _degeneracy_session(v, f))
