@@ -29,7 +29,7 @@ import functools
 import numpy as np
 
 from scanreg.geometry import rows_all, rows_any
-from scanreg.isolate import forking, keep_from_children, read_message, release
+from scanreg.isolate import forking, keep_from_children, kill, read_message, release
 from scanreg.isolate import send_message as _send
 
 _EPS = np.ldexp(1.0, -53)  # half an ulp of 1.0: Shewchuk's epsilon
@@ -682,7 +682,6 @@ class Beside:
         import os
         import pickle
         import select
-        import signal
         import time
 
         limit = self.TIMEOUT_S + self.TIMEOUT_S_PER_FACE * self._job.n
@@ -702,7 +701,7 @@ class Beside:
                         deadline, rearmed = time.monotonic() + limit, True
                     left = deadline - time.monotonic()
                     if left <= 0 or not select.select([r], [], [], left)[0]:
-                        os.kill(pid, signal.SIGKILL)
+                        kill(pid)
                         break
                 chunk = os.read(r, 1 << 20)
                 if not chunk:
@@ -729,10 +728,7 @@ class Beside:
                     if len(got) == want and self._then_fn is not None:
                         self._answer = (pickle.loads(got[-1]),)
         except BaseException:  # this side failed: the child may be waiting for a request; stopped, not waited for
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except OSError:
-                pass
+            kill(pid)
             raise
         finally:
             release(r)

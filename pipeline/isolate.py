@@ -116,7 +116,6 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
     Standard output and error are flushed before the fork and in the child before it leaves (MeshFix's messages
     with ``verbose``, printed by C code, reach a file or a pipe)."""
     import os
-    import signal
     import warnings
 
     def here():
@@ -213,10 +212,7 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
             return value
     except BaseException:
         if not done:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except OSError:
-                pass
+            kill(pid)
         raise
     finally:
         release(up_r, down_w)
@@ -224,6 +220,17 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
             import threading
 
             threading.Thread(target=os.waitpid, args=(pid, 0), daemon=True, name="scanreg-reap").start()
+
+
+def kill(pid: int) -> None:
+    """Stop a child process at once (SIGKILL; nothing happens when it is gone already)."""
+    import os
+    import signal
+
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except OSError:
+        pass
 
 
 _KEPT: set[int] = set()

@@ -18,6 +18,32 @@ def shared(rel: str) -> Path:
     return p
 
 
+def children() -> set[int]:
+    """This process's child processes, zombies included (Linux's /proc)."""
+    me, found = str(os.getpid()), set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[1] == me:
+            found.add(int(stat.parent.name))
+    return found
+
+
+def settled(before: set[int], seconds: float = 5.0) -> bool:
+    """Whether every child process started since ``before`` (:func:`children`) is gone, reaped (threads reap
+    some), waiting up to ``seconds``."""
+    import time
+
+    end = time.monotonic() + seconds
+    while not children() <= before:
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.05)
+    return True
+
+
 def pkg_file(spec: str) -> Path:
     from scanreg.io import resolve_path
 

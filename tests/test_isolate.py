@@ -7,38 +7,14 @@ import faulthandler
 import os
 import signal
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import children, settled
 from scanreg.isolate import IsolatedCrash, forking, run_isolated
 
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked children on Linux only")
-
-
-def children() -> set[int]:
-    """This process's child processes, zombies included (Linux's /proc)."""
-    me, found = str(os.getpid()), set()
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if fields[1] == me:
-            found.add(int(stat.parent.name))
-    return found
-
-
-def settled(before: set[int]) -> bool:
-    """Whether every child started since ``before`` is gone (reaped by its thread), waiting up to 5 s."""
-    import time
-
-    for _ in range(100):
-        if children() <= before:
-            return True
-        time.sleep(0.05)
-    return False
 
 
 @linux

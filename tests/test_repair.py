@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from conftest import shared
+from conftest import children, settled, shared
 from scanreg.config import Context
 from scanreg.errors import StageError
 from scanreg.io import read_mesh
@@ -276,19 +276,7 @@ def test_audit_is_the_same_in_child_processes_and_in_threads(backend, mesh, monk
     forked child processes (the input audit's child also answering the output's request) or in threads
     (SCANREG_NO_FORK); and no child process is left behind, also when the backend fails while the input
     audit's child waits for its request."""
-    import os
     from pathlib import Path
-
-    def children() -> set[int]:  # this process's child processes, zombies included (Linux's /proc)
-        me, found = str(os.getpid()), set()
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                fields = stat.read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if fields[1] == me:
-                found.add(int(stat.parent.name))
-        return found
 
     def run():
         out, metrics = repair_with_audit(stage(backend), load(mesh), CTX, "r_")
@@ -302,12 +290,7 @@ def test_audit_is_the_same_in_child_processes_and_in_threads(backend, mesh, monk
     assert np.array_equal(forked[0].faces, threaded[0].faces)
     assert forked[1] == threaded[1]
     if Path("/proc/self/stat").exists():
-        import time
-        for _ in range(100):  # MeshFix's children are reaped by a thread right after they answer
-            if children() <= before:
-                break
-            time.sleep(0.05)
-        assert children() <= before  # no child process left behind, not even a zombie
+        assert settled(before)  # no child process left behind, not even a zombie (MeshFix's: reaped by a thread)
         monkeypatch.delenv("SCANREG_NO_FORK")
         def breaks(mesh, ctx):
             raise RuntimeError("the backend broke")
@@ -315,8 +298,4 @@ def test_audit_is_the_same_in_child_processes_and_in_threads(backend, mesh, monk
         broken.run = breaks
         with pytest.raises(StageError, match="the backend failed"):  # the child waits for a request in vain
             repair_with_audit(broken, load(mesh), CTX, "r_")
-        for _ in range(100):  # the child sees the request pipe closed and leaves; its reaper thread follows
-            if children() <= before:
-                break
-            time.sleep(0.05)
-        assert children() <= before
+        assert settled(before)  # the child sees the request pipe closed and leaves; its reaper thread follows
