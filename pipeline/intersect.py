@@ -29,7 +29,7 @@ import functools
 import numpy as np
 
 from scanreg.geometry import rows_all, rows_any
-from scanreg.isolate import forking, keep_from_children, kill, read_message, release
+from scanreg.isolate import fork_with_pipes, forking, keep_from_children, kill, read_value, release, send_value
 from scanreg.isolate import send_message as _send
 
 _EPS = np.ldexp(1.0, -53)  # half an ulp of 1.0: Shewchuk's epsilon
@@ -619,28 +619,15 @@ class Beside:
         """The child's pid and the pipe's read end, or None where forking is not used or failed."""
         import os
         import pickle
-        import warnings
 
         if not forking():
             return None
         malloc = _malloc_controls()
-        fds = []
-        try:
-            for _ in range(1 + int(self._then_fn is not None)):  # results; requests (then)
-                fds.extend(os.pipe())
-        except OSError:
-            for fd in fds:
-                os.close(fd)
+        forked = fork_with_pipes(1 + int(self._then_fn is not None))  # results; requests (then)
+        if forked is None:
             return None
+        pid, fds = forked
         r, w = fds[:2]
-        try:
-            with warnings.catch_warnings():  # Python >= 3.12 warns about forking a threaded process; the
-                warnings.simplefilter("ignore", DeprecationWarning)  # child runs NumPy and SciPy code only
-                pid = os.fork()
-        except OSError:
-            for fd in fds:
-                os.close(fd)
-            return None
         if pid == 0:  # the child: the first value, the pairs, the extra value, then's answer; it leaves without
             code = 1  # the parent's exit code
             try:
@@ -662,8 +649,8 @@ class Beside:
                 if self._then_fn is not None:
                     del extra
                     _give_back_freed_memory(malloc)  # it may wait long
-                    request = _read_arrays(fds[2])
-                    if request is not None:  # None: closed without a request
+                    request, asked = read_value(fds[2])
+                    if asked:  # else closed without a request
                         _send(w, pickle.dumps(answer(request), protocol=pickle.HIGHEST_PROTOCOL))
                 code = 0
             finally:
@@ -788,7 +775,7 @@ class Beside:
         fd, self._ask_fd = self._ask_fd, None
         self._asked.set()
         if fd is not None:
-            threading.Thread(target=_send_arrays, args=(fd, self._request), daemon=True,
+            threading.Thread(target=_send_request, args=(fd, self._request), daemon=True,
                              name="scanreg-beside-ask").start()
 
     def close(self) -> None:
@@ -840,35 +827,15 @@ class Beside:
         return self._first[0]
 
 
-def _send_arrays(fd: int, arrays: tuple) -> None:
-    """NumPy arrays into a pipe (their dtypes and shapes, then their bytes, as messages of :func:`_send`) and
-    the pipe closed (its reader sees the end)."""
-    import pickle
-
+def _send_request(fd: int, arrays: tuple) -> None:
+    """The request's arrays into the child's pipe (:func:`~scanreg.isolate.send_value`) and the pipe closed (its
+    reader sees the end)."""
     try:
-        _send(fd, pickle.dumps([(a.dtype.str, a.shape) for a in arrays]))
-        for a in arrays:
-            _send(fd, memoryview(a.reshape(-1).view(np.uint8)))
+        send_value(fd, arrays)
     except OSError:  # the child is gone: then's answer is made here
         pass
     finally:
         release(fd)
-
-
-def _read_arrays(fd: int):
-    """The arrays :func:`_send_arrays` wrote, or None when the pipe was closed without them."""
-    import pickle
-
-    head = read_message(fd)
-    if head is None:
-        return None
-    out = []
-    for dtype, shape in pickle.loads(head):
-        data = read_message(fd)
-        if data is None:
-            return None
-        out.append(np.frombuffer(data, dtype=np.dtype(dtype)).reshape(shape))
-    return tuple(out)
 
 
 PAIR_BLOCK = 32768

@@ -87,6 +87,30 @@ def forking() -> bool:
     return sys.platform.startswith("linux") and not os.environ.get("SCANREG_NO_FORK")
 
 
+def fork_with_pipes(n: int, widen: tuple[int, ...] = ()) -> tuple[int, list[int]] | None:
+    """``n`` pipes made, then this process forked: ``(pid, [read end, write end] * n)`` in both processes (pid
+    0 in the child), or None when a pipe or the fork failed (nothing left open). The pipes numbered in ``widen``
+    get a buffer of :data:`PIPE_BYTES`. Python >= 3.12 warns about forking a process with threads; the warning
+    is silenced (the children of this project run their own code and leave with ``os._exit``)."""
+    import os
+    import warnings
+
+    fds: list[int] = []
+    try:
+        for k in range(n):
+            fds.extend(os.pipe())
+            if k in widen:
+                _widen(fds[-1])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pid = os.fork()
+    except OSError:
+        for fd in fds:
+            os.close(fd)
+        return None
+    return pid, fds
+
+
 THREAD_STACK = 1 << 26
 """Stack size (bytes) of the thread that runs the function in the child (``own_heap``): 64 MB, more than a
 process's usual main thread (8 MB), for libraries that recurse deeply on large meshes."""
@@ -116,7 +140,6 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
     Standard output and error are flushed before the fork and in the child before it leaves (MeshFix's messages
     with ``verbose``, printed by C code, reach a file or a pipe)."""
     import os
-    import warnings
 
     def here():
         return None if ask is None else ask()
@@ -130,24 +153,10 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
         return run_here()
     flush = _flush_all
     flush()
-    fds: list[int] = []
-    try:
-        for _ in range(2):  # child -> here: questions, then the answer; here -> child: the replies
-            fds.extend(os.pipe())
-    except OSError:
-        for fd in fds:
-            os.close(fd)
+    forked = fork_with_pipes(2, widen=(0,))  # child -> here: questions, then the answer; here -> child: replies
+    if forked is None:
         return run_here()
-    up_r, up_w, down_r, down_w = fds
-    _widen(up_w)
-    try:
-        with warnings.catch_warnings():  # Python >= 3.12 warns about forking a threaded process; the child runs
-            warnings.simplefilter("ignore", DeprecationWarning)  # fn in a thread of its own and leaves
-            pid = os.fork()
-    except OSError:
-        for fd in fds:
-            os.close(fd)
-        return run_here()
+    pid, (up_r, up_w, down_r, down_w) = forked
     if pid == 0:  # the child: it never returns into the caller's code
         code = 1
         try:
