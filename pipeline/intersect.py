@@ -210,6 +210,11 @@ def degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return bad | ~projects
 
 
+BOX_BLOCK = 65536
+"""Pairs per block of :func:`candidate_pairs`' exact box test (the search's pairs, tested block by block: the
+same pairs in the same order; 8 % faster on the bunny than all at once)."""
+
+
 def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
                     among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs ``(i, j)``, ``i < j``, of the closed boxes ``[lo, hi]`` (rows) that overlap, each once (with
@@ -276,12 +281,13 @@ def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
             for got in found:
                 if got is None or not len(got[0]):
                     continue
-                A, B = got
-                for k in range(3):  # the exact box test, one axis at a time on the pairs left
-                    keep = (lo_of[k][A] <= hi_of[k][B]) & (lo_of[k][B] <= hi_of[k][A])
-                    A, B = A[keep], B[keep]
-                ii.append(np.minimum(A, B))
-                jj.append(np.maximum(A, B))
+                for s in range(0, len(got[0]), BOX_BLOCK):  # in blocks: temporaries that stay in the cache
+                    A, B = got[0][s:s + BOX_BLOCK], got[1][s:s + BOX_BLOCK]
+                    for k in range(3):  # the exact box test, one axis at a time on the pairs left
+                        keep = (lo_of[k][A] <= hi_of[k][B]) & (lo_of[k][B] <= hi_of[k][A])
+                        A, B = A[keep], B[keep]
+                    ii.append(np.minimum(A, B))
+                    jj.append(np.maximum(A, B))
     if not ii:
         return empty
     return np.concatenate(ii).astype(np.int64), np.concatenate(jj).astype(np.int64)
@@ -477,10 +483,24 @@ def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
         return job.mask(None)
     pairs = None
     try:
+        job.welded()  # while the earlier mesh's test (in another process) may still run
         pairs = job.pairs(job.prev.wait() if job.prev is not None else None)
     finally:
         job.finish(pairs)
     return job.mask(pairs)
+
+
+def _weld(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of the vertices ``v`` (n, 3) in lexicographic order, and each row's index among them:
+    the values of ``np.unique(v, axis=0, return_inverse=True)`` (rows equal as numbers are one, so of 0.0 and
+    -0.0 either may stand for both, which no predicate tells apart), 2-4x faster (a lexsort of the columns)."""
+    order = np.lexsort((v[:, 2], v[:, 1], v[:, 0]))
+    s = v[order]
+    new = np.ones(len(s), bool)
+    new[1:] = (s[1:, 0] != s[:-1, 0]) | (s[1:, 1] != s[:-1, 1]) | (s[1:, 2] != s[:-1, 2])
+    inv = np.empty(len(v), np.int64)
+    inv[order] = np.cumsum(new) - 1
+    return s[new], inv
 
 
 class _Job:
@@ -492,17 +512,24 @@ class _Job:
         self.v = np.ascontiguousarray(vertices, dtype=np.float64)
         self.f = np.ascontiguousarray(faces, dtype=np.int64)
         self.n = len(self.f)
-        self.entry = self.prev = None
+        self.entry = self.prev = self._welded = None
         if self.n < 2:
             return
         self.keys = _face_keys(self.v, self.f)
         self.entry, self.prev = _MEMO.begin(self.keys, use=self.n >= _MEMO.MIN_FACES)
 
+    def welded(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The welded vertices and faces (:func:`_weld`) and which faces are live (not degenerate), once: made
+        before waiting for an earlier mesh's outcome (:func:`self_intersecting_faces`), they need none of it."""
+        if self._welded is None:
+            v, canon = _weld(self.v)
+            f = canon[self.f]
+            self._welded = v, f, ~degenerate_faces(v, f)
+        return self._welded
+
     def pairs(self, old) -> np.ndarray:
         """The intersecting pairs, incrementally from ``old`` (``prev``'s outcome) when given."""
-        v, canon = np.unique(self.v, axis=0, return_inverse=True)
-        f = canon.reshape(-1)[self.f]
-        live = ~degenerate_faces(v, f)
+        v, f, live = self.welded()
         pairs = None
         if old is not None:
             pairs = _incremental(v, f, live, self.keys, self.entry, self.prev, old)
@@ -853,7 +880,15 @@ def _all_pairs(v: np.ndarray, f: np.ndarray, live: np.ndarray, among: np.ndarray
     i, j = candidate_pairs(lo, hi, None if among is None else among[idx])
     if not len(i):
         return np.zeros((0, 2), np.int64)
-    regular = regular_vertices(v, fl)
+    if among is None:
+        regular = regular_vertices(v, fl)
+    else:
+        # a pair has a face in ``among``, so the vertices it shares are that face's: only theirs are looked up,
+        # and each depends on its own fan alone (the faces around it, in the same order), so the fans of these
+        # vertices give the same answer for them as the whole mesh (an edit's test: a fraction of the time)
+        near = np.zeros(len(v), bool)
+        near[fl[among[idx]].ravel()] = True
+        regular = regular_vertices(v, fl[rows_any(near[fl])]) & near
     # in blocks of pairs: the same hits (pair by pair), with temporaries that stay in the cache; less memory
     # traffic for the backend running beside (pymeshfix's load 10-20 ms faster beside the bunny's test)
     hit = np.concatenate([_pair_hits(P, fl, i[s:s + PAIR_BLOCK], j[s:s + PAIR_BLOCK], regular)

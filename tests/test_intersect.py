@@ -542,3 +542,63 @@ def test_fans_that_turn_more_than_once(case):
         assert reg[0] and not ref.any()
     else:
         assert not reg[0] and ref.any()
+
+
+def test_weld_equals_numpy_unique_rows():
+    """The weld before the test (a lexsort of the columns) gives ``np.unique(v, axis=0)``'s rows and inverse:
+    duplicated rows, rows equal in their first one or two coordinates, a single row."""
+    from scanreg.intersect import _weld
+
+    rng = np.random.default_rng(3)
+    base = rng.integers(0, 4, (200, 3)).astype(float) * 0.25  # many ties in every column
+    for v in (base, np.vstack([base, base[::7]])[rng.permutation(229)], rng.random((50, 3)), base[:1]):
+        u, inv = _weld(v)
+        ru, rinv = np.unique(v, axis=0, return_inverse=True)
+        assert np.array_equal(u, ru) and np.array_equal(inv, rinv.reshape(-1))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_regular_vertices_from_their_fans_alone(seed):
+    """An incremental test looks up only the vertices of the new faces, computed from the faces around them
+    (each vertex's answer depends on its own fan, in the faces' order): the same answers as from the whole
+    mesh, on folded grids where some fans turn more than once."""
+    from scanreg.geometry import rows_any
+    from scanreg.intersect import regular_vertices
+
+    rng = np.random.default_rng(seed)
+    n = 9
+    gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
+    v = np.stack([gx.ravel(), gy.ravel(), rng.normal(0, 0.2, n * n)], axis=1)
+    v[:, :2] += rng.uniform(-1.2, 1.2, (n * n, 2)) * (rng.random((n * n, 1)) < 0.3)
+    q = np.arange(n * n).reshape(n, n)
+    a, b, c, d = q[:-1, :-1].ravel(), q[:-1, 1:].ravel(), q[1:, :-1].ravel(), q[1:, 1:].ravel()
+    f = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])[rng.permutation(2 * (n - 1) ** 2)]
+    whole = regular_vertices(v, f)
+    assert whole.any() and not whole.all()
+    for _ in range(5):
+        near = np.zeros(len(v), bool)
+        near[f[rng.random(len(f)) < 0.1].ravel()] = True
+        assert np.array_equal(regular_vertices(v, f[rows_any(near[f])]) & near, whole & near)
+
+
+@pytest.mark.parametrize("seed", [0, 2, 4, 6])
+def test_incremental_on_folded_grids(seed):
+    """Faces added to a folded grid, tested right after the grid without them: the new faces fold over old
+    ones around shared vertices whose whole fan (old faces too) turns more than once; the incremental result
+    equals the full test's."""
+    rng = np.random.default_rng(seed)
+    n = 26  # 1250 faces, 1125 without the added ones: above the memo's smallest mesh
+    gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
+    v = np.stack([gx.ravel(), gy.ravel(), np.zeros(n * n)], axis=1)
+    v[:, :2] += rng.uniform(-1.2, 1.2, (n * n, 2)) * (rng.random((n * n, 1)) < 0.3)
+    q = np.arange(n * n).reshape(n, n)
+    a, b, c, d = q[:-1, :-1].ravel(), q[:-1, 1:].ravel(), q[1:, :-1].ravel(), q[1:, 1:].ravel()
+    f = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    full = _fresh(v, f)
+    added = rng.random(len(f)) < 0.1
+    _MEMO.clear()
+    self_intersecting_faces(v, f[~added])
+    inc = self_intersecting_faces(v, f)
+    assert len(_MEMO._entries) == 2  # the second test was incremental
+    assert np.array_equal(inc, full)
+    assert (full & added).any()
