@@ -77,13 +77,16 @@ def test_open_scan_detection_rule():
 @pytest.mark.slow
 @pytest.mark.parametrize("name", SCANS)
 def test_every_raw_stanford_scan_passes_the_default_repair(name):
-    """No overrides: the outer border stays open, every other hole is filled, the guard passes."""
+    """No overrides: the outer border stays open, every other hole is filled, the guard passes, and no
+    self-intersection is left (the loop that cuts them out near the border refills unrefined: with refined
+    patches bun090 kept 15 self-intersecting faces and lost 2.3 % of its surface)."""
     m = read_mesh(shared(f"stanford_bunny/{name}.ply"))
     m.source = name
     out, metrics = repair_with_audit(stage("meshfix"), m, CTX, "r_")
     a = strip(metrics)
     assert a["guard_ok"] == 1 and a["open_border_open"] == 1
-    assert a["removed_area_share"] < 0.05 and a["displacement_q_edges"] < 2.0  # measured: at most 2.5 % (bun090)
+    assert a["after_self_intersecting_faces"] == 0
+    assert a["removed_area_share"] < 0.01 and a["displacement_q_edges"] < 1.0  # measured: at most 0.15 %, 0.40
     assert a["after_non_manifold_edges"] == 0 and a["after_boundary_loops"] < a["before_boundary_loops"]
     assert a["after_components"] == 1
     assert open_scan_borders(out, 2.0).sum() == 1  # the border is still there
