@@ -595,7 +595,10 @@ class Beside:
     ``extra`` in the same place (it prepares, e.g. a search tree of the mesh, while the caller is busy), returns
     a function of one request (a tuple of NumPy arrays the caller has only later): :meth:`ask` hands it the
     request, :meth:`then_result` waits for its answer (picklable), and :meth:`close` tells the child that no
-    request will come (it exits; a child never asked also exits when this process does).
+    request will come (it exits; a child never asked also exits when this process does). ``test_last``, a
+    function of ``first``'s value, says whether the test runs after ``extra`` and ``then``'s preparation rather
+    than before them (a caller that needs the test's outcome only at its end: the test's memory traffic then
+    meets the later, less sensitive part of a backend running beside it).
 
     On Linux the work runs in a forked child process (the same code on the same arrays, inherited; the
     results come back through a pipe), so that it uses another core even while the caller runs a library that
@@ -611,11 +614,13 @@ class Beside:
     the test's own time) is stopped and the work done in this process instead."""
     TIMEOUT_S_PER_FACE = 2e-4
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, extra=None, first=None, then=None):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, extra=None, first=None, then=None,
+                 test_last=None):
         import threading
 
         self._job = _Job(vertices, faces)
         self._extra_fn, self._first_fn, self._then_fn = extra, first, then
+        self._test_last = test_last
         self._mask = self._error = None
         self._extra = self._first = self._first_error = None  # (value,) once known; the first one's failure
         self._answer = self._then_error = None  # then's answer (value,) once known; its failure
@@ -662,15 +667,25 @@ class Beside:
                 if len(fds) > 2:
                     os.close(fds[3])
                 _keep_freed_memory(malloc)
+                first = None
                 if self._first_fn is not None:
-                    _send(w, pickle.dumps(self._first_fn(), protocol=pickle.HIGHEST_PROTOCOL))
-                pairs = self._pairs()
-                _send(w, b"" if pairs is None else np.ascontiguousarray(pairs, np.int64).tobytes())
+                    first = self._first_fn()
+                    _send(w, pickle.dumps(first, protocol=pickle.HIGHEST_PROTOCOL))
+                last = self._test_last is not None and bool(self._test_last(first))
+
+                def send_pairs():
+                    pairs = self._pairs()
+                    _send(w, b"" if pairs is None else np.ascontiguousarray(pairs, np.int64).tobytes())
+
+                if not last:
+                    send_pairs()
                 extra = None if self._extra_fn is None else \
                     pickle.dumps(self._extra_fn(), protocol=pickle.HIGHEST_PROTOCOL)
                 # then's preparation before the extra value is sent: a message larger than the pipe's buffer
                 # waits until this process reads it, which a backend that keeps the GIL delays to its end
                 answer = None if self._then_fn is None else self._then_fn()
+                if last:  # the messages keep their order: the pairs before the extra value
+                    send_pairs()
                 if extra is not None:
                     _send(w, extra)
                 if self._then_fn is not None:

@@ -357,9 +357,10 @@ class AuditBeside:
     computed there before the rest, is what :meth:`first_result` waits for; ``then()``, computed there after
     the rest, returns the function that answers :meth:`ask`'s request (:meth:`then_result`). :meth:`close` when
     done (a request never made: the child waits for it until then). ``stats=False``: the self-intersection
-    test alone (the rest of :func:`audit_mesh` is measured elsewhere)."""
+    test alone (the rest of :func:`audit_mesh` is measured elsewhere). ``test_last``: see
+    :class:`scanreg.intersect.Beside`."""
 
-    def __init__(self, mesh: Mesh, also=None, first=None, then=None, stats: bool = True):
+    def __init__(self, mesh: Mesh, also=None, first=None, then=None, stats: bool = True, test_last=None):
         self.mesh = mesh
         self._si = known(mesh, "self_intersecting_faces")
         faces = mesh.faces if self._si is None else mesh.faces[:0]  # a count known already: the rest only
@@ -369,7 +370,7 @@ class AuditBeside:
 
         self._has_extra = stats or also is not None
         self._pending = _Beside(mesh.vertices, faces, extra=extra if self._has_extra else None,
-                                first=first, then=then)
+                                first=first, then=then, test_last=test_last)
 
     def first_result(self):
         return self._pending.first_result()
@@ -449,22 +450,15 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
     small = radii <= bound
     seeds, reach = [tris[small].mean(axis=1)], [radii[small]]
     for t in tris[~small]:
-        # from the corner opposite the shortest side (o, the sides p - o and q - o), the points
-        # o + s ((1 - u) (p - o) + u (q - o)) on a grid of s and u: at most ``bound`` apart along the sides and
-        # across, so that every point of the face is within ``bound`` of one; a long sliver needs few across
-        side = [np.linalg.norm(t[(k + 2) % 3] - t[(k + 1) % 3]) for k in range(3)]  # side k: opposite corner k
-        k = int(np.argmin(side))
-        o, p_, q_ = t[k], t[(k + 1) % 3], t[(k + 2) % 3]
-        ns = max(int(np.ceil(max(side[(k + 1) % 3], side[(k + 2) % 3]) / bound)), 1)
-        nu = max(int(np.ceil(side[k] / bound)), 1)
-        s_, u_ = (g.ravel() for g in np.meshgrid(np.arange(ns + 1) / ns, np.arange(nu + 1) / nu))
-        seeds.append(o + s_[:, None] * ((1 - u_)[:, None] * (p_ - o) + u_[:, None] * (q_ - o)))
-        reach.append(np.full(len(s_), bound))
+        n = int(np.ceil(max(np.linalg.norm(t[1] - t[0]), np.linalg.norm(t[2] - t[1]),
+                            np.linalg.norm(t[0] - t[2])) / bound))
+        a, b = (g.ravel() for g in np.meshgrid(np.arange(n + 1), np.arange(n + 1)))
+        a, b = a[a + b <= n] / n, b[a + b <= n] / n
+        seeds.append(t[0] + a[:, None] * (t[1] - t[0]) + b[:, None] * (t[2] - t[0]))
+        reach.append(np.full(len(a), bound))
     seeds, reach = np.concatenate(seeds), np.concatenate(reach)
     seed_tree = cKDTree(seeds)
     n_small = int(small.sum())  # the first seeds: the small faces' centroids; then the large faces' grids
-    small_tree = cKDTree(seeds[:n_small]) if n_small else None
-    small_reach = float(reach[:n_small].max()) if n_small else 0.0
     grid_tree = cKDTree(seeds[n_small:]) if len(seeds) > n_small else None
     # every reach is at most the bound, so a centroid within a seed's reach plus the bound lies in the seed's
     # cell of a grid of side 2 bound or in a neighbouring cell: only the centroids in those cells are looked at
@@ -498,25 +492,20 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
         return idx[np.isin(keys(np.stack([q[idx] for q in g], axis=1)), around)]
 
     def near(x: np.ndarray, r: np.ndarray) -> np.ndarray:
-        """Faces (centroids ``x``, circumradii ``r``) that can touch a changed face, and some that cannot: every
-        face with its centroid within the sum of its circumradius and the largest small seed's reach of a small
-        seed's centroid, or within twice the bound of a large face's grid point (faces up to the bound found
-        around the seeds, the few larger ones, 1 %, looked up the other way). Any such superset gives the same
-        differences between the two meshes' counts (a face that cannot touch a changed face, and its edges and
-        vertices, count alike in both, and all faces of a changed face's edges and vertices are in the set):
-        this one is counted per face, without a list of the pairs (a raw scan's border slivers reach
-        thousands of faces each)."""
+        """Faces (centroids ``x``, circumradii ``r``) that can touch a changed face: centroids within the sum of
+        the two reaches; faces up to the common bound found around the seeds, the few larger ones (1 %)
+        looked up the other way."""
         mask = np.zeros(len(x), bool)
         cand = candidates(x)
-        if len(cand) and n_small:  # within the sum of the two reaches of a small changed face
-            inside = small_tree.query_ball_point(x[cand], r[cand] + small_reach, return_length=True)
-            mask[cand[inside > 0]] = True
+        if len(cand) and n_small:  # the small faces' own reaches
+            hits = cKDTree(x[cand]).query_ball_point(seeds[:n_small], reach[:n_small] + bound)
+            mask[cand[np.concatenate([np.asarray(h, np.int64) for h in hits])]] = True
         if len(cand) and grid_tree is not None:  # the grid points all reach the bound: the nearest one decides
             d = grid_tree.query(x[cand], distance_upper_bound=np.nextafter(2 * bound, np.inf))[0]
             mask[cand[d <= 2 * bound]] = True
         big = np.flatnonzero(r > bound)
-        if len(big):  # every reach is at most the bound: the nearest seed decides
-            mask[big[seed_tree.query(x[big])[0] <= r[big] + bound]] = True
+        if len(big):  # every reach is at most the bound
+            mask[big[seed_tree.query_ball_point(x[big], r[big] + bound, return_length=True) > 0]] = True
         return mask
 
     near_b = near(xb, rb)

@@ -546,11 +546,12 @@ def test_fans_that_turn_more_than_once(case):
 
 def test_weld_equals_numpy_unique_rows():
     """The weld before the test (a lexsort of the columns) gives ``np.unique(v, axis=0)``'s rows and inverse:
-    duplicated rows, rows equal in their first one or two coordinates, a single row."""
+    duplicated rows, rows equal in their first one or two coordinates, -0.0 beside 0.0, a single row."""
     from scanreg.intersect import _weld
 
     rng = np.random.default_rng(3)
-    base = rng.integers(0, 4, (200, 3)).astype(float) * 0.25  # many ties in every column
+    base = rng.integers(-2, 3, (200, 3)).astype(float) * 0.25  # many ties in every column, negatives
+    base[rng.random(base.shape) < 0.1] = -0.0  # equal to 0.0 as numbers (one vertex), not in bits
     for v in (base, np.vstack([base, base[::7]])[rng.permutation(229)], rng.random((50, 3)), base[:1]):
         u, inv = _weld(v)
         ru, rinv = np.unique(v, axis=0, return_inverse=True)
@@ -582,7 +583,7 @@ def test_regular_vertices_from_their_fans_alone(seed):
 
 
 @pytest.mark.parametrize("seed", [0, 2, 4, 6])
-def test_incremental_on_folded_grids(seed):
+def test_incremental_on_folded_grids(seed, monkeypatch):
     """Faces added to a folded grid, tested right after the grid without them: the new faces fold over old
     ones around shared vertices whose whole fan (old faces too) turns more than once; the incremental result
     equals the full test's."""
@@ -594,11 +595,50 @@ def test_incremental_on_folded_grids(seed):
     q = np.arange(n * n).reshape(n, n)
     a, b, c, d = q[:-1, :-1].ravel(), q[:-1, 1:].ravel(), q[1:, :-1].ravel(), q[1:, 1:].ravel()
     f = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    import scanreg.intersect as intersect
+
     full = _fresh(v, f)
     added = rng.random(len(f)) < 0.1
+    calls = []
+    incremental = intersect._incremental
+    monkeypatch.setattr(intersect, "_incremental", lambda *a: calls.append(1) or incremental(*a))
     _MEMO.clear()
     self_intersecting_faces(v, f[~added])
     inc = self_intersecting_faces(v, f)
-    assert len(_MEMO._entries) == 2  # the second test was incremental
+    assert calls == [1]  # the second test was incremental
     assert np.array_equal(inc, full)
     assert (full & added).any()
+
+
+@pytest.mark.parametrize("last", [False, True])
+def test_beside_runs_the_test_last_when_asked(last, tmp_path, monkeypatch):
+    """``test_last`` (a function of the first value) puts the child's self-intersection test after its extra
+    work and then's preparation; the results are the same either way (the messages keep their order)."""
+    import os
+
+    import scanreg.intersect as intersect
+    from scanreg.intersect import Beside
+
+    if not intersect.forking():
+        pytest.skip("no fork here: the order is the thread's")
+    log = tmp_path / "order"
+    v, f = _two_spheres()
+    want = _fresh(v, f)
+    all_pairs = intersect._all_pairs
+
+    def note(what):
+        with open(log, "a") as fh:
+            fh.write(f"{what} {os.getpid()}\n")
+
+    monkeypatch.setattr(intersect, "_all_pairs", lambda *a, **k: note("test") or all_pairs(*a, **k))
+    _MEMO.clear()
+    b = Beside(v, f, first=lambda: "plan", extra=lambda: note("extra") or 7,
+               then=lambda: note("then") or (lambda req: float(req[0].sum())),
+               test_last=lambda first: note(f"asked:{first}") or last)
+    assert b.first_result() == "plan"
+    assert np.array_equal(b.result(), want) and b.extra_result() == 7
+    b.ask(np.ones(3))
+    assert b.then_result() == 3.0
+    order = [line.split()[0] for line in log.read_text().splitlines()]
+    assert all(int(line.split()[1]) != os.getpid() for line in log.read_text().splitlines())  # in the child
+    assert order == ["asked:plan"] + (["extra", "then", "test"] if last else ["test", "extra", "then"])

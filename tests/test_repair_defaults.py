@@ -248,3 +248,38 @@ def test_a_border_plan_that_fails_beside_is_made_here_and_a_broken_one_is_named(
     monkeypatch.setattr(audit, "_border_plan", broken)
     with pytest.raises(StageError, match=r"border plan failed \(RuntimeError: no plan\)"):
         repair_with_audit(stage("meshfix"), mesh, CTX, "r_")
+
+
+def test_the_input_test_goes_last_unless_the_backend_tests_from_it(monkeypatch, tmp_path):
+    """MeshFix tests meshes that share most faces with the input only in the loop that keeps borders open: the
+    audit's child then makes the input's self-intersection test first (the loop waits for it), else last. The
+    question reaches the backend with the border plan applied."""
+    import scanreg.intersect as intersect
+    import scanreg.topology as topology
+
+    mf = stage("meshfix")
+    assert mf.tests_from_input(make_params(type(mf).Params, {"max_hole_edges": 100}, "meshfix"))
+    assert not mf.tests_from_input(make_params(type(mf).Params, {}, "meshfix"))  # MeshFix's own cleaning
+    assert not mf.tests_from_input(make_params(type(mf).Params, {"max_hole_edges": 100, "clean_iterations": 0},
+                                               "meshfix"))
+    assert stage("meshlab").tests_from_input(stage("meshlab").p)  # the default: first, as before
+    if not intersect.forking():
+        pytest.skip("no fork here: the audit runs in a thread, where the order is not asked")
+    log = tmp_path / "asked"
+    made = topology.AuditBeside.__init__
+
+    def spy(self, mesh, *a, test_last=None, **k):
+        def asked(plan):  # in the audit's child: written down for this process to read
+            answer = test_last(plan)
+            with open(log, "a") as fh:
+                fh.write(f"{answer}\n")
+            return answer
+        made(self, mesh, *a, test_last=asked if test_last else None, **k)
+
+    monkeypatch.setattr(topology.AuditBeside, "__init__", spy)
+    for path, last in (("pkg:pymeshfix/examples/StanfordBunny.ply", True),
+                       (str(shared("stanford_bunny/bun000.ply")), False)):
+        log.write_text("")
+        _, m = repair_with_audit(stage("meshfix"), read_mesh(path), CTX, "r_")
+        assert m["r_guard_ok"] == 1
+        assert log.read_text().split() == [str(last)]

@@ -46,8 +46,8 @@ class MeshFix(AuditedRepair):
         """Refine the patches that fill holes so that their triangles match the surrounding size. (The holes
         the loop of ``clean_iterations`` cuts around self-intersections are refilled unrefined, as MeshFix's
         own intersection removal does: a refined patch bulges through the surface nearby and is cut again. On
-        the raw Stanford scans the loop then ends after 1-3 refills with no self-intersection left; refined,
-        bun090 still had 15 after 10.)"""
+        the raw Stanford scans the loop then ends after at most 3 refills with no self-intersection left;
+        refined, bun090 still had 15 after 10.)"""
         clean_iterations: int = 10
         """Maximum iterations of MeshFix's degeneracy and self-intersection removal (0: skip it). With
         ``max_hole_edges`` > 0, MeshFix's own cleaning (which caps every border) is replaced by: delete the
@@ -77,6 +77,10 @@ class MeshFix(AuditedRepair):
             raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
         return out
 
+    def tests_from_input(self, p: MeshFix.Params) -> bool:
+        """Only the loop that keeps borders open tests meshes for self-intersections (each refill's)."""
+        return _keeps_borders(p)
+
     def _run_one(self, mesh: Mesh, ctx: Context) -> Mesh:
         """MeshFix on one part (or on every part with ``join_components``); may return no face. Each MeshFix
         session (this one, and the refills of :meth:`_clean_keeping_borders`) runs in a child process forked for
@@ -90,7 +94,7 @@ class MeshFix(AuditedRepair):
             lambda plan: _meshfix_session(mesh.vertices, mesh.faces, self.p, quiet, plan), ask=self.planned,
             started=self.start_audit)
         p = self.planned()  # made when the child asked for it
-        if p.clean_iterations > 0 and p.fill_holes and p.max_hole_edges > 0:
+        if _keeps_borders(p):
             # MeshFix's clean() fills every boundary while it removes intersections, capping the outer border
             # that max_hole_edges keeps open; remove intersections here and refill only holes under the limit.
             v, f, clean = self._clean_keeping_borders(v, f, ctx)
@@ -131,6 +135,12 @@ class MeshFix(AuditedRepair):
         return v, f, clean
 
 
+def _keeps_borders(p: MeshFix.Params) -> bool:
+    """Whether MeshFix's cleaning is replaced by the loop that keeps borders over the hole limit open
+    (:meth:`MeshFix._clean_keeping_borders`)."""
+    return p.clean_iterations > 0 and p.fill_holes and p.max_hole_edges > 0
+
+
 # pymeshfix's sessions, each run in a child process of its own (run_isolated): arrays in, arrays out
 
 def _meshfix_session(vertices: np.ndarray, faces: np.ndarray, p, quiet: bool, plan):
@@ -150,7 +160,7 @@ def _meshfix_session(vertices: np.ndarray, faces: np.ndarray, p, quiet: bool, pl
     if p.fill_holes:
         tin.fill_small_boundaries(nbe=p.max_hole_edges, refine=p.refine)
     clean = False  # True: the result is known to be free of self-intersections
-    if p.clean_iterations > 0 and not (p.fill_holes and p.max_hole_edges > 0):
+    if p.clean_iterations > 0 and not _keeps_borders(p):
         clean = bool(tin.clean(max_iters=p.clean_iterations, inner_loops=3))
     v, f = tin.return_arrays()
     return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), clean
