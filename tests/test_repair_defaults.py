@@ -131,6 +131,27 @@ def test_a_closed_two_part_model_keeps_both_parts(backend):
     assert a1["removed_components_area_share"] == pytest.approx(0.16 / 1.16, rel=0.05)
 
 
+def test_meshfix_starts_on_the_whole_mesh_and_goes_part_by_part_when_it_must(monkeypatch):
+    """MeshFix's child starts on the whole mesh while this process labels its parts: one part to keep goes on
+    in that child; two parts, or a speck to remove, stop it (no child left) and each kept part has one of its
+    own, with the same result as without the first (the stopped child's session never answers)."""
+    from conftest import children, settled
+
+    import scanreg.stages.repair.meshfix as meshfix
+
+    calls = []
+    run_isolated = meshfix.run_isolated
+    monkeypatch.setattr(meshfix, "run_isolated", lambda *a, **k: calls.append(1) or run_isolated(*a, **k))
+    before = children()
+    cases = [(read_mesh(BUNNY), 1, 1), (two_spheres(), 3, 2), (with_speck(read_mesh(BUNNY)), 2, 1)]
+    for mesh, sessions, parts in cases:
+        calls.clear()
+        out, metrics = repair_with_audit(stage("meshfix"), mesh, CTX, "r_")
+        assert len(calls) == sessions and strip(metrics)["after_components"] == parts
+        assert strip(metrics)["guard_ok"] == 1
+    assert settled(before)  # the stopped children were reaped
+
+
 @dataclass
 class _FakeParams(GuardParams):
     pass

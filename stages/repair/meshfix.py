@@ -59,7 +59,19 @@ class MeshFix(AuditedRepair):
 
     def run(self, mesh: Mesh, ctx: Context) -> Mesh:
         p = self.p
-        keep = large_components(mesh, 1.0 if p.keep_largest else p.min_component_share)
+        share = 1.0 if p.keep_largest else p.min_component_share
+        if not p.join_components:
+            # the whole mesh to MeshFix at once, its parts labelled here while the child loads it: one part to
+            # keep (the common case) goes on; several, or parts to remove, stop the child and go part by part
+            try:
+                out = self._run_one(mesh, ctx, meanwhile=lambda: _one_part(mesh, share))
+            except _Parts:
+                pass
+            else:
+                if len(out.faces) == 0:
+                    raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
+                return out
+        keep = large_components(mesh, share)
         if not keep.all():
             mesh = submesh(mesh, keep)
         if not p.join_components:
@@ -81,18 +93,25 @@ class MeshFix(AuditedRepair):
         """Only the loop that keeps borders open tests meshes for self-intersections (each refill's)."""
         return _keeps_borders(p)
 
-    def _run_one(self, mesh: Mesh, ctx: Context) -> Mesh:
+    def _run_one(self, mesh: Mesh, ctx: Context, meanwhile=None) -> Mesh:
         """MeshFix on one part (or on every part with ``join_components``); may return no face. Each MeshFix
         session (this one, and the refills of :meth:`_clean_keeping_borders`) runs in a child process forked for
         it (:func:`~scanreg.isolate.run_isolated`, about 4 ms: the same speed in every repair of a long-lived
         process, its memory given back at once, a crash one error line); the border plan, made beside it, is
-        handed to it when it asks (after loading the mesh), and the input's audit starts right after the fork."""
+        handed to it when it asks (after loading the mesh), and the input's audit starts right after the fork,
+        after ``meanwhile()`` (work of this process's while the child loads; an exception stops the child)."""
         import pymeshfix  # noqa: F401: loaded here, before the fork (no library loading in a child)
+
+        def started():
+            if meanwhile is not None:
+                meanwhile()
+            if self.start_audit is not None:
+                self.start_audit()
 
         quiet = not (ctx.verbose if ctx else False)
         v, f, clean = run_isolated(
             lambda plan: _meshfix_session(mesh.vertices, mesh.faces, self.p, quiet, plan), ask=self.planned,
-            started=self.start_audit)
+            started=started)
         p = self.planned()  # made when the child asked for it
         if _keeps_borders(p):
             # MeshFix's clean() fills every boundary while it removes intersections, capping the outer border
@@ -133,6 +152,16 @@ class MeshFix(AuditedRepair):
             if mesh_stats(Mesh(v2, f2))["boundary_loops"] <= mesh_stats(Mesh(v, f))["boundary_loops"]:
                 v, f, clean = v2, f2, False  # changed after the test
         return v, f, clean
+
+
+class _Parts(Exception):
+    """The mesh has several parts, or parts to remove: repaired part by part."""
+
+
+def _one_part(mesh: Mesh, share: float) -> None:
+    """Raises :class:`_Parts` unless ``mesh`` is one part (connected component) that is kept."""
+    if _face_components(mesh).any() or not large_components(mesh, share).all():
+        raise _Parts
 
 
 def _keeps_borders(p: MeshFix.Params) -> bool:
