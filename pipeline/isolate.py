@@ -134,7 +134,8 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
     went from 1.0 to 1.9 s).
 
     ``started()``, when given, is called here once the child runs (before ``fn`` without forking): work to
-    start beside it (the repair's input audit). The pipes' ends this process keeps are closed in every child
+    start beside it (the repair's input audit). If it raises, the child is stopped and reaped and the exception
+    raised here (without forking ``fn`` does not run): a caller may start the child on a guess and call it off. The pipes' ends this process keeps are closed in every child
     forked later (:func:`keep_from_children`), so that such a child never holds them open.
 
     Standard output and error are flushed before the fork and in the child before it leaves (MeshFix's messages

@@ -355,7 +355,8 @@ class AuditBeside:
     process, or a thread), and ``also()`` (more of the input's measurements; picklable) after it;
     :meth:`result` waits for both and remembers the self-intersection mask and count on ``mesh``. ``first()``,
     computed there before the rest, is what :meth:`first_result` waits for; ``then()``, computed there after
-    the rest, returns the function that answers :meth:`ask`'s request (:meth:`then_result`). :meth:`close` when
+    the statistics and ``also()`` (and before the test with ``test_last``), returns the function that answers
+    :meth:`ask`'s request (:meth:`then_result`). :meth:`close` when
     done (a request never made: the child waits for it until then). ``stats=False``: the self-intersection
     test alone (the rest of :func:`audit_mesh` is measured elsewhere). ``test_last``: see
     :class:`scanreg.intersect.Beside`."""

@@ -610,10 +610,11 @@ def test_incremental_on_folded_grids(seed, monkeypatch):
     assert (full & added).any()
 
 
-@pytest.mark.parametrize("last", [False, True])
+@pytest.mark.parametrize("last", [False, True, "fails"])
 def test_beside_runs_the_test_last_when_asked(last, tmp_path, monkeypatch):
     """``test_last`` (a function of the first value) puts the child's self-intersection test after its extra
-    work and then's preparation; the results are the same either way (the messages keep their order)."""
+    work and then's preparation; the results are the same either way (the messages keep their order); if it
+    fails, the child keeps the usual order (the work stays in the child)."""
     import os
 
     import scanreg.intersect as intersect
@@ -634,11 +635,11 @@ def test_beside_runs_the_test_last_when_asked(last, tmp_path, monkeypatch):
     _MEMO.clear()
     b = Beside(v, f, first=lambda: "plan", extra=lambda: note("extra") or 7,
                then=lambda: note("then") or (lambda req: float(req[0].sum())),
-               test_last=lambda first: note(f"asked:{first}") or last)
+               test_last=lambda first: note(f"asked:{first}") or (1 / 0 if last == "fails" else last))
     assert b.first_result() == "plan"
     assert np.array_equal(b.result(), want) and b.extra_result() == 7
     b.ask(np.ones(3))
     assert b.then_result() == 3.0
     order = [line.split()[0] for line in log.read_text().splitlines()]
     assert all(int(line.split()[1]) != os.getpid() for line in log.read_text().splitlines())  # in the child
-    assert order == ["asked:plan"] + (["extra", "then", "test"] if last else ["test", "extra", "then"])
+    assert order == ["asked:plan"] + (["extra", "then", "test"] if last is True else ["test", "extra", "then"])

@@ -134,7 +134,7 @@ def test_a_closed_two_part_model_keeps_both_parts(backend):
 def test_meshfix_starts_on_the_whole_mesh_and_goes_part_by_part_when_it_must(monkeypatch):
     """MeshFix's child starts on the whole mesh while this process labels its parts: one part to keep goes on
     in that child; two parts, or a speck to remove, stop it (no child left) and each kept part has one of its
-    own, with the same result as without the first (the stopped child's session never answers)."""
+    own; the result is the same as when the first is always called off."""
     from conftest import children, settled
 
     import scanreg.stages.repair.meshfix as meshfix
@@ -150,6 +150,18 @@ def test_meshfix_starts_on_the_whole_mesh_and_goes_part_by_part_when_it_must(mon
         assert len(calls) == sessions and strip(metrics)["after_components"] == parts
         assert strip(metrics)["guard_ok"] == 1
     assert settled(before)  # the stopped children were reaped
+    # one part: the same mesh as when the first child is always called off
+    first, _ = repair_with_audit(stage("meshfix"), read_mesh(BUNNY), CTX, "r_")
+
+    def parts(mesh):
+        raise meshfix._Parts
+
+    monkeypatch.setattr(meshfix, "_one_part", parts)
+    calls.clear()
+    again, _ = repair_with_audit(stage("meshfix"), read_mesh(BUNNY), CTX, "r_")
+    assert len(calls) == 2  # the first called off, then the one part on its own
+    assert np.array_equal(first.vertices, again.vertices) and np.array_equal(first.faces, again.faces)
+    assert settled(before)
 
 
 @dataclass

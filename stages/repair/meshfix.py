@@ -58,36 +58,32 @@ class MeshFix(AuditedRepair):
         self.p = params
 
     def run(self, mesh: Mesh, ctx: Context) -> Mesh:
+        out = self._repaired(mesh, ctx)
+        if len(out.faces) == 0:
+            raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
+        return out
+
+    def _repaired(self, mesh: Mesh, ctx: Context) -> Mesh:
         p = self.p
-        share = 1.0 if p.keep_largest else p.min_component_share
         if not p.join_components:
-            # the whole mesh to MeshFix at once, its parts labelled here while the child loads it: one part to
-            # keep (the common case) goes on; several, or parts to remove, stop the child and go part by part
+            # the whole mesh to MeshFix at once, its parts labelled here while the child loads it: one part (the
+            # common case) goes on; several stop the child and go part by part
             try:
-                out = self._run_one(mesh, ctx, meanwhile=lambda: _one_part(mesh, share))
+                return self._run_one(mesh, ctx, meanwhile=lambda: _one_part(mesh))
             except _Parts:
                 pass
-            else:
-                if len(out.faces) == 0:
-                    raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
-                return out
-        keep = large_components(mesh, share)
+        keep = large_components(mesh, 1.0 if p.keep_largest else p.min_component_share)
         if not keep.all():
             mesh = submesh(mesh, keep)
         if not p.join_components:
             lab = _face_components(mesh)
             if lab.max() > 0:  # several parts: each repaired on its own, the results side by side
                 parts = [self._run_one(submesh(mesh, lab == k), ctx) for k in range(lab.max() + 1)]
-                parts = [q for q in parts if len(q.faces)]
-                if not parts:
-                    raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
+                parts = [q for q in parts if len(q.faces)] or parts[:1]
                 off = np.cumsum([0] + [len(q.vertices) for q in parts])
                 return Mesh(np.vstack([q.vertices for q in parts]),
                             np.vstack([q.faces + o for q, o in zip(parts, off)]), mesh.source)
-        out = self._run_one(mesh, ctx)
-        if len(out.faces) == 0:
-            raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
-        return out
+        return self._run_one(mesh, ctx)
 
     def tests_from_input(self, p: MeshFix.Params) -> bool:
         """Only the loop that keeps borders open tests meshes for self-intersections (each refill's)."""
@@ -155,12 +151,12 @@ class MeshFix(AuditedRepair):
 
 
 class _Parts(Exception):
-    """The mesh has several parts, or parts to remove: repaired part by part."""
+    """The mesh has several parts (some of them may be removed): repaired part by part."""
 
 
-def _one_part(mesh: Mesh, share: float) -> None:
-    """Raises :class:`_Parts` unless ``mesh`` is one part (connected component) that is kept."""
-    if _face_components(mesh).any() or not large_components(mesh, share).all():
+def _one_part(mesh: Mesh) -> None:
+    """Raises :class:`_Parts` unless ``mesh`` is one part (connected component; one part is always kept)."""
+    if _face_components(mesh).any():
         raise _Parts
 
 
