@@ -135,8 +135,9 @@ def run_isolated(fn, ask=None, own_heap: bool = True, started=None):
 
     ``started()``, when given, is called here once the child runs (before ``fn`` without forking): work to
     start beside it (the repair's input audit). If it raises, the child is stopped and reaped and the exception
-    raised here (without forking ``fn`` does not run): a caller may start the child on a guess and call it off. The pipes' ends this process keeps are closed in every child
-    forked later (:func:`keep_from_children`), so that such a child never holds them open.
+    raised here (without forking ``fn`` does not run): a caller may start the child on a guess and call it off.
+    The pipes' ends this process keeps are closed in every child forked later (:func:`keep_from_children`), so
+    that such a child never holds them open.
 
     Standard output and error are flushed before the fork and in the child before it leaves (MeshFix's messages
     with ``verbose``, printed by C code, reach a file or a pipe)."""
@@ -269,14 +270,7 @@ def release(*fds: int) -> None:
 
 
 def _close_kept_in_child() -> None:
-    import os
-
-    for fd in list(_KEPT):
-        try:
-            os.close(fd)
-        except OSError:
-            pass
-    _KEPT.clear()
+    release(*_KEPT)
 
 
 @functools.cache

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from conftest import shared
+from conftest import children, settled, shared
 from scanreg.config import Context
 from scanreg.errors import StageError
 from scanreg.geometry import Mesh, bbox_diagonal
@@ -135,8 +135,6 @@ def test_meshfix_starts_on_the_whole_mesh_and_goes_part_by_part_when_it_must(mon
     """MeshFix's child starts on the whole mesh while this process labels its parts: one part to keep goes on
     in that child; two parts, or a speck to remove, stop it (no child left) and each kept part has one of its
     own; the result is the same as when the first is always called off."""
-    from conftest import children, settled
-
     import scanreg.stages.repair.meshfix as meshfix
 
     calls = []

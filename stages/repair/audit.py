@@ -214,10 +214,10 @@ def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mes
     # for its parameters only when it needs them (after loading the mesh) finds it made first, and the input's
     # search tree last: it answers the output's samples while this process measures the other way. A backend that
     # starts its own child process starts the audit right after it (``start_audit``), so that the backend's work
-    # begins first; for the others it starts here, before the backend
-    # the input's self-intersection test after the rest of its audit, unless the backend tests its own meshes
-    # incrementally from it (it waits for it then): pymeshfix's loading suffers more from the test's memory
-    # traffic than its cleaning does (stand-ins beside it: 38 ms against 12 ms)
+    # begins first; for the others it starts here, before the backend. The input's self-intersection test comes
+    # after the rest of its audit, unless the backend tests its own meshes incrementally from it (it waits for it
+    # then): pymeshfix's loading suffers more from the test's memory traffic than its cleaning does (stand-ins
+    # beside it: 38 ms against 12 ms)
     before_audit = _Deferred(lambda: AuditBeside(mesh, first=lambda: _border_plan(p, mesh),
                                                  also=lambda: _input_side(p, mesh, ctx.seed),
                                                  then=lambda: _output_side(mesh, p.audit_samples, ctx.seed + 1),

@@ -168,16 +168,22 @@ def _keeps_borders(p: MeshFix.Params) -> bool:
 
 # pymeshfix's sessions, each run in a child process of its own (run_isolated): arrays in, arrays out
 
-def _meshfix_session(vertices: np.ndarray, faces: np.ndarray, p, quiet: bool, plan):
-    """MeshFix on one mesh: loaded, parts joined (``join_components``), the smaller parts MeshFix splits off
-    removed, then (with the border plan, ``plan()``: the parameters with ``open_border`` and ``max_hole_edges``
-    decided) holes filled and, unless a hole limit keeps borders open, MeshFix's cleaning. Returns the vertices,
-    the faces and whether the cleaning reported success."""
+def _loaded(vertices: np.ndarray, faces: np.ndarray, quiet: bool):
+    """A pymeshfix mesh (``PyTMesh``) holding ``vertices`` and ``faces``."""
     import pymeshfix
 
     tin = pymeshfix.PyTMesh()
     tin.set_quiet(quiet)
     tin.load_array(vertices, faces.astype(np.int32))
+    return tin
+
+
+def _meshfix_session(vertices: np.ndarray, faces: np.ndarray, p, quiet: bool, plan):
+    """MeshFix on one mesh: loaded, parts joined (``join_components``), the smaller parts MeshFix splits off
+    removed, then (with the border plan, ``plan()``: the parameters with ``open_border`` and ``max_hole_edges``
+    decided) holes filled and, unless a hole limit keeps borders open, MeshFix's cleaning. Returns the vertices,
+    the faces and whether the cleaning reported success."""
+    tin = _loaded(vertices, faces, quiet)
     if p.join_components:
         tin.join_closest_components()
     tin.remove_smallest_components()  # one part here (or the joined ones): bits MeshFix splits off
@@ -194,21 +200,13 @@ def _meshfix_session(vertices: np.ndarray, faces: np.ndarray, p, quiet: bool, pl
 def _fill_session(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, refine: bool,
                   quiet: bool) -> tuple[np.ndarray, np.ndarray]:
     """MeshFix's hole filling alone (holes with at most ``max_hole_edges`` edges)."""
-    import pymeshfix
-
-    tin = pymeshfix.PyTMesh()
-    tin.set_quiet(quiet)
-    tin.load_array(vertices, faces.astype(np.int32))
+    tin = _loaded(vertices, faces, quiet)
     tin.fill_small_boundaries(nbe=max_hole_edges, refine=refine)
     return tuple(np.asarray(a) for a in tin.return_arrays())
 
 
 def _degeneracy_session(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """MeshFix's strong degeneracy removal (3 iterations)."""
-    import pymeshfix
-
-    tin = pymeshfix.PyTMesh()
-    tin.set_quiet(True)
-    tin.load_array(vertices, faces.astype(np.int32))
+    tin = _loaded(vertices, faces, True)
     tin.strong_degeneracy_removal(3)
     return tuple(np.asarray(a) for a in tin.return_arrays())
