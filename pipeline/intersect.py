@@ -591,15 +591,15 @@ class Beside:
     """:func:`self_intersecting_faces` of a mesh, computed beside the caller; :meth:`result` waits for the mask.
     ``extra``, a function of no arguments (more measurements of the same mesh), runs after the test in the same
     place (before it with ``test_last``); :meth:`extra_result` waits for its value (picklable). ``first``, another
-    such function, runs first; :meth:`first_result` waits for its value only. ``then``, a function of no
-    arguments run after ``extra`` in the same place (it prepares, e.g. a search tree of the mesh, while the caller is busy), returns a
-    function of one request (a tuple of NumPy arrays the caller has only later): :meth:`ask` hands it the request,
-    :meth:`then_result` waits for its answer (picklable), and :meth:`close` tells the child that no request will
-    come (it exits; a child never asked also exits when this process does). ``test_last``, a function of ``first``'s
-    value, says whether the test runs after ``extra`` and ``then``'s preparation rather than before them (a caller
-    that needs the test's outcome only at its end: the test's memory traffic then meets the later, less sensitive
-    part of a backend running beside it); it is asked in the child only (a thread, without a child, keeps the usual
-    order), and if it fails the usual order is kept.
+    such function, runs first; :meth:`first_result` waits for its value only. ``then``, a function of no arguments
+    run after ``extra`` in the same place (it prepares, e.g. a search tree of the mesh, while the caller is busy),
+    returns a function of one request (a tuple of NumPy arrays the caller has only later): :meth:`ask` hands it the
+    request, :meth:`then_result` waits for its answer (picklable), and :meth:`close` tells the child that no request
+    will come (it exits; a child never asked also exits when this process does). ``test_last``, a function of
+    ``first``'s value, says whether the test runs after ``extra`` and ``then``'s preparation rather than before them
+    (a caller that needs the test's outcome only at its end: the test's memory traffic then meets the later, less
+    sensitive part of a backend running beside it); it is asked in the child only (a thread, without a child, keeps
+    the usual order), and if it fails the usual order is kept.
 
     On Linux the work runs in a forked child process (the same code on the same arrays, inherited; the results come
     back through a pipe), so that it uses another core even while the caller runs a library that keeps the GIL
