@@ -8,8 +8,8 @@ import numpy as np
 
 from scanreg.config import Context
 from scanreg.errors import StageError
-from scanreg.geometry import Mesh, submesh, triangle_areas_normals
-from scanreg.isolate import run_isolated
+from scanreg.geometry import Mesh, locality_ordered, submesh, triangle_areas_normals
+from scanreg.isolate import run_isolated, spare
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
 from scanreg.topology import (_face_components, _meshset, dilate_faces, large_components, mesh_stats, remember,
@@ -169,10 +169,14 @@ def _keeps_borders(p: MeshFix.Params) -> bool:
 # pymeshfix's sessions, each run in a child process of its own (run_isolated): arrays in, arrays out
 
 def _loaded(vertices: np.ndarray, faces: np.ndarray, quiet: bool):
-    """A pymeshfix mesh (``PyTMesh``) holding ``vertices`` and ``faces``."""
+    """A pymeshfix mesh (``PyTMesh``) holding ``vertices`` and ``faces``, renumbered for memory locality when
+    their order is scattered (:func:`~scanreg.geometry.locality_ordered`: MeshFix builds its linked mesh in the
+    arrays' order, and walks it faster when neighbours lie near one another)."""
     import pymeshfix
 
+    vertices, faces = locality_ordered(vertices, faces)
     tin = pymeshfix.PyTMesh()
+    spare(tin)  # in MeshFix's child, not freed before its answer is sent (the child's exit gives it back)
     tin.set_quiet(quiet)
     tin.load_array(vertices, faces.astype(np.int32))
     return tin
