@@ -257,3 +257,41 @@ def test_meshfix_in_children_is_meshfix_here(monkeypatch):
         assert np.array_equal(forked[0].faces, here[0].faces)
         assert forked[1] == here[1]
     assert forked[1]["r_before_components"] >= 1
+
+
+class _Marks:
+    """An object that writes ``freed`` to a file when it is freed."""
+
+    def __init__(self, path):
+        self.path = path
+
+    def __del__(self):
+        with open(self.path, "a") as fh:
+            fh.write("freed\n")
+
+
+@linux
+def test_spared_objects_are_not_freed_in_the_child(tmp_path):
+    """``spare`` keeps an object alive in a child of run_isolated (given back with the child at exit, not freed
+    before the answer); without it the object is freed when the function returns; in this process ``spare``
+    keeps nothing."""
+    from scanreg import isolate
+
+    log = tmp_path / "log"
+
+    def work(spared):
+        def inner(_):
+            obj = _Marks(log)
+            if spared:
+                isolate.spare(obj)
+            return 7
+        return inner
+
+    assert run_isolated(work(False)) == 7
+    assert log.read_text() == "freed\n"
+    log.unlink()
+    assert run_isolated(work(True)) == 7
+    assert not log.exists()
+    before = len(isolate._SPARED)
+    isolate.spare(_Marks(log))  # here: not kept
+    assert len(isolate._SPARED) == before and log.read_text() == "freed\n"

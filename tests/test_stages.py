@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from conftest import shared
+from conftest import oriented_triangles, shared
 from scanreg.config import Context, Distances
 from scanreg.geometry import (
     Cloud, Mesh, apply_T, horn_quaternion, invert_T, kabsch_svd, make_T, random_pose, rotation_angle_deg,
@@ -27,6 +27,34 @@ def ctx(tmp_path=None, spacing=1.0, seed=0):
 
 
 # ---------------------------------------------------------------------------------------------- geometry
+
+
+def test_locality_ordered_renumbers_scattered_meshes_only():
+    """A grid written row by row is left as it is (the same arrays); with its vertices shuffled it is renumbered
+    (median span back under 64 vertices), the same oriented triangles."""
+    from scanreg.geometry import LOCALITY_SPAN, locality_ordered
+
+    n = 120
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    v = np.c_[i.ravel(), j.ravel(), np.sin(i.ravel() / 7.0)].astype(float)
+    q = (i[:-1, :-1] * n + j[:-1, :-1]).ravel()
+    f = np.r_[np.c_[q, q + n, q + 1], np.c_[q + 1, q + n, q + n + 1]]
+
+    def span(f):
+        return np.median(np.max(np.abs(f - np.roll(f, 1, axis=1)), axis=1))
+
+    assert span(f) <= LOCALITY_SPAN
+    v2, f2 = locality_ordered(v, f)
+    assert v2 is v and f2 is f
+    perm = np.random.default_rng(0).permutation(len(v))
+    new = np.empty_like(perm)
+    new[perm] = np.arange(len(v))
+    vs, fs = v[perm], new[f]  # the same mesh, its vertices shuffled
+    assert span(fs) > LOCALITY_SPAN
+    v3, f3 = locality_ordered(vs, fs)
+    assert span(f3) < 64 and len(v3) == len(v) and len(f3) == len(f)
+    assert np.array_equal(oriented_triangles(v3, f3), oriented_triangles(v, f))
+    assert np.array_equal(np.sort(f3.min(axis=1)), f3.min(axis=1))  # faces by their smallest vertex
 
 
 def test_horn_matches_svd_on_random_pairs():

@@ -8,7 +8,7 @@ import numpy as np
 
 from scanreg.config import Context
 from scanreg.errors import StageError
-from scanreg.geometry import Mesh, submesh
+from scanreg.geometry import Mesh, locality_ordered, submesh
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
 from scanreg.topology import (_meshset, boundary_edges, boundary_loop_sizes, dilate_faces, large_components, mesh_stats,
@@ -143,7 +143,10 @@ class MeshLab(AuditedRepair):
         import pymeshlab
 
         p = self.p
-        ms = _meshset(mesh)
+        # renumbered for memory locality when the order is scattered (locality_ordered): MeshLab's filters and the
+        # self-intersection tests below walk neighbours (the bunny: 2.6 -> 2.3 s with the audit; MeshLab's cuts
+        # and fills may then differ in detail: 99 960 faces out instead of 99 964)
+        ms = _meshset(Mesh(*locality_ordered(mesh.vertices, mesh.faces), mesh.source))
         if p.merge_close_vertices > 0:
             ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(100 * p.merge_close_vertices))
         else:
