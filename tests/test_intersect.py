@@ -9,7 +9,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from scanreg.intersect import _MEMO, candidate_pairs, orient2d, orient3d, self_intersecting_faces
+from scanreg.intersect import _MEMO, candidate_pairs, intersecting_across, orient2d, orient3d, self_intersecting_faces
 
 
 # ------------------------------------------------------------------------------------- rational reference
@@ -52,7 +52,8 @@ def _convex_sets_meet(A: list, B: list) -> bool:
     return True
 
 
-def reference_self_intersecting(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+def reference_self_intersecting(v: np.ndarray, f: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
+    """The faces that meet another (with ``groups``: another of a different group), in rational arithmetic."""
     V = [_q(p) for p in v]
     first = {}
     f = np.array([[first.setdefault(V[x], x) for x in t] for t in f])  # one vertex per position
@@ -60,6 +61,8 @@ def reference_self_intersecting(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     live = [k for k, t in enumerate(f) if len(set(t)) == 3
             and any(_cross(_sub(V[t[1]], V[t[0]]), _sub(V[t[2]], V[t[0]])))]
     for a, b in itertools.combinations(live, 2):
+        if groups is not None and groups[a] == groups[b]:
+            continue
         ta, tb = list(f[a]), list(f[b])
         shared = set(ta) & set(tb)
         A, B = [V[x] for x in ta], [V[x] for x in tb]
@@ -643,3 +646,55 @@ def test_beside_runs_the_test_last_when_asked(last, tmp_path, monkeypatch):
     order = [line.split()[0] for line in log.read_text().splitlines()]
     assert all(int(line.split()[1]) != os.getpid() for line in log.read_text().splitlines())  # in the child
     assert order == ["asked:plan"] + (["extra", "then", "test"] if last is True else ["test", "extra", "then"])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_intersecting_across_groups_matches_the_rational_reference(seed):
+    """Random soups on an integer grid (coincident vertices, shared vertices and duplicated faces across groups,
+    degenerate faces), their faces in three groups: the faces that meet one of another group, as the rational
+    reference finds them; rotated (inexact coordinates), with the faces shuffled (unsorted labels)."""
+    rng = np.random.default_rng(100 + seed)
+    v, f = _random_soup(rng, 40, 30, 10)
+    g = rng.integers(0, 3, size=len(f))
+    expected = reference_self_intersecting(v, f, g)
+    assert expected.any() and not expected.all()
+    assert np.array_equal(intersecting_across(v, f, g), expected)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    w = v @ R.T * 0.37 + 0.001
+    got = intersecting_across(w, f, g)
+    assert np.array_equal(got, reference_self_intersecting(w, f, g))
+    perm = rng.permutation(len(f))
+    assert np.array_equal(intersecting_across(w, f[perm], g[perm]), got[perm])
+
+
+def test_intersecting_across_parts_free_of_intersections_is_the_full_test():
+    """Two crossing spheres and a third far away, each free of self-intersections, as three groups: the full
+    test's mask; with the third sphere touching the second at a coincident vertex only: still no hit there."""
+    v, f = _two_spheres()
+    n = len(f) // 2
+    far_v = v[: len(v) // 2] + [10.0, 0.0, 0.0]
+    v3, f3 = np.vstack([v, far_v]), np.vstack([f, f[:n] + len(v)])
+    g = np.repeat([0, 1, 2], n)
+    for k in range(3):
+        assert not _fresh(v3, f3[g == k]).any()
+    full = _fresh(v3, f3)
+    assert full.any()
+    assert np.array_equal(intersecting_across(v3, f3, g), full)
+    # the far sphere moved to touch the second one at one vertex (the same coordinates, another vertex index)
+    top2 = np.argmax(v[len(v) // 2:, 0]) + len(v) // 2
+    bottom3 = np.argmin(far_v[:, 0])
+    moved = np.vstack([v, far_v - far_v[bottom3] + v[top2]])
+    assert np.array_equal(intersecting_across(moved, f3, g), _fresh(moved, f3))
+    assert not intersecting_across(moved, f3, g)[2 * n:].any()
+
+
+def test_intersecting_across_faces_that_touch_at_the_boxes_edge():
+    """A corner of one group's face on another group's face, the two boxes meeting in a plane only: a hit; a
+    third face (of the first group) elsewhere: none; the same faces as one group: none across."""
+    v = np.array([[-1, -1, 0], [-1, 1, 0], [0, 0, 0],  # its corner (0, 0, 0) lies on the next face
+                  [0, -1, -1], [0, 1, -1], [0, 0, 1],  # in the plane x = 0
+                  [-3, 5, 5], [-3, 6, 5], [-3, 5, 6]], float)
+    f = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
+    assert intersecting_across(v, f, np.array([0, 1, 0])).tolist() == [True, True, False]
+    assert reference_self_intersecting(v, f, np.array([0, 1, 0])).tolist() == [True, True, False]
+    assert not intersecting_across(v, f, np.zeros(3, int)).any()

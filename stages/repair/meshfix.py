@@ -9,11 +9,12 @@ import numpy as np
 from scanreg.config import Context
 from scanreg.errors import StageError
 from scanreg.geometry import Mesh, locality_ordered, submesh, triangle_areas_normals
+from scanreg.intersect import intersecting_across
 from scanreg.isolate import run_isolated, spare
 from scanreg.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
-from scanreg.topology import (_face_components, _meshset, dilate_faces, large_components, mesh_stats, remember,
-                              self_intersecting_faces)
+from scanreg.topology import (_face_components, _meshset, dilate_faces, known, large_components, mesh_stats,
+                              remember, self_intersecting_faces)
 
 
 @REPAIR.register("meshfix")
@@ -81,8 +82,15 @@ class MeshFix(AuditedRepair):
                 parts = [self._run_one(submesh(mesh, lab == k), ctx) for k in range(lab.max() + 1)]
                 parts = [q for q in parts if len(q.faces)] or parts[:1]
                 off = np.cumsum([0] + [len(q.vertices) for q in parts])
-                return Mesh(np.vstack([q.vertices for q in parts]),
-                            np.vstack([q.faces + o for q, o in zip(parts, off)]), mesh.source)
+                out = Mesh(np.vstack([q.vertices for q in parts]),
+                           np.vstack([q.faces + o for q, o in zip(parts, off)]), mesh.source)
+                if all(known(q, "self_intersecting_faces") == 0 for q in parts):
+                    # each part certified free of self-intersections: only pairs across parts can intersect (the
+                    # audit's one self-intersection pass is this one, on the faces near another part's box)
+                    across = intersecting_across(out.vertices, out.faces,
+                                                 np.repeat(np.arange(len(parts)), [len(q.faces) for q in parts]))
+                    remember(out, "self_intersecting_faces", int(across.sum()))
+                return out
         return self._run_one(mesh, ctx)
 
     def tests_from_input(self, p: MeshFix.Params) -> bool:
