@@ -345,7 +345,7 @@ def locality_ordered(vertices: np.ndarray, faces: np.ndarray,
     StanfordBunny.ply (median span 22 640 of 50 000 vertices) repairs 25 % faster renumbered (0.91 -> 0.68 s,
     the same triangles out); the raw Stanford scans (span 160-250) are left as they are: renumbering them
     made MeshFix's hole filling slower, not faster (experiments/benchmarks/repair_speed.md)."""
-    f = faces
+    f = np.asarray(faces, dtype=np.int64)  # (differences of unsigned indices would wrap around)
     if not len(f):
         return vertices, faces
     a, b, c = f[:, 0], f[:, 1], f[:, 2]

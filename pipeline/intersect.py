@@ -495,14 +495,18 @@ def intersecting_across(vertices: np.ndarray, faces: np.ndarray, groups: np.ndar
     face), by the module's definition: the pairs across groups that :func:`self_intersecting_faces` tests, decided
     the same way. For a mesh whose groups are each free of self-intersections (parts repaired one by one, each
     certified by its backend), this is its full mask, at the cost of testing only the faces that lie in the box
-    of another group's faces (a CT dentition's 16 separately repaired teeth, 440k faces: 0.04 s, where the full
-    test takes 2 s)."""
+    of another group's faces (a CT dentition's 16 separately repaired teeth, 440k faces: 0.08 s, where the full
+    test takes 2 s). Labels are integers; ``ValueError`` unless there is one per face."""
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(faces, dtype=np.int64)
     g = np.asarray(groups, dtype=np.int64)
+    if g.shape != (len(f),):
+        raise ValueError(f"groups: one label per face expected ({len(f)}), got an array of shape {g.shape}")
     out = np.zeros(len(f), bool)
     if len(f) < 2:
         return out
+    if g.min() < 0 or g.max() >= len(f):  # other labels: numbered 0, 1, ... in their order
+        g = np.unique(g, return_inverse=True)[1].ravel()
     k = int(g.max()) + 1
     face_order = np.arange(len(f)) if (g[1:] >= g[:-1]).all() else np.argsort(g, kind="stable")
     start = np.searchsorted(g[face_order], np.arange(k + 1))
@@ -525,11 +529,11 @@ def intersecting_across(vertices: np.ndarray, faces: np.ndarray, groups: np.ndar
         x, y = present[a], present[b]
         A = within(np.arange(start[x], start[x + 1]), glo[b], ghi[b])
         B = within(np.arange(start[y], start[y + 1]), glo[a], ghi[a])
-        while len(A) and len(B):
+        while len(A) and len(B):  # (stopping early keeps more faces than needed: the same answer)
             n = len(A) + len(B)
             A = within(A, col_min(lo[B]), col_max(hi[B]))
             B = within(B, col_min(lo[A]), col_max(hi[A])) if len(A) else B[:0]
-            if len(A) + len(B) == n:
+            if len(A) + len(B) > 0.9 * n:  # settled, or settling slowly (long parts side by side)
                 break
         if len(A) and len(B):
             near[A] = near[B] = True

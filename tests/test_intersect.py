@@ -698,3 +698,7 @@ def test_intersecting_across_faces_that_touch_at_the_boxes_edge():
     assert intersecting_across(v, f, np.array([0, 1, 0])).tolist() == [True, True, False]
     assert reference_self_intersecting(v, f, np.array([0, 1, 0])).tolist() == [True, True, False]
     assert not intersecting_across(v, f, np.zeros(3, int)).any()
+    # any integer labels (negative, sparse), one per face
+    assert intersecting_across(v, f, np.array([-1, 10**12, -1])).tolist() == [True, True, False]
+    with pytest.raises(ValueError, match="one label per face"):
+        intersecting_across(v, f, np.array([0, 1]))

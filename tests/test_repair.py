@@ -323,20 +323,44 @@ def test_meshfix_renumbers_the_scattered_bunny_and_gets_the_same_triangles(monke
     v0, f0, clean0 = mf._meshfix_session(mesh.vertices, mesh.faces, p, True, lambda: p)
     assert clean0 == clean1 and len(f0) == len(f1) > len(mesh.faces)  # holes filled
     assert np.array_equal(oriented_triangles(v1, f1), oriented_triangles(v0, f0))
+    # MeshFix's "clean" (its own intersection test), which the audit takes as the count, agrees with the exact test
+    from scanreg.intersect import forget_recent, self_intersecting_faces
+    forget_recent()
+    assert clean1 and not self_intersecting_faces(v1, f1).any()
 
 
 def test_meshfix_counts_intersections_between_parts_it_repaired_one_by_one():
     """Two interpenetrating copies of the cow (two parts, repaired one by one, each certified by MeshFix): the
     audit's count of self-intersecting faces after the repair comes from the pairs across the parts only
     (intersect.intersecting_across) and equals the full exact test of the repaired mesh."""
-    from scanreg.intersect import forget_recent, self_intersecting_faces
+    import scanreg.stages.repair.audit as audit
+    import scanreg.stages.repair.meshfix as mf
     from scanreg.geometry import Mesh
+    from scanreg.intersect import forget_recent, self_intersecting_faces
 
     cow = load("pkg:pymeshlab/tests/sample_meshes/cow.obj")
     shift = 0.3 * (cow.vertices.max(axis=0) - cow.vertices.min(axis=0))
     two = Mesh(np.vstack([cow.vertices, cow.vertices + shift]),
                np.vstack([cow.faces, cow.faces + len(cow.vertices)]), "two cows")
-    out, m = stage("meshfix", check_only=False).repair(two, CTX, "r_")
+    calls, tests_of_the_output = [], []
+
+    def across(*args):
+        calls.append(mf.intersecting_across.__wrapped__(*args))
+        return calls[-1]
+
+    class Beside(audit.AuditBeside):
+        def __init__(self, mesh, *args, stats=True, **kw):
+            if not stats:  # the output's own full test: not wanted here
+                tests_of_the_output.append(mesh)
+            super().__init__(mesh, *args, stats=stats, **kw)
+
+    across.__wrapped__ = mf.intersecting_across
+    mf.intersecting_across, audit.AuditBeside = across, Beside
+    try:
+        out, m = stage("meshfix", check_only=False).repair(two, CTX, "r_")
+    finally:
+        mf.intersecting_across, audit.AuditBeside = across.__wrapped__, Beside.__bases__[0]
+    assert len(calls) == 1 and not tests_of_the_output  # the count came from the pairs across the parts
     forget_recent()
     full = int(self_intersecting_faces(out.vertices, out.faces).sum())
     assert m["r_after_self_intersecting_faces"] == full > 0

@@ -269,7 +269,8 @@ def main() -> None:
         f"in a fresh process | {spread(t['fresh_bunny_ordered'], '.2f')} | {cpu('fresh_bunny_ordered')} | "
         f"{ratio('fresh_bunny_ordered', 'fresh_bunny_anchor')} | "
         f"{cpu_ratio('fresh_bunny_ordered', 'fresh_bunny_anchor')} | anchor in a fresh process |",
-        f"| StanfordBunny.ply | ... repair=meshfix on it | - | - | {ratio('fresh_bunny_scanreg', 'fresh_bunny_ordered')} "
+        f"| StanfordBunny.ply | ... repair=meshfix on it | - | - | "
+        f"{ratio('fresh_bunny_scanreg', 'fresh_bunny_ordered')} "
         f"| {cpu_ratio('fresh_bunny_scanreg', 'fresh_bunny_ordered')} | pymeshfix alone on the renumbered copy |",
         f"| StanfordBunny.ply | repair=meshfix remove_slivers=false (the audit and guard on pymeshfix's work alone, "
         f"without the paper's sliver collapse, which pymeshfix does not do), in a fresh process | "
