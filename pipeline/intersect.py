@@ -490,6 +490,20 @@ def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     return job.mask(pairs)
 
 
+def _boxes(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The bounding boxes (lo, hi) of faces given by their corners ``P`` (m, 3, 3): ``P.min(axis=1)`` and
+    ``P.max(axis=1)``, the same values, faster."""
+    return np.minimum(np.minimum(P[:, 0], P[:, 1]), P[:, 2]), np.maximum(np.maximum(P[:, 0], P[:, 1]), P[:, 2])
+
+
+def _welded(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh welded (:func:`_weld`: vertices at the same position are one), and which faces are live (not
+    degenerate, :func:`degenerate_faces`)."""
+    vw, canon = _weld(v)
+    fw = canon[f]
+    return vw, fw, ~degenerate_faces(vw, fw)
+
+
 def intersecting_across(vertices: np.ndarray, faces: np.ndarray, groups: np.ndarray) -> np.ndarray:
     """Boolean mask of the faces that intersect a face of another group (``groups``: a label 0, 1, ... per
     face), by the module's definition: the pairs across groups that :func:`self_intersecting_faces` tests, decided
@@ -510,9 +524,7 @@ def intersecting_across(vertices: np.ndarray, faces: np.ndarray, groups: np.ndar
     k = int(g.max()) + 1
     face_order = np.arange(len(f)) if (g[1:] >= g[:-1]).all() else np.argsort(g, kind="stable")
     start = np.searchsorted(g[face_order], np.arange(k + 1))
-    P = v[f[face_order]]  # the faces by group
-    lo = np.minimum(np.minimum(P[:, 0], P[:, 1]), P[:, 2])
-    hi = np.maximum(np.maximum(P[:, 0], P[:, 1]), P[:, 2])
+    lo, hi = _boxes(v[f[face_order]])  # the faces by group
     present = np.flatnonzero(start[1:] > start[:-1])
     if len(present) < 2:
         return out
@@ -541,18 +553,11 @@ def intersecting_across(vertices: np.ndarray, faces: np.ndarray, groups: np.ndar
     if len(idx) < 2:
         return out
     # those faces welded (coincident vertices are one, as in the full test) and their pairs across groups tested
-    used = np.zeros(len(v), bool)
-    used[f[idx].ravel()] = True
-    ids = np.flatnonzero(used)
-    vw, canon = _weld(v[ids])
-    to_welded = np.zeros(len(v), np.int64)
-    to_welded[ids] = canon
-    fw = to_welded[f[idx]]
-    live = ~degenerate_faces(vw, fw)
+    ids, own = np.unique(f[idx], return_inverse=True)  # their vertices, and the faces on them
+    vw, fw, live = _welded(v[ids], own.reshape(-1, 3))
     idx, fw = idx[live], fw[live]
     Pw = vw[fw]
-    i, j = candidate_pairs(np.minimum(np.minimum(Pw[:, 0], Pw[:, 1]), Pw[:, 2]),
-                           np.maximum(np.maximum(Pw[:, 0], Pw[:, 1]), Pw[:, 2]))
+    i, j = candidate_pairs(*_boxes(Pw))
     across = g[idx[i]] != g[idx[j]]
     i, j = i[across], j[across]
     if not len(i):
@@ -597,9 +602,7 @@ class _Job:
         """The welded vertices and faces (:func:`_weld`) and which faces are live (not degenerate), once: made
         before waiting for an earlier mesh's outcome (:func:`self_intersecting_faces`), they need none of it."""
         if self._welded is None:
-            v, canon = _weld(self.v)
-            f = canon[self.f]
-            self._welded = v, f, ~degenerate_faces(v, f)
+            self._welded = _welded(self.v, self.f)
         return self._welded
 
     def pairs(self, old) -> np.ndarray:
@@ -969,8 +972,7 @@ def _all_pairs(v: np.ndarray, f: np.ndarray, live: np.ndarray, among: np.ndarray
     idx = np.flatnonzero(live)
     fl = f[idx]
     P = v[fl]  # (m, 3 corners, 3)
-    lo = np.minimum(np.minimum(P[:, 0], P[:, 1]), P[:, 2])  # P.min(axis=1), P.max(axis=1): the same values
-    hi = np.maximum(np.maximum(P[:, 0], P[:, 1]), P[:, 2])
+    lo, hi = _boxes(P)
     i, j = candidate_pairs(lo, hi, None if among is None else among[idx])
     if not len(i):
         return np.zeros((0, 2), np.int64)

@@ -134,12 +134,10 @@ mesh = read_mesh(sys.argv[1])
 with contextlib.redirect_stdout(io.StringIO()):
     st.repair(read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj"), ctx, "r_")  # warm-up: imports
     c0, t0 = cpu(), time.perf_counter_ns()
-    if sys.argv[2] == "anchor":
-        fix = pymeshfix.MeshFix(mesh.vertices.copy(), mesh.faces.astype(np.int32))
-        fix.repair()
-        fix.points, fix.faces
-    elif sys.argv[2] == "ordered":
-        v, f = locality_ordered(mesh.vertices.copy(), mesh.faces)
+    if sys.argv[2] in ("anchor", "ordered"):
+        v, f = mesh.vertices.copy(), mesh.faces
+        if sys.argv[2] == "ordered":
+            v, f = locality_ordered(v, f)
         fix = pymeshfix.MeshFix(v, f.astype(np.int32))
         fix.repair()
         fix.points, fix.faces
