@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import scanreg
-from scanreg.config import Context
+from scanreg.types import RunContext as Context
 from scanreg.geometry import Cloud, barycentric_sample, make_T, transform_errors
 from scanreg.io import read_mesh
 

@@ -8,17 +8,17 @@ The Python API (see :mod:`scanreg.api`)::
     cfg = scanreg.compose(["icp=gicp"])           # a run config with overrides
     stage = scanreg.build_stage("icp", "horn", tau=1e-6)
 
-Layers, each importing only itself and the layers below (``tests/test_layers.py`` enforces it):
-the app (``app``, ``api``, ``report``, ``tracking``) > the runner (``runner``, ``deviation``) > the stages
-(``scanreg.stages``) > the geometry core (``registry``, ``config``, ``errors``, ``geometry``, ``io``, ``metrics``,
-``closest``, ``topology``, ``shell``).
+The layers, each importing only itself and the layers below (``tests/test_layers.py`` enforces it):
+
+- ``scanreg.app`` and ``scanreg.api``: the command, the Hydra application, tracking, reports;
+- ``scanreg.runner``: the steps of a run (``prepare_scan``, ``register_pair``, ``evaluate_pair``);
+- ``scanreg.stages``: the stage families and their registries (``scanreg.stages.*``);
+- ``scanreg.eval``: checks, metrics, pose uncertainty, deviation maps, the 3D view;
+- ``scanreg.io``, ``scanreg.mesh``, ``scanreg.geometry``: readers and writers, the repair's mesh kernel, the
+  geometry core; ``scanreg.types``, ``scanreg.errors``, ``scanreg.process`` beneath them all.
 """
 
-from scanreg import _o3d_lazy
-
-_o3d_lazy.install()  # Open3D's plotly/dash viewer imported on first use, not by every scanreg process
-
-__all__ = ["Result", "build_stage", "compose", "register"]
+__all__ = ["Result", "build_stage", "compose", "register", "run_config"]
 
 
 def __getattr__(name: str):

@@ -17,53 +17,37 @@ that the API and the CLI run exactly the same pipeline and give the same transfo
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from scanreg.config import compose
+from scanreg.app.config import compose
 from scanreg.errors import ConfigError, InputError, ScanregError
+from scanreg.types import Result
 
-__all__ = ["Result", "build_stage", "compose", "register"]
-
-
-@dataclass
-class Result:
-    """What one registration produced."""
-
-    T_target_source: np.ndarray
-    """4x4 transform mapping source points into the target frame (input units)."""
-    metrics: dict[str, float]
-    """Every metric the run logs (the names of ``result.json`` and MLflow: ``rms``, ``rotation_error_deg``, ...)."""
-    histories: dict[str, list[float]] = field(default_factory=dict)
-    """Per-iteration metrics, e.g. ``icp_rms`` (the ICP RMS at each iterate; MLflow step metric ``icp_rms_step``)."""
-    run_dir: Path | None = None
-    """The folder holding the artifacts."""
-    artifacts: list[Path] = field(default_factory=list)
-    """Files written: ``result.json``, ``T_target_source.txt``, ``aligned_source.ply``, deviation maps, ..."""
-    run_id: str | None = None
-    """The MLflow run id when ``tracking=True``."""
-
-    @property
-    def success(self) -> bool | None:
-        """With ground truth: rotation and translation errors under the ``evaluate.success_*`` limits."""
-        s = self.metrics.get("success")
-        return None if s is None else bool(s)
+__all__ = ["Result", "build_stage", "compose", "register", "run_config"]
 
 
 def build_stage(family: str, name: str, **params: Any):
     """One stage from its family's registry by name, its ``Params`` validated (``ConfigError`` on a bad name or
-    value), e.g. ``build_stage("sampler", "barycentric", n_points=5000)``. Stages run with a
-    :class:`scanreg.config.Context` (``Context(seed=0, run_dir=Path("."))``; distances in spacings need its
-    ``spacing`` set)."""
-    from scanreg.registry import REGISTRIES, load_all
+    value), e.g. ``build_stage("sampler", "barycentric", n_points=5000)``: the same stage, with the same
+    defaults, as the CLI builds from ``sampler=barycentric sampler.n_points=5000``. A coarse stage that uses
+    helper stages gets the default ones of the config (``salience``, ``descriptor``, ``matcher``). Stages run with a
+    :class:`scanreg.types.RunContext`."""
+    from scanreg.stages.registry import REGISTRIES, load_all
 
     load_all()
     if family not in REGISTRIES:
         raise ConfigError(f"unknown stage family '{family}'; valid: {', '.join(REGISTRIES)}")
-    return REGISTRIES[family].build({"name": name, **params})
+    cls, p = REGISTRIES[family].params({"name": name, **params})
+    helpers = {}
+    if getattr(cls, "uses", ()):
+        from scanreg.runner import build_stages
+
+        built = build_stages(compose(["data.source=_", "data.target=_"])).helpers
+        helpers = {fam: built[fam] for fam in cls.uses}
+    return cls(p, **helpers)
 
 
 def _quote(path: str) -> str:
@@ -120,10 +104,6 @@ def register(source: Any, target: Any, *, gt: Any = None, landmarks: Any = None,
     Raises :class:`scanreg.errors.ScanregError` (``InputError``, ``ConfigError``, ``StageError``) with the same
     one-line messages the CLI prints.
     """
-    from omegaconf import OmegaConf
-
-    from scanreg.runner import run_pipeline
-
     run_dir = Path(run_dir) if run_dir is not None else Path(tempfile.mkdtemp(prefix="scanreg-"))
     run_dir.mkdir(parents=True, exist_ok=True)
     folder = run_dir / "inputs"
@@ -154,28 +134,38 @@ def register(source: Any, target: Any, *, gt: Any = None, landmarks: Any = None,
         user.append("tracking=none")
     # data=files unless the caller chose otherwise; the inputs go last so that they win
     cfg = compose(["data=files", *user, *ovs], config_dirs=config_dirs)
-    OmegaConf.resolve(cfg)
-    run = None
-    if tracking:
-        from scanreg.registry import TRACKING, load_all
-        from scanreg.tracking import flatten
+    return run_config(cfg, run_dir, tracking, user)
 
-        load_all()
-        run = TRACKING.build(cfg.tracking).start_run(
-            run_name="api " + " ".join(user)[:240], params=flatten(OmegaConf.to_container(cfg)),
-            tags={"scanreg.run_dir": str(run_dir), "scanreg.overrides": " ".join(user), "scanreg.api": "1"},
-            background=True)  # MLflow's import and store open while the pipeline runs
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+
+def run_config(cfg, run_dir: str | Path, tracking: bool = False, overrides: Sequence[str] = ()) -> Result:
+    """Run a composed config (:func:`compose`) into ``run_dir``, as the CLI runs one; ``tracking``: log it with
+    the config's tracking backend."""
+    import time
+
+    from omegaconf import OmegaConf
+
+    from scanreg.app.tracking import TRACKING, RunRecord, flatten
+    from scanreg.runner import run_pipeline
+
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    resolved = OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)
+    tracker = TRACKING.build(cfg.tracking) if tracking else None
+    record = RunRecord(run_name="api " + " ".join(overrides)[:240], params=flatten(resolved),
+                       tags={"scanreg.run_dir": str(run_dir), "scanreg.overrides": " ".join(overrides),
+                             "scanreg.api": "1"}, start_time=int(time.time() * 1000))
+    config_file = run_dir / "config.yaml"
+    config_file.write_text(OmegaConf.to_yaml(resolved))
     try:
         res = run_pipeline(cfg, run_dir)
     except BaseException as e:
-        if run:
+        if tracker is not None:
             reason = str(e) if isinstance(e, ScanregError) else f"internal error: {type(e).__name__}: {e}"
-            run.end("KILLED" if isinstance(e, KeyboardInterrupt) else "FAILED", reason.splitlines()[0])
+            status = "KILLED" if isinstance(e, KeyboardInterrupt) else "FAILED"
+            tracker.log_run(record.ended(status, reason.splitlines()[0], getattr(e, "metrics", None),
+                                         artifacts=[config_file]))
         raise
-    if run:
-        run.log_metrics(res.metrics, res.step_metrics)
-        run.log_artifacts([run_dir / "config.yaml", *res.artifacts])
-        run.end("FINISHED")
-    return Result(T_target_source=res.T_target_source, metrics=dict(res.metrics), histories=dict(res.step_metrics),
-                  run_dir=run_dir, artifacts=list(res.artifacts), run_id=getattr(run, "run_id", None))
+    if tracker is not None:
+        res.run_id = tracker.log_run(record.ended("FINISHED", None, res.metrics, res.histories,
+                                                  [config_file, *res.artifacts]))
+    return res

@@ -20,3 +20,14 @@ class InputError(ScanregError):
 
 class StageError(ScanregError):
     """A stage could not do its work on valid input (too few points, no solution...)."""
+
+
+def one_line(e: BaseException, limit: int = 160) -> str:
+    """A library's exception as ``Type: message`` on one line (at most ``limit`` characters of the message)."""
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text[:limit]}" if text else type(e).__name__
+
+
+def warn(msg: str) -> None:
+    """A ``warning:`` line on standard output (the run goes on)."""
+    print(f"warning: {msg}", flush=True)

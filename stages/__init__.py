@@ -1,3 +1,4 @@
-"""Stage implementations, one module per stage family. They register themselves by name when imported;
-``scanreg.registry.load_all`` imports every module listed under the ``scanreg.stages`` entry-point group
-(pyproject.toml), so that the framework never imports a stage module by name and other packages can add stages."""
+"""The stages of the pipeline, one registry per family (:mod:`scanreg.stages.registry`) and one contract per
+family (:mod:`scanreg.stages.protocols`). Families with several implementations are packages (``data``,
+``repair``, ``coarse``, ``icp``); the others are modules (``sampler``, ``salience``, ``descriptor``,
+``matcher``)."""

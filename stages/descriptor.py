@@ -1,4 +1,4 @@
-"""Local shape descriptors computed at keypoints. Issue 4 adds the paper's ``histogram3p``."""
+"""Local shape descriptors computed at keypoints: FPFH (Open3D) and the paper's 3-plane histogram."""
 
 from __future__ import annotations
 
@@ -6,18 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scanreg.config import Context, Distances, to_abs
-from scanreg.geometry import Cloud
-from scanreg.registry import DESCRIPTOR
-
-
-def to_o3d(points: np.ndarray, normals: np.ndarray | None = None):
-    import open3d as o3d
-
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points)))
-    if normals is not None:
-        pc.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(normals))
-    return pc
+from scanreg.geometry import Cloud, estimate_normals, neighbourhoods, to_o3d
+from scanreg.stages.registry import DESCRIPTOR
+from scanreg.types import Distances, to_abs
 
 
 @DESCRIPTOR.register("fpfh")
@@ -41,11 +32,11 @@ class FPFH:
     def __init__(self, params: Params):
         self.p = params
 
-    def compute(self, cloud: Cloud, keypoints: np.ndarray, ctx: Context) -> np.ndarray:
+    def compute(self, cloud: Cloud, keypoints: np.ndarray, spacing: float) -> np.ndarray:
         """(K, 33) descriptors of ``cloud.points[keypoints]``."""
         import open3d as o3d
 
-        u, s = self.p.distances, ctx.spacing
+        u, s = self.p.distances, spacing
         support = to_o3d(cloud.points, cloud.normals)
         voxel = to_abs(self.p.support_voxel, u, s)
         if voxel > 0:
@@ -79,12 +70,10 @@ def local_frames(points: np.ndarray, normals: np.ndarray | None, keypoints: np.n
       l2 ~ l3 the x axis itself is ill-defined, and the frame cannot repeat exactly.
 
     ``neighbours``: the keypoints' ``(indices, distances, valid)`` from
-    :func:`scanreg.stages.salience.neighbourhoods` with a radius of at least ``radius`` and at least
+    :func:`scanreg.geometry.neighbourhoods` with a radius of at least ``radius`` and at least
     ``max_neighbors`` columns (nearest first), reused instead of a new search: its first ``max_neighbors``
     columns closer than ``radius`` are the same neighbours.
     """
-    from scanreg.stages.salience import neighbourhoods
-
     kp = points[keypoints]
     k = min(max_neighbors, len(points))
     if neighbours is not None and neighbours[0].shape[1] >= k:
@@ -141,17 +130,15 @@ class Histogram3P:
     def __init__(self, params: Params):
         self.p = params
 
-    def compute(self, cloud: Cloud, keypoints: np.ndarray, ctx: Context) -> np.ndarray:
+    def compute(self, cloud: Cloud, keypoints: np.ndarray, spacing: float) -> np.ndarray:
         from scipy.spatial import cKDTree
 
-        from scanreg.closest import estimate_normals
-
-        p, u, s = self.p, self.p.distances, ctx.spacing
+        p, u, s = self.p, self.p.distances, spacing
         R = to_abs(p.radius, u, s)
         pts = cloud.points
         nrm = cloud.normals if cloud.normals is not None else estimate_normals(pts)
         # One k-d tree for both searches. scipy's cKDTree returns the same neighbours, distances and order as
-        # :func:`scanreg.stages.salience.neighbourhoods` (pykdtree), 2-3x faster at 256 neighbours; only where
+        # :func:`scanreg.geometry.neighbourhoods` (pykdtree), 2-3x faster at 256 neighbours; only where
         # neighbours lie at exactly equal distances (grids, not scans) may their order, and which of them the
         # cap keeps, differ (tests/test_histogram3p_speed_equal.py).
         tree = cKDTree(pts)
@@ -207,7 +194,7 @@ class Histogram3P:
 
 
 def _knn(tree, queries: np.ndarray, radius: float, max_neighbors: int):
-    """:func:`scanreg.stages.salience.neighbourhoods` on a prebuilt scipy k-d tree: the (at most
+    """:func:`scanreg.geometry.neighbourhoods` on a prebuilt scipy k-d tree: the (at most
     ``max_neighbors``) nearest points closer than ``radius``, ``(indices, distances, valid)``, nearest first."""
     k = min(max_neighbors, tree.n)
     d, j = tree.query(np.ascontiguousarray(queries), k=k, distance_upper_bound=radius)

@@ -20,10 +20,10 @@ from typing import Optional
 
 import numpy as np
 
-from scanreg.config import Context, Distances, to_abs
 from scanreg.errors import StageError
-from scanreg.geometry import Cloud, voxel_groups
-from scanreg.registry import SALIENCE
+from scanreg.geometry import Cloud, neighbourhoods, voxel_representatives
+from scanreg.stages.registry import SALIENCE
+from scanreg.types import Distances, to_abs
 
 MEASURES = {
     "min_ratio": "min(l1/l2, l2/l3)",
@@ -34,34 +34,6 @@ MEASURES = {
     "l2_l3": "l2/l3",
 }
 MATRICES = {"cp": "point covariance C_p", "cn": "normal covariance C_n"}
-
-
-def voxel_representatives(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Index of one point per occupied voxel: the point nearest to the centroid of the voxel's points.
-    Sorted by voxel key, so the result does not depend on the order of equal keys (deterministic)."""
-    inv, counts = voxel_groups(points, voxel)
-    # per-voxel sums in the points' order, as np.add.at adds them (bincount is a plain loop too), 10x faster
-    sums = np.stack([np.bincount(inv, weights=points[:, k], minlength=len(counts)) for k in range(3)], axis=1)
-    centroids = sums / counts[:, None]
-    d = np.linalg.norm(points - centroids[inv], axis=1)
-    order = np.lexsort((d, inv))  # by voxel, then by distance to the centroid
-    first = np.ones(len(order), bool)
-    first[1:] = inv[order][1:] != inv[order][:-1]
-    return np.sort(order[first])
-
-
-def neighbourhoods(points: np.ndarray, radius: float, max_neighbors: int, queries: np.ndarray | None = None):
-    """Neighbours within ``radius`` (at most ``max_neighbors``, the nearest): ``(indices (N, K), distances (N,
-    K), valid mask (N, K))``; a point is its own neighbour."""
-    from pykdtree.kdtree import KDTree
-
-    q = points if queries is None else queries
-    k = min(max_neighbors, len(points))
-    d, j = KDTree(points).query(np.ascontiguousarray(q), k=k, distance_upper_bound=radius)
-    d, j = d.reshape(len(q), k), j.reshape(len(q), k).astype(np.int64)
-    valid = j < len(points)
-    j = np.where(valid, j, 0)
-    return j, np.where(valid, d, np.inf), valid
 
 
 def eigen_features(points, normals, radius, max_neighbors, gaussian, queries=None, batch=20000):
@@ -144,19 +116,19 @@ class EigenSalience:
     def __init__(self, params: SalienceParams):
         self.p = params
 
-    def values(self, cloud: Cloud, ctx: Context) -> np.ndarray:
+    def values(self, cloud: Cloud, spacing: float) -> np.ndarray:
         """Salience h of every point; -inf where there are fewer than ``min_neighbors`` neighbours."""
         if self.matrix == "cn" and cloud.normals is None:
             raise StageError(f"salience={self.name}: needs normals; {cloud.source} has none")
-        r = to_abs(self.p.radius, self.p.distances, ctx.spacing)
+        r = to_abs(self.p.radius, self.p.distances, spacing)
         lp, ln, counts = eigen_features(cloud.points, cloud.normals if self.matrix == "cn" else None, r,
                                         self.p.max_neighbors, self.p.weights == "gaussian")
         h = measure_values(lp if self.matrix == "cp" else ln, self.measure)
         return np.where(counts >= self.p.min_neighbors, h, -np.inf)
 
-    def keypoints(self, cloud: Cloud, ctx: Context) -> np.ndarray:
-        h = self.values(cloud, ctx)
-        idx = non_maximum_suppression(cloud.points, h, to_abs(self.p.nms_radius, self.p.distances, ctx.spacing),
+    def keypoints(self, cloud: Cloud, spacing: float) -> np.ndarray:
+        h = self.values(cloud, spacing)
+        idx = non_maximum_suppression(cloud.points, h, to_abs(self.p.nms_radius, self.p.distances, spacing),
                                       self.p.max_neighbors)
         if self.p.top_k is not None and len(idx) > self.p.top_k:
             idx = idx[np.argsort(-h[idx], kind="stable")[: self.p.top_k]]
@@ -187,8 +159,8 @@ class Uniform:
     def __init__(self, params: Params):
         self.p = params
 
-    def keypoints(self, cloud: Cloud, ctx: Context) -> np.ndarray:
-        return voxel_representatives(cloud.points, to_abs(self.p.voxel, self.p.distances, ctx.spacing))
+    def keypoints(self, cloud: Cloud, spacing: float) -> np.ndarray:
+        return voxel_representatives(cloud.points, to_abs(self.p.voxel, self.p.distances, spacing))
 
 
 @SALIENCE.register("iss")
@@ -213,11 +185,11 @@ class ISS:
     def __init__(self, params: Params):
         self.p = params
 
-    def keypoints(self, cloud: Cloud, ctx: Context) -> np.ndarray:
+    def keypoints(self, cloud: Cloud, spacing: float) -> np.ndarray:
         import open3d as o3d
         from pykdtree.kdtree import KDTree
 
-        p, u, s = self.p, self.p.distances, ctx.spacing
+        p, u, s = self.p, self.p.distances, spacing
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points))
         kp = o3d.geometry.keypoint.compute_iss_keypoints(
             pc, salient_radius=to_abs(p.salient_radius, u, s), non_max_radius=to_abs(p.non_max_radius, u, s),

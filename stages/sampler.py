@@ -7,10 +7,11 @@ from typing import Optional
 
 import numpy as np
 
-from scanreg.config import Context, Distances, to_abs
 from scanreg.errors import ConfigError
-from scanreg.geometry import Cloud, Mesh, barycentric_sample, triangle_areas_normals  # noqa: F401
-from scanreg.registry import SAMPLER
+from scanreg.geometry import (Cloud, Geometry, Mesh, barycentric_sample, estimate_spacing, to_o3d_mesh,
+                              triangle_areas_normals, voxel_representatives)
+from scanreg.stages.registry import SAMPLER
+from scanreg.types import Distances, RunContext, to_abs
 
 
 @dataclass
@@ -24,19 +25,23 @@ class CloudParams:
 
 
 class SamplerBase:
-    """Shared by all samplers: point-cloud inputs pass through, optionally voxel-downsampled."""
+    """Shared by all samplers: a mesh goes to the sampler's :meth:`sample_mesh`; point-cloud inputs pass through,
+    optionally voxel-downsampled."""
 
     p: CloudParams
 
     def __init__(self, params):
         self.p = params
 
-    def run_cloud(self, cloud: Cloud, ctx: Context) -> Cloud:
+    def sample(self, geometry: Geometry, ctx: RunContext) -> Cloud:
+        return self.sample_mesh(geometry, ctx) if isinstance(geometry, Mesh) else self.thin_cloud(geometry, ctx)
+
+    def sample_mesh(self, mesh: Mesh, ctx: RunContext) -> Cloud:  # pragma: no cover - per sampler
+        raise NotImplementedError
+
+    def thin_cloud(self, cloud: Cloud, ctx: RunContext) -> Cloud:
         if self.p.cloud_voxel is None:
             return cloud
-        from scanreg.metrics import estimate_spacing
-        from scanreg.stages.salience import voxel_representatives
-
         own = estimate_spacing(cloud.points, ctx.rng(3))
         voxel = to_abs(self.p.cloud_voxel, self.p.cloud_distances, own)
         if not voxel > 0:
@@ -44,15 +49,6 @@ class SamplerBase:
         out = cloud.subset(voxel_representatives(cloud.points, voxel))
         out.extra["voxel"] = voxel
         return out
-
-
-def _o3d_mesh(mesh: Mesh):
-    import open3d as o3d
-
-    om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
-                                   o3d.utility.Vector3iVector(mesh.faces.astype(np.int32)))
-    om.compute_triangle_normals()
-    return om
 
 
 @SAMPLER.register("barycentric")
@@ -78,7 +74,7 @@ class Barycentric(SamplerBase):
             if self.min_area_quantile and not 0 <= self.min_triangle_area < 1:
                 raise ValueError("min_triangle_area must be in [0, 1) when min_area_quantile is true")
 
-    def run(self, mesh: Mesh, ctx: Context) -> Cloud:
+    def sample_mesh(self, mesh: Mesh, ctx: RunContext) -> Cloud:
         areas, _ = triangle_areas_normals(mesh)
         min_area = self.p.min_triangle_area
         if self.p.min_area_quantile:
@@ -122,11 +118,11 @@ class Open3dUniform(SamplerBase):
         def check(self):
             _check_count(self)
 
-    def run(self, mesh: Mesh, ctx: Context) -> Cloud:
+    def sample_mesh(self, mesh: Mesh, ctx: RunContext) -> Cloud:
         import open3d as o3d
 
         o3d.utility.random.seed(self.p.seed)
-        om = _o3d_mesh(mesh)
+        om = to_o3d_mesh(mesh)
         pc = om.sample_points_uniformly(_count(self.p, om.get_surface_area(), self.name), use_triangle_normal=True)
         return Cloud(np.asarray(pc.points).copy(), np.asarray(pc.normals).copy(), mesh.source)
 
@@ -151,11 +147,11 @@ class PoissonDisk(SamplerBase):
             if self.init_factor < 1:
                 raise ValueError(f"init_factor must be >= 1, got {self.init_factor}")
 
-    def run(self, mesh: Mesh, ctx: Context) -> Cloud:
+    def sample_mesh(self, mesh: Mesh, ctx: RunContext) -> Cloud:
         import open3d as o3d
 
         o3d.utility.random.seed(self.p.seed)
-        om = _o3d_mesh(mesh)
+        om = to_o3d_mesh(mesh)
         pc = om.sample_points_poisson_disk(_count(self.p, om.get_surface_area(), self.name),
                                            init_factor=self.p.init_factor, use_triangle_normal=True)
         return Cloud(np.asarray(pc.points).copy(), np.asarray(pc.normals).copy(), mesh.source)
@@ -169,7 +165,7 @@ class Vertices(SamplerBase):
     class Params(CloudParams):
         pass
 
-    def run(self, mesh: Mesh, ctx: Context) -> Cloud:
+    def sample_mesh(self, mesh: Mesh, ctx: RunContext) -> Cloud:
         areas, fn = triangle_areas_normals(mesh)
         vn = np.zeros_like(mesh.vertices)
         for k in range(3):

@@ -80,7 +80,7 @@ def runs(uri: str, experiment: str):
 
 def stage_ctx(spacing=1.0, seed=0):
     """A stage context with this sampling spacing (no run directory)."""
-    from scanreg.config import Context
+    from scanreg.types import RunContext as Context
 
     c = Context(seed=seed, run_dir=None)
     c.spacing = spacing
@@ -89,7 +89,7 @@ def stage_ctx(spacing=1.0, seed=0):
 
 def build(reg, name, **kw):
     """A stage of registry ``reg`` by name, its Params validated."""
-    from scanreg.registry import make_params
+    from scanreg.stages.registry import make_params
 
     cls = reg.get(name)
     return cls(make_params(cls.Params, kw, name))

@@ -163,7 +163,7 @@ def test_sweep_parent_children_and_report(tmp_path, mlflow_uri):
     assert sorted(children["params.sampler.n_points"]) == ["3000", "6000"]
     assert set(children["status"]) == {"FINISHED"}
     rep = run_cli(["--experiment", "sweep", "--uri", mlflow_uri, "--out", str(tmp_path / "rep")], tmp_path,
-                  module="scanreg.report")
+                  module="scanreg.app.report.write")
     assert rep.returncode == 0, rep.stderr
     import pandas as pd
 

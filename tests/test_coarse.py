@@ -5,12 +5,12 @@ import pytest
 
 from conftest import build, shared
 from conftest import stage_ctx as ctx
-from scanreg.config import Distances
+from scanreg.types import Distances
 from scanreg.errors import StageError
 from scanreg.geometry import Cloud, apply_T, random_pose, transform_errors
 from scanreg.io import read_mesh
-from scanreg.metrics import estimate_spacing
-from scanreg.registry import COARSE, DESCRIPTOR, SALIENCE, load_all
+from scanreg.geometry import estimate_spacing
+from scanreg.stages.registry import COARSE, DESCRIPTOR, SALIENCE, load_all
 from scanreg.stages.salience import MATRICES, MEASURES
 from scanreg.geometry import barycentric_sample
 

@@ -5,7 +5,7 @@ import pytest
 
 from conftest import build
 from scanreg.geometry import Cloud, apply_T, bbox_diagonal, sparse_voxel_mask, transform_errors, voxel_occupancy
-from scanreg.registry import COARSE, SALIENCE, load_all
+from scanreg.stages.registry import COARSE, SALIENCE, load_all
 
 load_all()
 
@@ -84,7 +84,7 @@ def test_lo_ransac_remeasures_the_spacing_at_50_percent_outliers():
     spacing again without them, looks again on the finer grid, and the pose is found."""
     from test_coarse import stanford_case
 
-    from scanreg.metrics import estimate_spacing
+    from scanreg.geometry import estimate_spacing
 
     tgt, src, T_gt, c = stanford_case(3, 10000, build(SALIENCE, "uniform"))
     clean_coarse = build(COARSE, "lo_ransac", fallback_voxel=None).run(tgt, src, c)[1]["coarse_spacing"]

@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from scanreg.app import CONF_DIR, STAGE_GROUPS, check_group_overrides, precheck
 from scanreg.errors import ConfigError
-from scanreg.registry import REGISTRIES, field_docs, load_all, make_params
+from scanreg.stages.registry import REGISTRIES, field_docs, load_all, make_params
 from scanreg.app import validate_config as build_stages
 
 load_all()
@@ -103,7 +103,7 @@ def test_user_config_dir_plugs_in(tmp_path):
     """A user's own config folder (their presets and experiments) on Hydra's search path: --config-dir on the
     command line, config_dirs in the Python API."""
     from scanreg.app import precheck
-    from scanreg.config import compose
+    from scanreg.app.config import compose
 
     (tmp_path / "experiment").mkdir()
     (tmp_path / "experiment" / "my_density.yaml").write_text(
@@ -131,7 +131,7 @@ def test_scanreg_stages_shows_the_yaml_defaults_at_100_columns(capsys):
     initial_share is 0.25 there, 1.0 in the shared Params), in at most 100 columns and without markup."""
     import re
 
-    from scanreg.registry import main as stages_main
+    from scanreg.app.stages_cli import main as stages_main
 
     assert stages_main([]) == 0
     text = capsys.readouterr().out
@@ -160,7 +160,7 @@ def test_scanreg_stages_shows_the_yaml_defaults_at_100_columns(capsys):
 
 
 def test_scanreg_stages_help_and_filter(capsys):
-    from scanreg.registry import main as stages_main
+    from scanreg.app.stages_cli import main as stages_main
 
     with pytest.raises(SystemExit) as e:
         stages_main(["--help"])
@@ -196,7 +196,7 @@ def test_quick_help_is_hydras_text(tmp_path):
                 "from scanreg.app import _hydra_main; _hydra_main()")
         hydra = subprocess.run([sys.executable, "-c", code, *extra], cwd=tmp_path, capture_output=True, text=True,
                                timeout=300)
-        ours = subprocess.run([sys.executable, "-m", "scanreg.cli", "--help", *extra], cwd=tmp_path,
+        ours = subprocess.run([sys.executable, "-m", "scanreg.app.cli", "--help", *extra], cwd=tmp_path,
                               capture_output=True, text=True, timeout=300)
         assert hydra.returncode == 0 and ours.returncode == 0, hydra.stderr + ours.stderr
         assert ours.stdout == hydra.stdout and "Config groups" in ours.stdout

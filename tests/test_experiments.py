@@ -11,9 +11,9 @@ from omegaconf import OmegaConf
 
 from conftest import ROOT, run_cli, shared, runs
 from scanreg.app import CONF_DIR
-from scanreg.config import Context
+from scanreg.types import RunContext as Context
 from scanreg.geometry import Cloud, Mesh, apply_T, invert_T, transform_errors, vertex_normals
-from scanreg.registry import DATA, load_all
+from scanreg.stages.registry import DATA, load_all
 
 
 
@@ -42,7 +42,7 @@ def test_experiments_are_sweeps_that_write_their_report():
 def test_report_block_matches_its_params():
     from dataclasses import fields
 
-    from scanreg.report import ReportParams
+    from scanreg.app.report.write import ReportParams
 
     cfg = OmegaConf.load(CONF_DIR / "config.yaml")
     assert set(cfg.report) == {f.name for f in fields(ReportParams)}
@@ -76,7 +76,7 @@ def test_tiny_experiment_report_matches_result_json(tmp_path, mlflow_uri):
                   f"hydra.sweep.dir={tmp_path / 's2'}"], tmp_path, mlflow_uri)
     assert r2.returncode == 0, r2.stderr
     rep = run_cli(["--experiment", "tiny", "--compare-to", "tiny2", "--group-by", "sampler.n_points", "--uri",
-                   mlflow_uri, "--out", str(tmp_path / "cmp")], tmp_path, module="scanreg.report")
+                   mlflow_uri, "--out", str(tmp_path / "cmp")], tmp_path, module="scanreg.app.report.write")
     assert rep.returncode == 0, rep.stderr
     cmp = pd.read_csv(tmp_path / "cmp" / "compare.csv")
     assert "success_rate [tiny]" in cmp and "success_rate [tiny2]" in cmp and len(cmp) == 2
@@ -130,8 +130,8 @@ def dental_case():
 
 
 def test_dental_case_geometry(dental_case):
-    from scanreg.deviation import signed_deviation
-    from scanreg.topology import audit_mesh
+    from scanreg.eval.deviation import signed_deviation
+    from scanreg.mesh.topology import audit_mesh
 
     gen, inp = dental_case
     assert inp.target_labels is not None and set(np.unique(inp.target_labels)) == set(range(31, 39)) | set(range(41, 49))  # FDI (Universal 17-32)
@@ -144,7 +144,7 @@ def test_dental_case_geometry(dental_case):
     nrm = vertex_normals(back)
     axis = nrm.mean(axis=0)
     up = nrm @ (axis / np.linalg.norm(axis)) > 0.9  # facing the occlusal side
-    from scanreg.closest import ClosestPoints
+    from scanreg.geometry import ClosestPoints
 
     dev, _, ids = signed_deviation(back.vertices, nrm, ClosestPoints(Cloud(inp.target.vertices), inp.target))
     crown_tops = up & (np.abs(dev) < 0.5)
@@ -171,9 +171,9 @@ def test_deviation_of_a_known_offset(tmp_path):
     """A surface moved 50 um along its normals deviates by +50 um; per-part statistics split by label."""
     import pymeshlab
 
-    from scanreg.deviation import evaluate_deviation
+    from scanreg.eval.deviation import evaluate_deviation
     from scanreg.io import resolve_path, read_mesh
-    from scanreg.metrics import EvalParams
+    from scanreg.eval.metrics import EvalParams
 
     mesh = read_mesh(resolve_path("pkg:pymeshlab/tests/sample_meshes/bunny.obj"))
     scale = 50.0 / np.ptp(mesh.vertices, axis=0).max()  # about 50 mm across
@@ -183,7 +183,7 @@ def test_deviation_of_a_known_offset(tmp_path):
     from scanreg.geometry import barycentric_sample
 
     pts, nrm, _ = barycentric_sample(moved, 20000, np.random.default_rng(0))
-    from scanreg.closest import ClosestPoints
+    from scanreg.geometry import ClosestPoints
 
     m, paths, _ = evaluate_deviation(tmp_path, Cloud(pts, nrm), moved, ClosestPoints(Cloud(mesh.vertices), mesh), labels,
                                   EvalParams(deviation_map=True), "part")
@@ -263,7 +263,7 @@ def test_optuna_sweep_tunes_against_the_registration_error(tmp_path, mlflow_uri)
 # ------------------------------------------------------------------------------------------- harder cases
 def _plane_inputs(n: int = 4000, seed: int = 0):
     """A flat 10 x 10 square source mesh (2 triangles) and a cloud target on the same square: diagonal known."""
-    from scanreg.stages.data import Inputs
+    from scanreg.types import Problem as Inputs
 
     v = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0]], float)
     mesh = Mesh(v, np.array([[0, 1, 2], [0, 2, 3]]), "square")
@@ -325,7 +325,7 @@ def test_density_ratio_and_crop_counts():
     low = np.sort(np.argsort(h, kind="stable")[:6000])
     assert np.array_equal(out.source.points, full[low]) and h[low].max() <= np.delete(h, low).min()
     # a cloud source keeps 1/ratio of its points
-    from scanreg.stages.data import Inputs
+    from scanreg.types import Problem as Inputs
 
     inp = _plane_inputs()
     swapped = Inputs(inp.target, inp.source, np.eye(4), None, {})

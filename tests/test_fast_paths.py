@@ -5,20 +5,20 @@ int64 key per voxel, bincount sums) bit for bit."""
 import numpy as np
 import pytest
 
-from scanreg.config import Context, to_abs
+from scanreg.types import RunContext as Context, to_abs
 from scanreg.geometry import Cloud, barycentric_sample
 from scanreg.io import read_mesh
-from scanreg.metrics import estimate_spacing
-from scanreg.registry import DESCRIPTOR, SALIENCE, load_all
+from scanreg.geometry import estimate_spacing
+from scanreg.stages.registry import DESCRIPTOR, SALIENCE, load_all
 
 load_all()
 
 
 def reference_histogram3p(p, cloud: Cloud, keypoints: np.ndarray, spacing: float) -> np.ndarray:
     """The implementation before issue #16 (24 bincount scatters over every vote), unchanged."""
-    from scanreg.closest import estimate_normals
+    from scanreg.geometry import estimate_normals
     from scanreg.stages.descriptor import local_frames
-    from scanreg.stages.salience import neighbourhoods
+    from scanreg.geometry import neighbourhoods
 
     u, s = p.distances, spacing
     R = to_abs(p.radius, u, s)
@@ -105,7 +105,7 @@ def reference_voxel_representatives(points: np.ndarray, voxel: float) -> np.ndar
 
 @pytest.mark.parametrize("n, voxel", [(20000, 0.05), (3000, 0.7), (7, 10.0)])
 def test_voxel_representatives_equal_the_reference(n, voxel):
-    from scanreg.stages.salience import voxel_representatives
+    from scanreg.geometry import voxel_representatives
 
     rng = np.random.default_rng(n)
     pts = rng.normal(size=(n, 3)) * [1.0, 3.0, 0.2] + [5.0, -2.0, 0.0]
@@ -119,7 +119,7 @@ def test_voxel_representatives_equal_the_reference(n, voxel):
 def test_coarse_thinning_keeps_min_points_and_caps_max_points():
     """The coarse stage's voxel thinning (stages/coarse.py ``downsampled``): a sparse pair is left as it is, the
     thinner cloud keeps at least ``min_points`` (the voxel shrinks), and ``max_points`` bounds a dense one."""
-    from scanreg.stages.coarse import downsampled
+    from scanreg.stages.coarse.thinning import downsampled
 
     m = read_mesh("pkg:pymeshlab/tests/sample_meshes/bunny.obj")
     dense, sparse = (Cloud(*barycentric_sample(m, n, np.random.default_rng(n))[:2]) for n in (40_000, 3_000))

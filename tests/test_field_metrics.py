@@ -9,7 +9,7 @@ import pytest
 from conftest import shared
 from scanreg.geometry import Cloud
 from scanreg.io import write_ply
-from scanreg.metrics import (EvalParams, feature_match_recall, field_metrics, gt_metrics, gt_rmse, inlier_ratio,
+from scanreg.eval.metrics import (EvalParams, feature_match_recall, field_metrics, gt_metrics, gt_rmse, inlier_ratio,
                              keypoint_repeatability, match_inliers, overlap_mask, registration_recall)
 
 
@@ -140,7 +140,7 @@ def test_write_ply_edges_read_back_as_a_line_set(tmp_path):
 
 def test_stanford_run_logs_the_field_metrics_and_writes_coloured_plys(tmp_path):
     shared("stanford_bunny/bun.conf")
-    from scanreg.config import compose
+    from scanreg.app.config import compose
     from scanreg.runner import run_pipeline
 
     cfg = compose(["data=stanford", "repair=none", "tracking=none", "evaluate.view_html=false",

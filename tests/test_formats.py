@@ -254,7 +254,7 @@ def test_columns_override(tmp_path):
     ("few.npy", None, "4 point(s) (3 invalid point(s) dropped); at least 10"),
 ])
 def test_degenerate_inputs_are_input_errors(tmp_path, name, data, what):
-    from scanreg.checks import check_geometry
+    from scanreg.eval.checks import check_geometry
 
     if data is None:
         arr = np.random.default_rng(0).normal(size=(7, 3))
@@ -273,7 +273,7 @@ def test_degenerate_inputs_are_input_errors(tmp_path, name, data, what):
 
 def test_bumpy_but_thin_input_passes():
     """A wavy sheet 1 % as thick as it is wide is not flat."""
-    from scanreg.checks import check_geometry
+    from scanreg.eval.checks import check_geometry
 
     u, v = np.mgrid[0:40, 0:40] / 40.0
     pts = np.stack([u, v, 0.01 * np.sin(7 * u) * np.cos(5 * v)], -1).reshape(-1, 3)
@@ -355,7 +355,7 @@ def test_colours_of_a_text_cloud_colour_the_aligned_output(tmp_path):
     them; data.columns overrides the detection."""
     from conftest import run_cli
     from scanreg.geometry import apply_T, random_pose
-    from scanreg.stages.sampler import barycentric_sample
+    from scanreg.geometry import barycentric_sample
 
     mesh = read_mesh("pkg:pymeshlab/tests/sample_meshes/bunny.obj")
     rng = np.random.default_rng(0)

@@ -9,11 +9,11 @@ import pytest
 from conftest import shared, stage_ctx
 from scanreg.geometry import Cloud, apply_T, barycentric_sample, invert_T, random_pose
 from scanreg.io import read_mesh, read_stanford_conf
-from scanreg.metrics import estimate_spacing, transform_errors
-from scanreg.registry import COARSE, DESCRIPTOR, MATCHER, SALIENCE, load_all
+from scanreg.geometry import estimate_spacing, transform_errors
+from scanreg.stages.registry import COARSE, DESCRIPTOR, MATCHER, SALIENCE, load_all
 # the references: the pykdtree search histogram3p used before (still the salience measures' search), and the
 # straightforward implementation from before issue #16 that test_fast_paths keeps (the benchmark's "before")
-from scanreg.stages.salience import neighbourhoods as reference_neighbourhoods
+from scanreg.geometry import neighbourhoods as reference_neighbourhoods
 from test_fast_paths import reference_histogram3p
 
 load_all()
@@ -34,7 +34,7 @@ class ReferenceHistogram3P:
 def bunny():
     """bun045 -> bun000 sampled at the default 20 000 points, the source under a random pose, and the thinned
     target the default coarse stage works on (voxel 4 spacings) with its uniform keypoints."""
-    from scanreg.stages.coarse import downsampled
+    from scanreg.stages.coarse.thinning import downsampled
 
     folder = shared("stanford_bunny")
     poses = read_stanford_conf(folder / "bun.conf")

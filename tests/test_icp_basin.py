@@ -6,16 +6,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from conftest import shared
-from scanreg.config import Context
+from scanreg.types import RunContext as Context
 from scanreg.errors import ConfigError
 from scanreg.geometry import Cloud, apply_T, barycentric_sample, bbox_diagonal, make_T, random_pose, transform_errors
 from scanreg.io import read_mesh
-from scanreg.metrics import estimate_spacing
+from scanreg.geometry import estimate_spacing
 from scanreg.stages.icp import IcpBase, kernel_weights
 
 
 def icp_stage(name, **kw):
-    from scanreg.registry import ICP, load_all, make_params
+    from scanreg.stages.registry import ICP, load_all, make_params
 
     load_all()
     cls = ICP.get(name)

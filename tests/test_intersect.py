@@ -9,7 +9,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from scanreg.intersect import _MEMO, candidate_pairs, intersecting_across, orient2d, orient3d, self_intersecting_faces
+from scanreg.mesh.intersect import _MEMO, candidate_pairs, intersecting_across, orient2d, orient3d, self_intersecting_faces
 
 
 # ------------------------------------------------------------------------------------- rational reference
@@ -286,7 +286,7 @@ def test_incremental_equals_full():
 def test_memo_finds_the_mesh_an_edit_came_from():
     """The memo pairs a mesh with the earlier one that shares at least half its faces, through the sampled
     pre-check and the full count; an unrelated mesh, or one sharing too few faces, is tested afresh."""
-    from scanreg.intersect import _face_keys
+    from scanreg.mesh.intersect import _face_keys
 
     rng = np.random.default_rng(2)
     v, f = _two_spheres()
@@ -318,7 +318,7 @@ def test_beside_gives_the_same_in_a_child_a_thread_and_after_a_failure(monkeypat
     import os
     import sys
 
-    from scanreg.intersect import Beside
+    from scanreg.mesh.intersect import Beside
 
     v, f = _two_spheres()
     want, edited = _fresh(v, f), f[5:]
@@ -367,7 +367,7 @@ def test_beside_answers_a_later_request_in_a_child_a_thread_and_after_a_failure(
     import sys
     import time
 
-    from scanreg.intersect import Beside
+    from scanreg.mesh.intersect import Beside
 
     v, f = _two_spheres()
     want = _fresh(v, f)
@@ -481,7 +481,7 @@ def test_folded_grids_match_the_reference(seed):
 
 
 def test_regular_vertices_on_a_sphere_and_a_dent():
-    from scanreg.intersect import regular_vertices
+    from scanreg.mesh.intersect import regular_vertices
 
     import open3d as o3d
 
@@ -513,7 +513,7 @@ def _fan(points, closed):
 def test_fans_that_turn_more_than_once(case):
     """Fans built to defeat each condition of the fast path for regular vertices (each must be tested pair
     by pair, and the result must be the reference's), and two that turn once (no face intersects)."""
-    from scanreg.intersect import regular_vertices
+    from scanreg.mesh.intersect import regular_vertices
 
     if case == "twice_closed":  # a closed fan around twice; the blades' heights cross
         a = np.linspace(0, 4 * np.pi, 9)[:-1]
@@ -550,7 +550,7 @@ def test_fans_that_turn_more_than_once(case):
 def test_weld_equals_numpy_unique_rows():
     """The weld before the test (a lexsort of the columns) gives ``np.unique(v, axis=0)``'s rows and inverse:
     duplicated rows, rows equal in their first one or two coordinates, -0.0 beside 0.0, a single row."""
-    from scanreg.intersect import _weld
+    from scanreg.mesh.intersect import _weld
 
     rng = np.random.default_rng(3)
     base = rng.integers(-2, 3, (200, 3)).astype(float) * 0.25  # many ties in every column, negatives
@@ -567,7 +567,7 @@ def test_regular_vertices_from_their_fans_alone(seed):
     (each vertex's answer depends on its own fan, in the faces' order): the same answers as from the whole
     mesh, on folded grids where some fans turn more than once."""
     from scanreg.geometry import rows_any
-    from scanreg.intersect import regular_vertices
+    from scanreg.mesh.intersect import regular_vertices
 
     rng = np.random.default_rng(seed)
     n = 9
@@ -621,7 +621,7 @@ def test_beside_runs_the_test_last_when_asked(last, tmp_path, monkeypatch):
     import os
 
     import scanreg.intersect as intersect
-    from scanreg.intersect import Beside
+    from scanreg.mesh.intersect import Beside
 
     if not intersect.forking():
         pytest.skip("no fork here: the order is the thread's")

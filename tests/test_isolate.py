@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import children, settled
-from scanreg.isolate import IsolatedCrash, forking, run_isolated
+from scanreg.process import IsolatedCrash, forking, run_isolated
 
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked children on Linux only")
 
@@ -115,10 +115,10 @@ def test_a_crash_is_an_error_not_the_end_of_the_run():
 def test_meshfix_crash_is_one_error_line(monkeypatch):
     """A crash inside MeshFix (simulated: its session kills its own process) fails the repair with the
     backend's one error line, and leaves no child process behind."""
-    from scanreg.config import Context
+    from scanreg.types import RunContext as Context
     from scanreg.errors import StageError
     from scanreg.io import read_mesh
-    from scanreg.registry import REPAIR, load_all, make_params
+    from scanreg.stages.registry import REPAIR, load_all, make_params
     import scanreg.stages.repair.meshfix as meshfix_module
 
     load_all()
@@ -199,7 +199,7 @@ def test_a_value_that_cannot_be_pickled_is_named():
 
 
 def _meshfix_stage():
-    from scanreg.registry import REPAIR, load_all, make_params
+    from scanreg.stages.registry import REPAIR, load_all, make_params
 
     load_all()
     cls = REPAIR.get("meshfix")
@@ -210,7 +210,7 @@ def _meshfix_stage():
 def test_meshfix_failure_in_its_child_leaves_no_process(monkeypatch):
     """An exception inside MeshFix's session is the backend's one error line, and the input audit's child,
     started beside it and waiting for its request, is closed and reaped."""
-    from scanreg.config import Context
+    from scanreg.types import RunContext as Context
     from scanreg.errors import StageError
     from scanreg.io import read_mesh
     import scanreg.stages.repair.meshfix as meshfix_module
@@ -230,7 +230,8 @@ def test_meshfix_in_children_is_meshfix_here(monkeypatch):
     """MeshFix in child processes gives the same mesh and metrics, bit for bit, as in this process
     (SCANREG_NO_FORK), on a mesh of two parts (two sessions) and, with ../shared/data, on MeshLab's
     non-manifold hole (the degeneracy session)."""
-    from scanreg.config import Context, shared_data_dir
+    from scanreg.types import RunContext as Context
+from scanreg.io import shared_data_dir
     from scanreg.geometry import Mesh
     from scanreg.io import read_mesh
 

@@ -10,10 +10,10 @@ import pytest
 from scipy import optimize, stats
 from scipy.spatial.transform import Rotation
 
-from scanreg.closest import ClosestPoints
+from scanreg.geometry import ClosestPoints
 from scanreg.geometry import (Cloud, Mesh, apply_T, barycentric_sample, horn_quaternion, make_T, random_pose,
                               rigid_points_normals)
-from scanreg.registry import COARSE, DESCRIPTOR, ICP, SALIENCE, load_all
+from scanreg.stages.registry import COARSE, DESCRIPTOR, ICP, SALIENCE, load_all
 from scanreg.stages import descriptor as descriptor_mod
 from scanreg.stages.salience import non_maximum_suppression
 

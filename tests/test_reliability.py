@@ -411,7 +411,7 @@ def test_sweep_into_a_postgres_backed_mlflow_server(tmp_path, postgres_mlflow_se
     arts = {a.path for a in MlflowClient(uri).list_artifacts(children.iloc[0]["run_id"])}
     assert {"result.json", "T_target_source.txt"} <= arts  # served by the tracking server
     rep = run_cli(["--experiment", "team", "--uri", uri, "--out", str(tmp_path / "rep")], tmp_path,
-                  module="scanreg.report")
+                  module="scanreg.app.report.write")
     assert rep.returncode == 0, rep.stderr
 
 

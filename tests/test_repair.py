@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 
 from conftest import children, oriented_triangles, settled, shared
-from scanreg.config import Context
+from scanreg.types import RunContext as Context
 from scanreg.errors import StageError
 from scanreg.io import read_mesh
-from scanreg.registry import REPAIR, make_params
+from scanreg.stages.registry import REPAIR, make_params
 from scanreg.stages.repair import repair_with_audit
-from scanreg.topology import audit_mesh, mesh_stats
+from scanreg.mesh.topology import audit_mesh, mesh_stats
 
 CTX = Context(seed=0, run_dir=None)
 
@@ -128,7 +128,7 @@ def test_distances_to_are_exact_point_to_triangle_distances():
     import pickle
 
     from scanreg.geometry import Mesh, bbox_diagonal
-    from scanreg.topology import area_samples, distances_to, point_distances, raycasting_scene
+    from scanreg.mesh.topology import area_samples, distances_to, point_distances, raycasting_scene
 
     square = Mesh(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
     q = np.array([[0.3, 0.4, 0.5], [2, 0.5, 0], [2, 2, 0], [-1, -1, 1], [0.5, 0.5, 0]])
@@ -157,7 +157,7 @@ def test_close_as_shell_on_an_open_surface():
     """A bumpy open sheet closed as a thin shell: watertight, outward oriented, no self-intersection, the
     scanned side unchanged and recovered by Mesh.scanned()."""
     from scanreg.geometry import Mesh
-    from scanreg.shell import close_as_shell
+    from scanreg.mesh.shell import close_as_shell
 
     n = 20
     x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
@@ -188,7 +188,7 @@ def test_open_scans_become_watertight_shells(backend, mesh):
     """repair.open_border=shell: every hole but the outer border filled, then the scan closed as a thin shell.
     One watertight, edge- and vertex-manifold, oriented component with no self-intersecting face, with almost
     nothing removed; samplers see only the scanned side."""
-    from scanreg.topology import surface_distances
+    from scanreg.mesh.topology import surface_distances
 
     m = load(mesh)
     small = "meshlab_defects" in mesh
@@ -242,8 +242,8 @@ def test_meshlab_closes_holes_on_their_neighbourhood_as_on_the_whole_mesh():
     import pymeshlab
 
     from scanreg.geometry import Mesh
-    from scanreg.registry import load_all
-    from scanreg.topology import boundary_loop_sizes
+    from scanreg.stages.registry import load_all
+    from scanreg.mesh.topology import boundary_loop_sizes
 
     load_all()
     m = _wavy_grid_with_hole()
@@ -324,7 +324,7 @@ def test_meshfix_renumbers_the_scattered_bunny_and_gets_the_same_triangles(monke
     assert clean0 == clean1 and len(f0) == len(f1) > len(mesh.faces)  # holes filled
     assert np.array_equal(oriented_triangles(v1, f1), oriented_triangles(v0, f0))
     # MeshFix's "clean" (its own intersection test), which the audit takes as the count, agrees with the exact test
-    from scanreg.intersect import forget_recent, self_intersecting_faces
+    from scanreg.mesh.intersect import forget_recent, self_intersecting_faces
     forget_recent()
     assert clean1 and not self_intersecting_faces(v1, f1).any()
 
@@ -336,7 +336,7 @@ def test_meshfix_counts_intersections_between_parts_it_repaired_one_by_one():
     import scanreg.stages.repair.audit as audit
     import scanreg.stages.repair.meshfix as mf
     from scanreg.geometry import Mesh
-    from scanreg.intersect import forget_recent, self_intersecting_faces
+    from scanreg.mesh.intersect import forget_recent, self_intersecting_faces
 
     cow = load("pkg:pymeshlab/tests/sample_meshes/cow.obj")
     shift = 0.3 * (cow.vertices.max(axis=0) - cow.vertices.min(axis=0))

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from conftest import build, run_cli, shared
-from scanreg.config import Context
+from scanreg.types import RunContext as Context
 from scanreg.geometry import Mesh, submesh
 from scanreg.io import read_mesh
-from scanreg.registry import REPAIR, load_all
+from scanreg.stages.registry import REPAIR, load_all
 
 COW = "pkg:pymeshlab/tests/sample_meshes/cow.obj"  # closed, 5804 faces
 
@@ -96,7 +96,7 @@ def test_cache_modes():
 
 
 def test_non_manifold_vertices_agree_with_meshlab():
-    from scanreg.topology import _meshset, non_manifold_vertices
+    from scanreg.mesh.topology import _meshset, non_manifold_vertices
 
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0.0], [0, 0, 1.0]])
     bowtie = Mesh(v, np.array([[0, 1, 2], [0, 3, 4]]))
@@ -135,7 +135,7 @@ def test_fans_by_pointer_doubling_are_the_graph_components():
     as the corner graph's components on a holed cow with vertices welded into pinches, a cone whose apex has
     200 corners (8 doubling rounds), open fans at a border, and a pinch of two cones; a flipped face takes the
     graph's way, and MeshLab agrees."""
-    from scanreg.topology import _meshset, non_manifold_vertices
+    from scanreg.mesh.topology import _meshset, non_manifold_vertices
 
     rng = np.random.default_rng(5)
     m = holed_cow()
@@ -167,7 +167,7 @@ def test_fans_by_pointer_doubling_are_the_graph_components():
 def test_edge_table_equals_unique_in_both_sorts():
     """The one edge table (rows sorted by edge as packed integers, or by an argsort when vertex indices are too
     large to pack) gives np.unique's edge ids and counts, and its order sorts the keys."""
-    from scanreg.topology import _edge_table_sorted
+    from scanreg.mesh.topology import _edge_table_sorted
 
     rng = np.random.default_rng(3)
     m = holed_cow()
@@ -182,7 +182,7 @@ def test_edge_table_equals_unique_in_both_sorts():
 
 
 def test_non_manifold_vertices_on_raw_scans():
-    from scanreg.topology import _meshset, non_manifold_vertices
+    from scanreg.mesh.topology import _meshset, non_manifold_vertices
 
     for rel in ("meshlab_defects/many_small_holes.ply", "stanford_bunny/bun045.ply"):
         mesh = read_mesh(str(shared(rel)))

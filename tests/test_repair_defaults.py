@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from conftest import children, settled, shared
-from scanreg.config import Context
+from scanreg.types import RunContext as Context
 from scanreg.errors import StageError
 from scanreg.geometry import Mesh, bbox_diagonal
 from scanreg.io import read_mesh
-from scanreg.registry import REPAIR, make_params
+from scanreg.stages.registry import REPAIR, make_params
 from scanreg.stages.repair import AuditedRepair, GuardParams, repair_with_audit
-from scanreg.topology import border_loops, mesh_stats, open_scan_borders
+from scanreg.mesh.topology import border_loops, mesh_stats, open_scan_borders
 
 CTX = Context(seed=0, run_dir=None)
 BUNNY = "pkg:pymeshfix/examples/StanfordBunny.ply"

@@ -4,11 +4,11 @@ by edge collapse (the paper removes degenerate triangles by edge collapse or swa
 import numpy as np
 import pytest
 
-from scanreg.config import Context
+from scanreg.types import RunContext as Context
 from scanreg.geometry import Mesh, make_T
 from scanreg.io import write_ply
-from scanreg.registry import REPAIR, load_all, make_params
-from scanreg.topology import collapse_slivers, mesh_stats, min_angles_deg
+from scanreg.stages.registry import REPAIR, load_all, make_params
+from scanreg.mesh.topology import collapse_slivers, mesh_stats, min_angles_deg
 
 
 def sliver_sphere() -> tuple[Mesh, Mesh]:
@@ -83,7 +83,7 @@ def test_collapse_tracks_the_faces_it_changed():
     """collapse_slivers records which faces it changed (the faces with a moved or joined corner), for collapse_folds:
     the same faces as comparing the two meshes' coordinates finds on the sliver sphere, and collapse_folds gives
     the same counts either way."""
-    from scanreg.topology import _changed_faces, collapse_folds, known
+    from scanreg.mesh.topology import _changed_faces, collapse_folds, known
 
     _, sl = sliver_sphere()
     out = collapse_slivers(sl)
@@ -102,7 +102,7 @@ def test_audit_shortcuts_give_the_plain_computations_answers():
     (the points ``barycentric_sample`` draws), and the smallest angles ``collapse_slivers`` copies for the faces
     it kept."""
     from scanreg.geometry import barycentric_sample
-    from scanreg.topology import _area_sample, _edge_table, _min_angles_deg, non_manifold_vertices
+    from scanreg.mesh.topology import _area_sample, _edge_table, _min_angles_deg, non_manifold_vertices
 
     _, sl = sliver_sphere()
     # a non-manifold edge (three faces on 0-1), a pinched vertex (two fans at 5) and a zero-area face
@@ -127,7 +127,7 @@ def test_audit_shortcuts_give_the_plain_computations_answers():
                                   barycentric_sample(m, 500, np.random.default_rng(seed))[0])
     assert non_manifold_vertices(odd) == 1  # vertex 5 (0 and 1 are on the non-manifold edge, not counted)
     from scanreg.geometry import cross3, triangle_areas_normals
-    from scanreg.topology import _face_areas
+    from scanreg.mesh.topology import _face_areas
     from scipy.spatial import ConvexHull
     rng = np.random.default_rng(7)  # a closed hull of 3000 points on an ellipsoid of mixed scales: 5996 faces
     pts = rng.normal(size=(3000, 3))
@@ -143,7 +143,7 @@ def test_audit_shortcuts_give_the_plain_computations_answers():
             volumes += 1
     assert volumes == 3  # the two spheres and the hull
     out = collapse_slivers(sl, 1.0)
-    from scanreg.topology import known
+    from scanreg.mesh.topology import known
     assert known(out, "collapsed_from") is not None  # the kept faces' angles were copied, not recomputed
     assert np.array_equal(min_angles_deg(out), _min_angles_deg(Mesh(out.vertices, out.faces)))
 

@@ -5,15 +5,15 @@ import pytest
 from scipy import stats
 
 from conftest import oriented_triangles, shared
-from scanreg.config import Context, Distances
+from scanreg.types import RunContext as Context, Distances
 from scanreg.geometry import (
     Cloud, Mesh, apply_T, horn_quaternion, invert_T, kabsch_svd, make_T, random_pose, rotation_angle_deg,
     transform_errors,
 )
 from scanreg.io import read_mesh, read_stanford_conf
-from scanreg.metrics import estimate_spacing
+from scanreg.geometry import estimate_spacing
 from scanreg.stages.repair.meshfix import MeshFix
-from scanreg.topology import mesh_stats
+from scanreg.mesh.topology import mesh_stats
 from scanreg.geometry import barycentric_sample, triangle_areas_normals
 from scanreg.stages.sampler import Barycentric
 
@@ -232,7 +232,7 @@ def offset_pose(T_gt, src_pts, angle, seed):
 
 
 def icp_stage(name, **kw):
-    from scanreg.registry import ICP, load_all, make_params
+    from scanreg.stages.registry import ICP, load_all, make_params
 
     load_all()
     cls = ICP.get(name)
@@ -334,20 +334,20 @@ def test_trimming_and_normal_rejection():
     assert transform_errors(trimmed.T_target_source, T)[0] < 0.3 < transform_errors(pure.T_target_source, T)[0]
     st = icp_stage("horn", max_normal_angle_deg=45.0)
     flipped = Cloud(b.points, -b.normals)
-    from scanreg.closest import ClosestPoints
+    from scanreg.geometry import ClosestPoints
 
     with pytest.raises(Exception, match="paired"):
         st.pairs(flipped.points, flipped.normals, ClosestPoints(Cloud(b.points, b.normals)), None, 0)
 
 
 def test_signed_point_to_surface_distances():
-    from scanreg.metrics import EvalParams, surface_deviation
+    from scanreg.eval.metrics import EvalParams, surface_deviation
 
     plane = Mesh(np.array([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], float), np.array([[0, 1, 2], [0, 2, 3]]))
     rng = np.random.default_rng(0)
     pts = np.c_[rng.uniform(-4, 4, size=(1000, 2)), np.full(1000, 0.1)]
     pts[:500, 2] = -0.2
-    from scanreg.closest import ClosestPoints
+    from scanreg.geometry import ClosestPoints
 
     m = surface_deviation(pts, ClosestPoints(Cloud(plane.vertices), plane)(pts), EvalParams(inlier_distance=1.0,
                           distances=Distances.absolute), 1.0)
@@ -363,7 +363,7 @@ def test_signed_point_to_surface_distances():
 def test_every_sampler_puts_points_on_the_surface(name):
     import open3d as o3d
 
-    from scanreg.registry import SAMPLER, make_params
+    from scanreg.stages.registry import SAMPLER, make_params
 
     m = read_mesh("pkg:pymeshlab/tests/sample_meshes/bone.ply")
     cls = SAMPLER.get(name)

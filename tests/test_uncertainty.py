@@ -12,8 +12,8 @@ import pytest
 
 from conftest import run_cli, shared
 from scanreg.geometry import Cloud, make_T
-from scanreg.metrics import EvalParams
-from scanreg.uncertainty import bootstrap_spread, degeneracy_warning, pose_covariance, relative_motion
+from scanreg.eval.metrics import EvalParams
+from scanreg.eval.uncertainty import bootstrap_spread, degeneracy_warning, pose_covariance, relative_motion
 
 
 def bumpy_surface(n=3000, seed=0):
@@ -111,14 +111,14 @@ def test_flat_patch_warns_in_plane():
 
 
 def test_universal_to_fdi():
-    from scanreg.stages.dental import universal_to_fdi
+    from scanreg.stages.data.dental import universal_to_fdi
 
     assert [universal_to_fdi(n) for n in (1, 8, 9, 16, 17, 24, 25, 32)] == [18, 11, 21, 28, 38, 31, 41, 48]
     assert len({universal_to_fdi(n) for n in range(1, 33)}) == 32
 
 
 def test_tolerance_shares_need_confidence():
-    from scanreg.deviation import tolerance_shares
+    from scanreg.eval.deviation import tolerance_shares
 
     p = EvalParams(deviation_tolerance=0.05, deviation_confidence=0.95)
     dev = np.array([0.04, 0.06, 0.2, -0.2])
@@ -130,9 +130,9 @@ def test_tolerance_shares_need_confidence():
 
 def arch_view(tmp_path: Path) -> Path:
     """A horseshoe of 14 numbered 'teeth' 50 um outside a target, through evaluate_deviation and write_view."""
-    from scanreg.closest import ClosestPoints
-    from scanreg.deviation import evaluate_deviation
-    from scanreg.view3d import write_view
+    from scanreg.geometry import ClosestPoints
+    from scanreg.eval.deviation import evaluate_deviation
+    from scanreg.eval.view3d import write_view
 
     rng = np.random.default_rng(0)
     th = rng.uniform(0.1 * np.pi, 0.9 * np.pi, 20000)
@@ -254,9 +254,9 @@ def test_pipeline_on_a_cylinder_logs_the_free_axis(tmp_path):
 
 
 def test_labels_units_and_options():
-    from scanreg.deviation import display_unit, fdi_side, plural
+    from scanreg.eval.deviation import display_unit, fdi_side, plural
     from scanreg.errors import ConfigError
-    from scanreg.registry import make_params
+    from scanreg.stages.registry import make_params
 
     assert [fdi_side(n) for n in (11, 18, 21, 28, 31, 38, 41, 48)] == ["right"] * 2 + ["left"] * 4 + ["right"] * 2
     assert plural("tooth") == "teeth" and plural("part") == "parts" and display_unit("um") == "µm"

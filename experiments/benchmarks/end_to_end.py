@@ -80,7 +80,7 @@ def tolerances(case: dict, diagonal: float) -> tuple[float, float]:
 
 
 def load_inputs(cfg, ctx):
-    from scanreg.registry import DATA, load_all
+    from scanreg.stages.registry import DATA, load_all
 
     load_all()
     return DATA.build(cfg.data).load(ctx)
@@ -145,7 +145,7 @@ def worker_open3d(case: dict) -> dict:
     from omegaconf import OmegaConf
 
     import scanreg
-    from scanreg.config import Context
+    from scanreg.types import RunContext as Context
     from scanreg.geometry import bbox_diagonal, points_of
 
     cfg = scanreg.compose([*case_overrides(case), "tracking=none"])
@@ -168,7 +168,7 @@ def gt_of(case: dict):
     from omegaconf import OmegaConf
 
     import scanreg
-    from scanreg.config import Context
+    from scanreg.types import RunContext as Context
 
     cfg = scanreg.compose([*case_overrides(case), "tracking=none"])
     OmegaConf.resolve(cfg)
@@ -186,8 +186,8 @@ def worker_memory(method: str, stage: str, n: int) -> dict:
     from omegaconf import OmegaConf
 
     import scanreg
-    from scanreg.config import Context
-    from scanreg.metrics import estimate_spacing
+    from scanreg.types import RunContext as Context
+    from scanreg.geometry import estimate_spacing
     from scanreg.runner import build_stages
 
     cfg = scanreg.compose(["data=stanford", "repair=none", "tracking=none", f"sampler.n_points={n}"])
@@ -265,8 +265,8 @@ def worker_descriptors(pairs: list[str]) -> list[dict]:
     from omegaconf import OmegaConf
 
     import scanreg
-    from scanreg.config import Context
-    from scanreg.metrics import estimate_spacing
+    from scanreg.types import RunContext as Context
+    from scanreg.geometry import estimate_spacing
     from scanreg.runner import build_stages
 
     sys.path.insert(0, str(ROOT / "tests"))
@@ -331,7 +331,7 @@ DESCRIPTOR_INTRO = ("The paper's descriptor against FPFH in the default coarse s
 def replace_descriptor_table(md_path: Path, pairs: list[str]) -> None:
     """``--only descriptor``: measure the descriptor table alone and put it in place of the one in ``md_path``
     (the rest of the report, measured in an earlier run, is kept), noting this run's commit and date."""
-    from scanreg.config import git_revision
+    from scanreg.app.config import git_revision
 
     dt = descriptor_table(pairs)
     print("\n".join(dt), flush=True)
@@ -518,7 +518,7 @@ def main() -> None:
     if a.descriptors:
         print(json.dumps(worker_descriptors(a.descriptors.split(","))))
         return
-    from scanreg.config import shared_data_dir
+    from scanreg.io import shared_data_dir
 
     if not (shared_data_dir() / "stanford_bunny").is_dir():
         sys.exit(f"error: {shared_data_dir()}: the shared data is absent; this benchmark needs ../shared/data")
@@ -532,7 +532,7 @@ def main() -> None:
     cases += [{"group": "dental", "seed": s} for s in (0, 1)] if "dental" in groups else []
     t0 = time.time()
     rows = run_cases(cases, extra)
-    from scanreg.config import git_revision
+    from scanreg.app.config import git_revision
 
     md = [f"# End to end: scanreg's default pipeline against Open3D's standard pipeline",
           "",

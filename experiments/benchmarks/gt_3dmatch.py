@@ -41,11 +41,11 @@ def main() -> int:
         return 0
     import open3d as o3d
 
-    from scanreg.config import Context
+    from scanreg.types import RunContext as Context
     from scanreg.geometry import Cloud, apply_T
-    from scanreg.closest import estimate_normals
-    from scanreg.metrics import estimate_spacing
-    from scanreg.registry import ICP, load_all, make_params
+    from scanreg.geometry import estimate_normals
+    from scanreg.geometry import estimate_spacing
+    from scanreg.stages.registry import ICP, load_all, make_params
 
     src, ref, gt = (np.load(DATA / f) for f in ("src.npy", "ref.npy", "gt.npy"))
     load_all()

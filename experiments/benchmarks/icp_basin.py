@@ -15,11 +15,11 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanreg.config import Context
+from scanreg.types import RunContext as Context
 from scanreg.geometry import Cloud, apply_T, barycentric_sample, bbox_diagonal, make_T, transform_errors
 from scanreg.io import read_mesh
-from scanreg.metrics import estimate_spacing
-from scanreg.registry import ICP, load_all, make_params
+from scanreg.geometry import estimate_spacing
+from scanreg.stages.registry import ICP, load_all, make_params
 
 
 def main():

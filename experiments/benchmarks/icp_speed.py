@@ -33,7 +33,7 @@ MAXD = 10.0  # pair limit in sampling spacings (10 degrees moves the far side by
 def make_case(n: int):
     from scanreg.geometry import Cloud, apply_T, make_T, transform_errors  # noqa: F401
     from scanreg.io import read_mesh
-    from scanreg.metrics import estimate_spacing
+    from scanreg.geometry import estimate_spacing
     from scipy.spatial.transform import Rotation
     from scanreg.geometry import barycentric_sample
 
@@ -56,12 +56,12 @@ def make_case(n: int):
 
 def run_case(method: str, n: int, iters: int | None, case=None) -> dict:
     """One measurement in this process. iters=None: to convergence."""
-    from scanreg.config import Context
+    from scanreg.types import RunContext as Context
     from scanreg.geometry import transform_errors
 
     import open3d  # noqa: F401  (imports and registries outside the measured region, for every method)
 
-    from scanreg.registry import load_all
+    from scanreg.stages.registry import load_all
 
     load_all()
     tgt, src, T_gt, spacing = case or make_case(n)
@@ -81,7 +81,7 @@ def run_case(method: str, n: int, iters: int | None, case=None) -> dict:
         r = reg.registration_icp(ps, pt, MAXD * spacing, np.eye(4), est, crit)
         T, its = np.asarray(r.transformation), None
     else:
-        from scanreg.registry import ICP, make_params
+        from scanreg.stages.registry import ICP, make_params
 
         from omegaconf import OmegaConf
 

@@ -61,7 +61,7 @@ TIMINGS = ("time_", "_time_s", "backend_time", "audit_time")
 
 def run_case(name: str, overrides: list[str], folder: Path) -> dict:
     out = folder / name
-    cmd = [sys.executable, "-m", "scanreg.cli", *overrides, "tracking=none", f"hydra.run.dir={out}"]
+    cmd = [sys.executable, "-m", "scanreg.app", *overrides, "tracking=none", f"hydra.run.dir={out}"]
     r = subprocess.run(cmd, capture_output=True, text=True, cwd=folder)
     if r.returncode != 0:
         return {"error": (r.stderr.strip().splitlines() or ["?"])[-1]}

@@ -59,11 +59,12 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.config import Context, shared_data_dir
+from scanreg.types import RunContext as Context
+from scanreg.io import shared_data_dir
 from scanreg.geometry import Mesh
-from scanreg.intersect import forget_recent
+from scanreg.mesh.intersect import forget_recent
 from scanreg.io import read_mesh
-from scanreg.registry import REPAIR, load_all, make_params
+from scanreg.stages.registry import REPAIR, load_all, make_params
 
 
 def spread(values, fmt: str) -> str:
@@ -118,10 +119,10 @@ FRESH = """
 import contextlib, io, resource, sys, time
 import numpy as np
 import pymeshfix
-from scanreg.config import Context
+from scanreg.types import RunContext as Context
 from scanreg.geometry import locality_ordered
 from scanreg.io import read_mesh
-from scanreg.registry import REPAIR, load_all, make_params
+from scanreg.stages.registry import REPAIR, load_all, make_params
 def cpu():
     r, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return r.ru_utime + r.ru_stime + c.ru_utime + c.ru_stime

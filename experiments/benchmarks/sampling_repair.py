@@ -29,11 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.config import Context, shared_data_dir
+from scanreg.types import RunContext as Context
+from scanreg.io import shared_data_dir
 from scanreg.errors import StageError
-from scanreg.intersect import forget_recent
+from scanreg.mesh.intersect import forget_recent
 from scanreg.io import read_mesh
-from scanreg.registry import REPAIR, SAMPLER, make_params
+from scanreg.stages.registry import REPAIR, SAMPLER, make_params
 
 
 def timed(fn) -> float:
@@ -172,7 +173,7 @@ def main() -> None:
     ap.add_argument("--stanford", action="store_true", help="only the 10 raw Stanford scans")
     ap.add_argument("--borders", default="auto,shell", help="--stanford: open_border modes, comma separated")
     a = ap.parse_args()
-    from scanreg.registry import load_all
+    from scanreg.stages.registry import load_all
 
     load_all()
     if a.repeat < 1:

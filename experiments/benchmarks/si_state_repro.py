@@ -35,9 +35,10 @@ def main() -> int:
     from scipy.spatial.transform import Rotation
 
     from scanreg.api import build_stage
-    from scanreg.config import Context, shared_data_dir
+    from scanreg.types import RunContext as Context
+from scanreg.io import shared_data_dir
     from scanreg.geometry import transform_geometry
-    from scanreg.intersect import forget_recent, self_intersecting_faces
+    from scanreg.mesh.intersect import forget_recent, self_intersecting_faces
     from scanreg.io import read_mesh
 
     path = shared_data_dir() / "stanford_bunny" / "top3.ply"

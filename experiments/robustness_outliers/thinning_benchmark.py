@@ -76,7 +76,7 @@ def cases(groups: list[str]) -> list[tuple[str, list[str], bool]]:
 def run(overrides: list[str]) -> dict:
     from omegaconf import OmegaConf
 
-    from scanreg.config import compose
+    from scanreg.app.config import compose
     from scanreg.errors import ScanregError
     from scanreg.runner import run_pipeline
 

@@ -2,12 +2,12 @@
 :class:`AuditedRepair`, whose :meth:`~AuditedRepair.repair` runs the backend, audits the mesh before and after
 and applies the guard.
 
-Before the backend needs them, the repair decides two things from the input alone (the border plan is made
-in the input audit's child process while the backend loads the mesh, see :meth:`AuditedRepair.planned`):
+Before the backend runs, the repair decides two things from the input alone (the border plan,
+:func:`border_plan`):
 - which parts are kept: the connected components whose area is at least ``min_component_share`` of the largest
   part's; the others (specks, scanner debris) are removed on purpose and reported as ``removed_components``;
 - what becomes of an open scan's outer border (``open_border``; ``auto`` tells a one-sided scan from a closed
-  model with holes by :func:`~scanreg.topology.open_scan_borders`).
+  model with holes by :func:`~scanreg.mesh.topology.open_scan_borders`).
 
 The audit then compares the input and the output:
 - topology and size before and after (:func:`audit_mesh`);
@@ -24,19 +24,19 @@ removed on purpose are not damage. The line says which parameter to change.
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from scanreg.config import Context
 from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
-from scanreg.shell import close_as_shell
-from scanreg.topology import (AuditBeside, area_samples, border_loops, collapse_folds, collapse_slivers,
-                              component_areas, distances_to, known, mesh_stats, non_manifold_vertices,
-                              open_scan_borders, point_distances, raycasting_scene, remember)
+from scanreg.mesh.distances import area_samples, distances_to, point_distances, raycasting_scene
+from scanreg.mesh.shell import close_as_shell
+from scanreg.mesh.slivers import collapse_folds, collapse_slivers
+from scanreg.mesh.topology import (audit_mesh, border_loops, component_areas, known, mesh_stats,
+                                   non_manifold_vertices, open_scan_borders, remember, self_intersecting_count)
+from scanreg.types import Repaired, RunContext
 
 
 @dataclass
@@ -90,14 +90,11 @@ class GuardParams:
     a = 1.5e-4 of the kept surface with 20000. Distances themselves are exact point-to-triangle distances:
     from the input to the output Open3D's (float32 coordinates, exact up to about 1e-7 of their magnitude; its
     raycasting scene, about 30 ms per 100k faces, serves the samples and the parts' vertices in one query),
-    from the output to the input libigl's in double precision (:func:`~scanreg.topology.distances_to`: the
-    input's tree is built in the input audit's child process while the backend runs, and answers there). A
-    query costs about 1 us per point, 20 ms for 20000 on the 2-core machine
-    (experiments/benchmarks/repair_speed.md)."""
+    from the output to the input libigl's in double precision (:func:`~scanreg.mesh.distances.distances_to`)."""
     open_border: str = "auto"
     """What becomes of an open scan's outer border. ``auto``: a mesh with an outer border (a boundary loop at
     least ``open_border_ratio`` times as long as the square root of its part's area,
-    :func:`~scanreg.topology.open_scan_borders`) is a one-sided scan and keeps that border open, as ``open``;
+    :func:`~scanreg.mesh.topology.open_scan_borders`) is a one-sided scan and keeps that border open, as ``open``;
     a closed model with holes is capped, as ``cap``. The choice is reported (``open_border_open`` 0/1).
     ``cap``: every hole filled, the outer border too (MeshFix's way; right for closed models with holes, but
     on an open scan the cap cuts through the surface and the guard fails the run). ``open``: the outer border
@@ -148,10 +145,9 @@ def _median_edge(mesh: Mesh) -> float:
     return float(np.median(row_norms(v[f[:, [1, 2, 0]]] - v[f]))) if len(f) else 0.0
 
 
-def _border_plan(p: GuardParams, mesh: Mesh) -> tuple[str, int | None]:
+def border_plan(p: GuardParams, mesh: Mesh, fills: bool) -> tuple[str, int | None]:
     """The border mode to apply (``cap``, ``open`` or ``shell``) and the hole size limit (edges) that keeps
-    the outer border open (None: the backend's own ``max_hole_edges``)."""
-    fills = getattr(p, "fill_holes", getattr(p, "close_holes", False))
+    the outer border open (None: the backend's own ``max_hole_edges``); ``fills``: the backend fills holes."""
     mode = p.open_border
     loops = border_loops(mesh)
     edges = loops[0]
@@ -169,8 +165,8 @@ def _border_plan(p: GuardParams, mesh: Mesh) -> tuple[str, int | None]:
     return mode, max(int(edges.max()) // 2, 1)  # keep loops over half the longest open
 
 
-def _apply_plan(p: GuardParams, mode: str, max_hole: int | None) -> GuardParams:
-    """``p`` with the border plan (:func:`_border_plan`) applied."""
+def apply_plan(p: GuardParams, mode: str, max_hole: int | None) -> GuardParams:
+    """``p`` with the border plan (:func:`border_plan`) applied."""
     if max_hole is None and mode == p.open_border:
         return p
     return replace(p, open_border=mode, **({} if max_hole is None else {"max_hole_edges": max_hole}))
@@ -181,11 +177,12 @@ def _first_line(e: BaseException) -> str:
     return (str(e).strip().splitlines() or [""])[0][:200]
 
 
-def _run_backend(stage, mesh: Mesh, ctx: Context) -> Mesh:
-    """The backend's ``run``; any failure, and an empty result, as one line naming the backend and file."""
+def _run_backend(stage, mesh: Mesh, p: GuardParams, ctx: RunContext) -> Mesh:
+    """The backend's ``run`` with the planned parameters ``p``; any failure, and an empty result, as one line
+    naming the backend and file."""
     where = f"repair={stage.name}: {mesh.source or 'mesh'}"
     try:
-        out = stage.run(mesh, ctx)
+        out = stage.run(mesh, p, ctx)
     except ScanregError:
         raise
     except Exception as e:  # a library's exception (PyMeshLabException, ...) becomes one line
@@ -196,158 +193,6 @@ def _run_backend(stage, mesh: Mesh, ctx: Context) -> Mesh:
         raise StageError(f"{where}: the repair left no face; try the other backend (repair=meshfix / "
                          "repair=meshlab) or repair=none")
     return out
-
-
-def repair_with_audit(stage, mesh: Mesh, ctx: Context, prefix: str) -> tuple[Mesh, dict[str, float]]:
-    """Run ``stage`` on ``mesh``, audit before/after under ``prefix`` (``repair_``/``target_repair_``), apply
-    the guard. Returns the mesh to go on with and the metrics."""
-    p: GuardParams = stage.p
-    where = f"repair={stage.name}: {mesh.source or 'mesh'}"
-    if not len(mesh.faces):
-        raise StageError(f"{where}: the mesh has no faces to repair (a point cloud? use repair=none)")
-    try:  # loaded here, before the fork: the child that uses it does not load libraries
-        import igl  # noqa: F401
-    except ImportError as e:
-        raise StageError(f"{where}: the repair's audit needs libigl ({_first_line(e)}): pip install libigl") from e
-    t0 = time.perf_counter()
-    # the input's audit runs beside the backend (in another process), the border plan first: a backend that asks
-    # for its parameters only when it needs them (after loading the mesh) finds it made first, and the input's
-    # search tree last: it answers the output's samples while this process measures the other way. A backend that
-    # starts its own child process starts the audit right after it (``start_audit``), so that the backend's work
-    # begins first; for the others it starts here, before the backend. The input's self-intersection test comes
-    # after the rest of its audit, unless the backend tests its own meshes incrementally from it (it waits for it
-    # then): pymeshfix's loading suffers more from the test's memory traffic than its cleaning does (stand-ins
-    # beside it: 38 ms against 12 ms)
-    before_audit = _Deferred(lambda: AuditBeside(mesh, first=lambda: _border_plan(p, mesh),
-                                                 also=lambda: _input_side(p, mesh, ctx.seed),
-                                                 then=lambda: _output_side(mesh, p.audit_samples, ctx.seed + 1),
-                                                 test_last=lambda plan: not stage.tests_from_input(
-                                                     _apply_plan(p, *plan))))
-    try:
-        return _repair_audited(stage, mesh, ctx, prefix, before_audit, t0, where)
-    finally:
-        before_audit.close()
-
-
-class _Deferred:
-    """An :class:`AuditBeside` made by ``make()`` at :meth:`start` or at its first use; :meth:`close` closes it
-    only if it was made. ``backend_s``: the time it took to make when a backend started it (counted as the
-    audit's, not the backend's)."""
-
-    def __init__(self, make):
-        self._make, self._audit, self.backend_s = make, None, 0.0
-
-    def start(self, by_backend: bool = False) -> AuditBeside:
-        if self._audit is None:
-            t = time.perf_counter()
-            self._audit = self._make()
-            if by_backend:
-                self.backend_s = time.perf_counter() - t
-        return self._audit
-
-    def __getattr__(self, name: str):  # first_result, ask, result, then_result
-        return getattr(self.start(), name)
-
-    def close(self) -> None:
-        if self._audit is not None:
-            self._audit.close()
-
-
-def _repair_audited(stage, mesh: Mesh, ctx: Context, prefix: str, before_audit: _Deferred, t0: float,
-                    where: str) -> tuple[Mesh, dict[str, float]]:
-    """:func:`repair_with_audit` once the input's audit is set to run beside (``before_audit``, from ``t0``);
-    ``where`` names the backend and the file in error lines."""
-    p: GuardParams = stage.p
-
-    def with_plan() -> GuardParams:  # p with the border plan applied (AuditedRepair.planned calls it once)
-        try:
-            mode, max_hole = before_audit.first_result()
-        except Exception:  # noqa: BLE001: the child and its fallback failed: made here, where an error is the plan's
-            try:
-                mode, max_hole = _border_plan(p, mesh)
-            except Exception as e:  # not the backend's failure: named as the plan's
-                raise StageError(f"{where}: the repair's border plan failed ({type(e).__name__}: "
-                                 f"{_first_line(e)})") from e
-        if p.open_border == "auto":
-            print(f"note: {where}: " + ("an open scan (its outer border is long for its area): the border is "
-                                        "kept open" if mode == "open" else "no outer border: every hole is capped")
-                  + " (repair.open_border=auto; set cap, open or shell to choose)")
-        return _apply_plan(p, mode, max_hole)
-
-    run = copy.copy(stage)
-    run._plan = with_plan
-    if getattr(stage, "starts_audit", False):
-        run.start_audit = lambda: before_audit.start(by_backend=True)
-    else:
-        before_audit.start()
-    if not getattr(stage, "asks_for_plan", False):
-        AuditedRepair.planned(run)
-    t1 = time.perf_counter()
-    out = _run_backend(run, mesh, ctx)
-    mode = AuditedRepair.planned(run).open_border  # (a backend that never asked: made now)
-    t_folds = 0.0
-    if p.remove_slivers:  # kept only where the collapse folds nothing (a raw scan's ragged border can)
-        collapsed = collapse_slivers(out, p.sliver_angle_deg)
-        if collapsed is not out:
-            tf = time.perf_counter()
-            folds_out, folds_collapsed = collapse_folds(out, collapsed)  # the neighbourhood of the collapse only
-            t_folds = time.perf_counter() - tf
-            if (folds_collapsed <= folds_out).all():  # no kind of fold added
-                si = known(out, "self_intersecting_faces")
-                if si is not None:  # the collapse's own change to it, measured where it happened
-                    remember(collapsed, "self_intersecting_faces", si + int(folds_collapsed[0] - folds_out[0]))
-                out = collapsed
-    if mode == "shell":
-        out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
-    t2 = time.perf_counter()
-    # the output's non-manifold vertices and the distances from its samples to the input in the input audit's
-    # child (it holds the input's search tree); the output's one self-intersection pass, when the backend has
-    # not made it, in another; the output's statistics and the distances the other way here
-    si_out = known(out, "self_intersecting_faces")
-    before_audit.ask(out.vertices, out.faces)
-    after_si = AuditBeside(out, stats=False) if si_out is None else None
-    before, input_side = before_audit.result()
-    after = mesh_stats(out)  # here, where the output's smallest angles are known from the sliver collapse
-    distances = _audit_distances(p, mesh, out, input_side, prefix, lambda: before_audit.then_result()[1])
-    after["non_manifold_vertices"] = before_audit.then_result()[0]
-    after["self_intersecting_faces"] = int(si_out) if after_si is None else \
-        after_si.result()[0]["self_intersecting_faces"]
-    m = {f"{prefix}before_{k}": v for k, v in before.items()}
-    m.update({f"{prefix}after_{k}": v for k, v in after.items()})
-    m[f"{prefix}open_border_open"] = float(mode in ("open", "shell"))
-    m.update(distances)
-    t_start = before_audit.backend_s  # the audit started by the backend, within its time
-    m[f"{prefix}backend_time_s"] = t2 - t1 - t_folds - t_start  # the repair itself (slivers collapsed, the shell)
-    m[f"{prefix}audit_time_s"] = (t1 - t0) + t_folds + t_start + (time.perf_counter() - t2)  # audit and guard
-    problems, hints = [], []
-    removed, lost = m[f"{prefix}removed_area_share"], m[f"{prefix}removed_kept_components"]
-    if removed > p.max_removed_area:
-        problems.append(f"removed {removed:.1%} of the surface it was to keep (limit "
-                        f"repair.max_removed_area={p.max_removed_area:g})")
-    if lost:
-        hints.append(f"{int(lost)} part(s) above repair.min_component_share={p.min_component_share:g} of the "
-                     "largest part's area are gone: raise it to drop such parts on purpose, or try the other "
-                     "backend")
-    q_edges, q_limit = m[f"{prefix}displacement_q_edges"], p.max_displacement_edges
-    if q_edges > q_limit:
-        problems.append(f"moved {1 - p.displacement_quantile:.0%} of it by {q_edges:.1f} median edges or more "
-                        f"(limit repair.max_displacement_edges={q_limit:g})")
-    if m[f"{prefix}hausdorff_max_rel"] > m[f"{prefix}hausdorff_limit_rel"]:
-        problems.append(f"moved it by up to {m[f'{prefix}hausdorff_max_rel']:.2%} of the diagonal (limit "
-                        f"{m[f'{prefix}hausdorff_limit_rel']:.2%}: repair.max_hausdorff={p.max_hausdorff:g}, or "
-                        f"repair.max_hausdorff_edges={p.max_hausdorff_edges:g} median edges if more)")
-    m[f"{prefix}guard_ok"] = float(not problems)
-    if problems:
-        if mode == "cap" and len(border_loops(mesh)[0]):
-            hints.append("if this is an open scan whose outer border was capped, keep it open with "
-                         "repair.open_border=open (or close it as a thin shell with repair.open_border=shell)")
-        hints.append("inspect with repair.check_only=true, or skip the repair with repair=none")
-        msg = f"{where}: the repair {' and '.join(problems)}; it would destroy part of the model. " \
-              + "; ".join(hints)
-        if not p.check_only:
-            raise StageError(msg, metrics=m)
-        print(f"warning: {msg}")
-    return (mesh if p.check_only else out), m
 
 
 def _input_side(p: GuardParams, mesh: Mesh, seed: int) -> dict:
@@ -372,24 +217,10 @@ def _input_side(p: GuardParams, mesh: Mesh, seed: int) -> dict:
             "samples": area_samples(kept_in, p.audit_samples, seed)}
 
 
-def _output_side(mesh: Mesh, n: int, seed: int):
-    """The function of the output's arrays that gives its :func:`non_manifold_vertices` and the distances from
-    ``n`` samples on it (:func:`area_samples`, ``seed``) to the input ``mesh`` (large where holes were filled);
-    the input's search tree is built here, beside the backend (:func:`distances_to`). (The rest of the output's
-    :func:`audit_mesh` is measured elsewhere, so that the processes finish at about the same time.)"""
-    to_input = distances_to(mesh)
-
-    def answer(request: tuple[np.ndarray, np.ndarray]) -> tuple[int, np.ndarray]:
-        out = Mesh(*request)
-        return non_manifold_vertices(out), to_input(area_samples(out, n, seed))
-    return answer
-
-
-def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, prefix: str,
-                     added) -> dict[str, float]:
+def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, seed: int) -> dict[str, float]:
     """The input's parts sorted into removed on purpose, kept, and lost; the distances between the kept input
-    surface and the output (see the module docstring); ``ins``: :func:`_input_side`; ``added()``: the other
-    way, from the output's samples to the input (:func:`_output_side`)."""
+    surface and the output (see the module docstring); ``ins``: :func:`_input_side`. The other way, from
+    ``audit_samples`` samples on the output (seeded by ``seed``) to the input, large where holes were filled."""
     ca, large, diag, edge = ins["areas"], ins["large"], ins["diag"], ins["edge"]
     tol = p.removed_tolerance * diag
     # one raycasting scene of the output for both of its uses (the input's vertices, the input's samples)
@@ -399,61 +230,149 @@ def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, prefix: s
     far = np.bincount(part, d[:len(probe)] > tol, minlength=len(ca)) / np.bincount(part, minlength=len(ca))
     gone = far > 0.5
     d_in = d[len(probe):]
-    d_out = added()
+    d_out = distances_to(mesh)(area_samples(out, p.audit_samples, seed))
     limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
     return {
-        f"{prefix}components_kept": float((~gone).sum()),
-        f"{prefix}removed_components": float((gone & ~large).sum()),
-        f"{prefix}removed_components_area_share": float(ca[gone & ~large].sum() / ca.sum()),
-        f"{prefix}removed_kept_components": float((gone & large).sum()),
-        f"{prefix}median_edge": edge,
-        f"{prefix}hausdorff_max": float(d_in.max()),
-        f"{prefix}hausdorff_mean": float(d_in.mean()),
-        f"{prefix}hausdorff_max_rel": float(d_in.max() / diag),
-        f"{prefix}hausdorff_mean_rel": float(d_in.mean() / diag),
-        f"{prefix}hausdorff_max_edges": float(d_in.max() / edge),
-        f"{prefix}hausdorff_limit_rel": float(limit / diag),
-        f"{prefix}displacement_q_edges": float(np.quantile(d_in, p.displacement_quantile) / edge),
-        f"{prefix}hausdorff_added_max": float(d_out.max()),
-        f"{prefix}hausdorff_added_max_rel": float(d_out.max() / diag),
-        f"{prefix}removed_area_share": float((d_in > tol).mean()),
+        "components_kept": float((~gone).sum()),
+        "removed_components": float((gone & ~large).sum()),
+        "removed_components_area_share": float(ca[gone & ~large].sum() / ca.sum()),
+        "removed_kept_components": float((gone & large).sum()),
+        "median_edge": edge,
+        "hausdorff_max": float(d_in.max()),
+        "hausdorff_mean": float(d_in.mean()),
+        "hausdorff_max_rel": float(d_in.max() / diag),
+        "hausdorff_mean_rel": float(d_in.mean() / diag),
+        "hausdorff_max_edges": float(d_in.max() / edge),
+        "hausdorff_limit_rel": float(limit / diag),
+        "displacement_q_edges": float(np.quantile(d_in, p.displacement_quantile) / edge),
+        "hausdorff_added_max": float(d_out.max()),
+        "hausdorff_added_max_rel": float(d_out.max() / diag),
+        "removed_area_share": float((d_in > tol).mean()),
     }
 
 
+def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
+    """Run the backend ``stage`` on ``mesh`` with the border plan, audit the input and the output, apply the
+    guard. Returns the mesh to go on with and the audit's metrics (unprefixed names)."""
+    p: GuardParams = stage.p
+    where = f"repair={stage.name}: {mesh.source or 'mesh'}"
+    if not len(mesh.faces):
+        raise StageError(f"{where}: the mesh has no faces to repair (a point cloud? use repair=none)")
+    try:
+        import igl  # noqa: F401
+    except ImportError as e:
+        raise StageError(f"{where}: the repair's audit needs libigl ({_first_line(e)}): pip install libigl") from e
+    t0 = time.perf_counter()
+    planned = _planned(stage, mesh, where)
+    before = audit_mesh(mesh)  # the input's self-intersection test is remembered on it: the output's starts there
+    input_side = _input_side(p, mesh, ctx.seed)
+    t1 = time.perf_counter()
+    out = _run_backend(stage, mesh, planned, ctx)
+    out, t_folds = _without_slivers(p, out)
+    mode = planned.open_border
+    if mode == "shell":
+        out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
+    t2 = time.perf_counter()
+    after = mesh_stats(out)
+    after["non_manifold_vertices"] = non_manifold_vertices(out)
+    after["self_intersecting_faces"] = self_intersecting_count(out, previous=mesh)
+    m = {f"before_{k}": v for k, v in before.items()}
+    m.update({f"after_{k}": v for k, v in after.items()})
+    m["open_border_open"] = float(mode in ("open", "shell"))
+    m.update(_audit_distances(p, mesh, out, input_side, ctx.seed + 1))
+    m["backend_time_s"] = t2 - t1 - t_folds  # the repair itself (slivers collapsed, the shell)
+    m["audit_time_s"] = (t1 - t0) + t_folds + (time.perf_counter() - t2)  # audit and guard
+    problems = guard_problems(p, m, mode, mesh, where)
+    m["guard_ok"] = float(not problems)
+    if problems:
+        if not p.check_only:
+            raise StageError(problems, metrics=m)
+        print(f"warning: {problems}")
+    return Repaired(mesh if p.check_only else out, m)
+
+
+def _planned(stage, mesh: Mesh, where: str) -> GuardParams:
+    """The stage's parameters with the border plan applied (a note says what ``open_border=auto`` chose)."""
+    p: GuardParams = stage.p
+    try:
+        mode, max_hole = border_plan(p, mesh, stage.fills_holes(p))
+    except Exception as e:  # not the backend's failure: named as the plan's
+        raise StageError(f"{where}: the repair's border plan failed ({type(e).__name__}: {_first_line(e)})") from e
+    if p.open_border == "auto":
+        print(f"note: {where}: " + ("an open scan (its outer border is long for its area): the border is kept "
+                                    "open" if mode == "open" else "no outer border: every hole is capped")
+              + " (repair.open_border=auto; set cap, open or shell to choose)")
+    return apply_plan(p, mode, max_hole)
+
+
+def _without_slivers(p: GuardParams, out: Mesh) -> tuple[Mesh, float]:
+    """``out`` with its slivers collapsed (``remove_slivers``), kept only where the collapse folds nothing (a
+    raw scan's ragged border can); and the seconds the fold check took (counted as the audit's)."""
+    if not p.remove_slivers:
+        return out, 0.0
+    collapsed = collapse_slivers(out, p.sliver_angle_deg)
+    if collapsed is out:
+        return out, 0.0
+    tf = time.perf_counter()
+    folds_out, folds_collapsed = collapse_folds(out, collapsed)  # the neighbourhood of the collapse only
+    t_folds = time.perf_counter() - tf
+    if not (folds_collapsed <= folds_out).all():  # a kind of fold added: the backend's mesh stays
+        return out, t_folds
+    si = known(out, "self_intersecting_faces")
+    if si is not None:  # the collapse's own change to it, measured where it happened
+        remember(collapsed, "self_intersecting_faces", si + int(folds_collapsed[0] - folds_out[0]))
+    return collapsed, t_folds
+
+
+def guard_problems(p: GuardParams, m: dict[str, float], mode: str, mesh: Mesh, where: str) -> str | None:
+    """The guard's verdict on an audit ``m``: None, or the one-line message that names what the repair
+    destroyed and the parameter to change."""
+    problems, hints = [], []
+    removed, lost = m["removed_area_share"], m["removed_kept_components"]
+    if removed > p.max_removed_area:
+        problems.append(f"removed {removed:.1%} of the surface it was to keep (limit "
+                        f"repair.max_removed_area={p.max_removed_area:g})")
+    if lost:
+        hints.append(f"{int(lost)} part(s) above repair.min_component_share={p.min_component_share:g} of the "
+                     "largest part's area are gone: raise it to drop such parts on purpose, or try the other "
+                     "backend")
+    q_edges, q_limit = m["displacement_q_edges"], p.max_displacement_edges
+    if q_edges > q_limit:
+        problems.append(f"moved {1 - p.displacement_quantile:.0%} of it by {q_edges:.1f} median edges or more "
+                        f"(limit repair.max_displacement_edges={q_limit:g})")
+    if m["hausdorff_max_rel"] > m["hausdorff_limit_rel"]:
+        problems.append(f"moved it by up to {m['hausdorff_max_rel']:.2%} of the diagonal (limit "
+                        f"{m['hausdorff_limit_rel']:.2%}: repair.max_hausdorff={p.max_hausdorff:g}, or "
+                        f"repair.max_hausdorff_edges={p.max_hausdorff_edges:g} median edges if more)")
+    if not problems:
+        return None
+    if mode == "cap" and len(border_loops(mesh)[0]):
+        hints.append("if this is an open scan whose outer border was capped, keep it open with "
+                     "repair.open_border=open (or close it as a thin shell with repair.open_border=shell)")
+    hints.append("inspect with repair.check_only=true, or skip the repair with repair=none")
+    return f"{where}: the repair {' and '.join(problems)}; it would destroy part of the model. " + "; ".join(hints)
+
+
 class AuditedRepair:
-    """Base of the repair backends: ``run(mesh, ctx)`` is the backend itself, :meth:`repair` the audited run."""
+    """Base of the repair backends: ``run(mesh, p, ctx)`` is the backend itself (``p``: its parameters with the
+    border plan applied), :meth:`repair` the audited run (through the cache when it is on)."""
 
     p: GuardParams
-    asks_for_plan = False
-    """True for a backend whose ``run`` reads the parameters the border plan sets (``open_border``,
-    ``max_hole_edges``) through :meth:`planned`, only when it needs them: the plan is then made beside it
-    (:func:`repair_with_audit`). Otherwise ``p`` holds them before ``run`` starts."""
-    _plan = None
-    starts_audit = False
-    """True for a backend that runs in a child process of its own and calls :attr:`start_audit` right after
-    forking it (the input's audit, in another child, then starts after the backend's work has begun)."""
-    start_audit = None
-    """Set by the audited run (:func:`repair_with_audit`) on a backend with :attr:`starts_audit`: starts the
-    input's audit (once; later calls do nothing)."""
 
-    def tests_from_input(self, p: GuardParams) -> bool:
-        """Whether ``run``, with the parameters ``p`` (the border plan applied), tests meshes for
-        self-intersections that share most faces with the input: such a test waits for the input's own (in
-        the audit's child process) and goes on incrementally, so the audit makes that one first. Otherwise it
-        makes it last, as nothing waits for it before the end. True unless a backend knows better."""
-        return True
+    def __init__(self, params):
+        self.p = params
 
-    def planned(self) -> GuardParams:
-        """``p`` with the border plan of the audited run applied (the plan made, once, at the first call)."""
-        if self._plan is not None:
-            self.p = self._plan()
-            self._plan = None  # made once, after it succeeded
-        return self.p
+    def applies_to(self, role: str) -> bool:
+        return self.p.apply_to in (role, "both")
 
-    def repair(self, mesh: Mesh, ctx: Context, prefix: str, sweep: bool = False) -> tuple[Mesh, dict[str, float]]:
+    def fills_holes(self, p: GuardParams) -> bool:
+        """Whether the backend fills holes with these parameters (the border plan keeps borders open only then)."""
+        return False
+
+    def repair(self, mesh: Mesh, ctx: RunContext) -> Repaired:
         """The backend on ``mesh`` with the audit and the guard (:func:`repair_with_audit`), through the cache
-        when ``cache`` is ``on``, or ``auto`` and ``sweep`` (the run is a job of a multirun sweep)."""
+        when ``cache`` is ``on``, or ``auto`` in a sweep."""
         from scanreg.stages.repair.cache import DEFAULT_DIR, RepairCache, cache_enabled, cached_repair
 
-        cache = RepairCache(self.p.cache_dir or DEFAULT_DIR) if cache_enabled(self.p.cache, sweep) else None
-        return cached_repair(self, mesh, ctx, prefix, cache)
+        cache = RepairCache(self.p.cache_dir or DEFAULT_DIR) if cache_enabled(self.p.cache, ctx.in_sweep) else None
+        return cached_repair(self, mesh, ctx, cache)

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.config import Context
 from scanreg.geometry import Mesh
+from scanreg.types import Repaired, RunContext
 
 CACHE_FORMAT = 1
 """Bumped when the entry layout or the meaning of a stored metric changes."""
@@ -62,14 +62,12 @@ def _code_fingerprint() -> str:
     geometry helpers), so that an edited repair never reuses entries made by the old one even at the same
     version number."""
     import scanreg.geometry
-    import scanreg.intersect
-    import scanreg.shell
-    import scanreg.topology
+    import scanreg.mesh
 
     here = Path(__file__).parent
     h = hashlib.sha256()
-    helpers = [scanreg.topology, scanreg.intersect, scanreg.shell, scanreg.geometry]
-    for f in sorted(here.glob("*.py")) + [Path(m.__file__) for m in helpers]:
+    kernel = [Path(m.__file__).parent for m in (scanreg.mesh, scanreg.geometry)]
+    for f in sorted(here.glob("*.py")) + [f for d in kernel for f in sorted(d.glob("*.py"))]:
         h.update(f.read_bytes())
     return h.hexdigest()[:16]
 
@@ -157,14 +155,13 @@ def cache_enabled(mode: str, in_sweep: bool) -> bool:
     return mode == "on" or (mode == "auto" and in_sweep)
 
 
-def cached_repair(stage, mesh: Mesh, ctx: Context, prefix: str,
-                  cache: RepairCache | None) -> tuple[Mesh, dict[str, float]]:
+def cached_repair(stage, mesh: Mesh, ctx: RunContext, cache: RepairCache | None) -> Repaired:
     """:func:`~scanreg.stages.repair.audit.repair_with_audit` through ``cache`` (None: no cache). The metrics
-    gain ``{prefix}cache_hit`` 0/1 when a cache is used."""
+    gain ``cache_hit`` 0/1 when a cache is used."""
     from scanreg.stages.repair.audit import repair_with_audit
 
     if cache is None:
-        return repair_with_audit(stage, mesh, ctx, prefix)
+        return repair_with_audit(stage, mesh, ctx)
     key = cache_key(stage, mesh, ctx.seed)
     hit = cache.load(key, mesh.source)
     lock = None
@@ -176,16 +173,12 @@ def cached_repair(stage, mesh: Mesh, ctx: Context, prefix: str,
         out, m = hit
         print(f"note: repair={stage.name}: {mesh.source or 'mesh'}: the repaired mesh from the cache "
               f"({cache.path(key)})")
-        metrics = {prefix + k: v for k, v in m.items()}
-        metrics[prefix + "cache_hit"] = 1.0
-        return (mesh if stage.p.check_only else out), metrics
+        return Repaired(mesh if stage.p.check_only else out, {**m, "cache_hit": 1.0})
     try:
-        out, metrics = repair_with_audit(stage, mesh, ctx, prefix)
-        repaired = out
-        if stage.p.check_only:  # the audit ran on what the repair made; the mesh returned is the input
-            repaired = mesh
-        cache.store(key, repaired, {k[len(prefix):]: v for k, v in metrics.items() if k.startswith(prefix)})
+        res = repair_with_audit(stage, mesh, ctx)
+        stored = mesh if stage.p.check_only else res.mesh  # (with check_only the audit ran on what it would make)
+        cache.store(key, stored, res.metrics)
     finally:
         if lock is not None:
             lock.unlink(missing_ok=True)
-    return out, {**metrics, prefix + "cache_hit": 0.0}
+    return Repaired(res.mesh, {**res.metrics, "cache_hit": 0.0})

@@ -1,4 +1,7 @@
-"""``repair=meshfix``: MeshFix (Attene 2010) through pymeshfix, audited."""
+"""``repair=meshfix``: MeshFix (Attene 2010) through pymeshfix, audited.
+
+Every pymeshfix session runs in a child process of its own (:func:`scanreg.process.run_isolated`): MeshFix keeps
+state between calls, and a crash in it is then one error line."""
 
 from __future__ import annotations
 
@@ -6,15 +9,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scanreg.config import Context
 from scanreg.errors import StageError
 from scanreg.geometry import Mesh, locality_ordered, submesh, triangle_areas_normals
-from scanreg.intersect import intersecting_across
-from scanreg.isolate import run_isolated, spare
-from scanreg.registry import REPAIR
+from scanreg.mesh.intersect import intersecting_across
+from scanreg.mesh.topology import (_face_components, _meshset, dilate_faces, known, large_components, mesh_stats,
+                                   remember, self_intersecting_faces)
+from scanreg.process import run_isolated
+from scanreg.stages.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
-from scanreg.topology import (_face_components, _meshset, dilate_faces, known, large_components, mesh_stats,
-                              remember, self_intersecting_faces)
+from scanreg.types import RunContext
 
 
 @REPAIR.register("meshfix")
@@ -24,13 +27,10 @@ class MeshFix(AuditedRepair):
     intersection removal between touching parts, a head and its eyes, can eat them whole): it fixes
     connectivity and orientation, removes degenerate and self-intersecting triangles, and fills holes. When
     MeshFix's cleaning reports success (its own exact intersection test), or the loop that keeps the border open
-    ended on the exact test (:mod:`scanreg.intersect`) finding none, the audit takes that count instead of
+    ended on the exact test (:mod:`scanreg.mesh.intersect`) finding none, the audit takes that count instead of
     testing again; for parts repaired one by one, every one of them so certified, it counts the pairs across
-    parts only (:func:`~scanreg.intersect.intersecting_across`). (MeshFix's verdict and the exact test agree on
+    parts only (:func:`~scanreg.mesh.intersect.intersecting_across`). (MeshFix's verdict and the exact test agree on
     the bunny and the cow: tests/test_repair.py.)"""
-
-    asks_for_plan = True
-    starts_audit = True
 
     @dataclass
     class Params(GuardParams):
@@ -54,120 +54,89 @@ class MeshFix(AuditedRepair):
         clean_iterations: int = 10
         """Maximum iterations of MeshFix's degeneracy and self-intersection removal (0: skip it). With
         ``max_hole_edges`` > 0, MeshFix's own cleaning (which caps every border) is replaced by: delete the
-        self-intersecting faces (the exact test, :mod:`scanreg.intersect`) and a ring around them, refill holes
+        self-intersecting faces (the exact test, :mod:`scanreg.mesh.intersect`) and a ring around them, refill holes
         under the limit (unrefined), until none is left."""
 
-    def __init__(self, params: Params):
-        self.p = params
+    def fills_holes(self, p: MeshFix.Params) -> bool:
+        return p.fill_holes
 
-    def run(self, mesh: Mesh, ctx: Context) -> Mesh:
-        out = self._repaired(mesh, ctx)
+    def run(self, mesh: Mesh, p: MeshFix.Params, ctx: RunContext) -> Mesh:
+        """MeshFix on ``mesh`` with the planned parameters ``p``."""
+        out = self._repaired(mesh, p, ctx)
         if len(out.faces) == 0:
             raise StageError(f"repair=meshfix: {mesh.source or 'mesh'}: MeshFix removed every face")
         return out
 
-    def _repaired(self, mesh: Mesh, ctx: Context) -> Mesh:
-        p = self.p
-        if not p.join_components:
-            # the whole mesh to MeshFix at once, its parts labelled here while the child loads it: one part (the
-            # common case) goes on; several stop the child and go part by part
-            try:
-                return self._run_one(mesh, ctx, meanwhile=lambda: _one_part(mesh))
-            except _Parts:
-                pass
+    def _repaired(self, mesh: Mesh, p: MeshFix.Params, ctx: RunContext) -> Mesh:
+        """The whole mesh at once when it is one part (or ``join_components``); else the parts below
+        ``min_component_share`` removed and every other part repaired on its own, the results side by side."""
+        if not p.join_components and not _face_components(mesh).any():
+            return self._run_one(mesh, p, ctx, previous=mesh)
         keep = large_components(mesh, 1.0 if p.keep_largest else p.min_component_share)
-        if not keep.all():
-            mesh = submesh(mesh, keep)
-        if not p.join_components:
-            lab = _face_components(mesh)
-            if lab.max() > 0:  # several parts: each repaired on its own, the results side by side
-                parts = [self._run_one(submesh(mesh, lab == k), ctx) for k in range(lab.max() + 1)]
-                parts = [q for q in parts if len(q.faces)] or parts[:1]
-                off = np.cumsum([0] + [len(q.vertices) for q in parts])
-                out = Mesh(np.vstack([q.vertices for q in parts]),
-                           np.vstack([q.faces + o for q, o in zip(parts, off)]), mesh.source)
-                if all(known(q, "self_intersecting_faces") == 0 for q in parts):
-                    # each part certified free of self-intersections: only pairs across parts can intersect (the
-                    # audit's one self-intersection pass is this one, on the faces near another part's box)
-                    across = intersecting_across(out.vertices, out.faces,
-                                                 np.repeat(np.arange(len(parts)), [len(q.faces) for q in parts]))
-                    remember(out, "self_intersecting_faces", int(across.sum()))
-                return out
-        return self._run_one(mesh, ctx)
+        kept = mesh if keep.all() else submesh(mesh, keep)
+        lab = _face_components(kept)
+        if p.join_components or not lab.max() > 0:
+            return self._run_one(kept, p, ctx, previous=mesh)
+        parts = [self._run_one(submesh(kept, lab == k), p, ctx, previous=mesh) for k in range(lab.max() + 1)]
+        parts = [q for q in parts if len(q.faces)] or parts[:1]
+        off = np.cumsum([0] + [len(q.vertices) for q in parts])
+        out = Mesh(np.vstack([q.vertices for q in parts]), np.vstack([q.faces + o for q, o in zip(parts, off)]),
+                   kept.source)
+        if all(known(q, "self_intersecting_faces") == 0 for q in parts):
+            # each part certified free of self-intersections: only pairs across parts can intersect (the audit's
+            # one self-intersection pass is this one, on the faces near another part's box)
+            across = intersecting_across(out.vertices, out.faces,
+                                         np.repeat(np.arange(len(parts)), [len(q.faces) for q in parts]))
+            remember(out, "self_intersecting_faces", int(across.sum()))
+        return out
 
-    def tests_from_input(self, p: MeshFix.Params) -> bool:
-        """Only the loop that keeps borders open tests meshes for self-intersections (each refill's)."""
-        return _keeps_borders(p)
+    def _run_one(self, mesh: Mesh, p: MeshFix.Params, ctx: RunContext, previous: Mesh) -> Mesh:
+        """MeshFix on one part (or on every part with ``join_components``); may return no face. ``previous``:
+        the repair's input, whose self-intersection test the loop that keeps borders open starts from."""
+        import pymeshfix  # noqa: F401  (loaded here, before the fork: no library loading in a child)
 
-    def _run_one(self, mesh: Mesh, ctx: Context, meanwhile=None) -> Mesh:
-        """MeshFix on one part (or on every part with ``join_components``); may return no face. Each MeshFix
-        session (this one, and the refills of :meth:`_clean_keeping_borders`) runs in a child process forked for
-        it (:func:`~scanreg.isolate.run_isolated`, about 4 ms: the same speed in every repair of a long-lived
-        process, its memory given back at once, a crash one error line); the border plan, made beside it, is
-        handed to it when it asks (after loading the mesh), and the input's audit starts right after the fork,
-        after ``meanwhile()`` (work of this process's while the child loads; an exception stops the child)."""
-        import pymeshfix  # noqa: F401: loaded here, before the fork (no library loading in a child)
-
-        def started():
-            if meanwhile is not None:
-                meanwhile()
-            if self.start_audit is not None:
-                self.start_audit()
-
-        quiet = not (ctx.verbose if ctx else False)
-        v, f, clean = run_isolated(
-            lambda plan: _meshfix_session(mesh.vertices, mesh.faces, self.p, quiet, plan), ask=self.planned,
-            started=started)
-        p = self.planned()  # made when the child asked for it
+        quiet = not ctx.verbose
+        v, f, clean = run_isolated(_meshfix_session, mesh.vertices, mesh.faces, p, quiet)
         if _keeps_borders(p):
             # MeshFix's clean() fills every boundary while it removes intersections, capping the outer border
             # that max_hole_edges keeps open; remove intersections here and refill only holes under the limit.
-            v, f, clean = self._clean_keeping_borders(v, f, ctx)
+            v, f, clean = _clean_keeping_borders(v, f, p, quiet, previous)
         out = Mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), mesh.source)
         if clean:  # the audit need not test it again (its one self-intersection pass is this one)
             remember(out, "self_intersecting_faces", 0)
         return out
 
-    def _clean_keeping_borders(self, v: np.ndarray, f: np.ndarray,
-                               ctx: Context) -> tuple[np.ndarray, np.ndarray, bool]:
-        """Intersections removed, holes under the limit refilled (unrefined); and whether the exact test found
-        the result free of self-intersections."""
-        import pymeshfix  # noqa: F401: loaded here, before the forks
 
-        clean = False
-        for _ in range(self.p.clean_iterations):
-            sel = self_intersecting_faces(Mesh(v, f))
-            if not sel.any():
-                clean = True
-                break
-            import pymeshlab  # only when there is something to cut (its import takes about 0.1 s)
+def _clean_keeping_borders(v: np.ndarray, f: np.ndarray, p: MeshFix.Params, quiet: bool,
+                           previous: Mesh) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Intersections removed, holes under the limit refilled (unrefined); and whether the exact test found the
+    result free of self-intersections. Each round's test starts from the previous round's mesh (the first from
+    ``previous``)."""
+    clean = False
+    for _ in range(p.clean_iterations):
+        current = Mesh(v, f)
+        sel = self_intersecting_faces(current, previous=previous)
+        previous = current
+        if not sel.any():
+            clean = True
+            break
+        import pymeshlab  # only when there is something to cut
 
-            ms = _meshset(Mesh(v, f[~dilate_faces(f, sel)]))
-            ms.meshing_remove_unreferenced_vertices()
-            ms.meshing_repair_non_manifold_edges(method=0)
-            ms.meshing_repair_non_manifold_vertices()
-            ms.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PercentageValue(50))
-            ms.meshing_remove_unreferenced_vertices()
-            cm = ms.current_mesh()
-            vm, fm = cm.vertex_matrix(), cm.face_matrix()  # here: MeshLab is not called in the child
-            v, f = run_isolated(lambda _: _fill_session(vm, fm, self.p.max_hole_edges, False,  # unrefined
-                                                        not (ctx.verbose if ctx else False)))
-        repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
-        if (repeated | (triangle_areas_normals(Mesh(v, f))[0] <= 0)).any():  # mesh_stats' degenerate faces
-            v2, f2 = run_isolated(lambda _: _degeneracy_session(v, f))
-            if mesh_stats(Mesh(v2, f2))["boundary_loops"] <= mesh_stats(Mesh(v, f))["boundary_loops"]:
-                v, f, clean = v2, f2, False  # changed after the test
-        return v, f, clean
-
-
-class _Parts(Exception):
-    """The mesh has several parts (some of them may be removed): repaired part by part."""
-
-
-def _one_part(mesh: Mesh) -> None:
-    """Raises :class:`_Parts` unless ``mesh`` is one part (connected component; one part is always kept)."""
-    if _face_components(mesh).any():
-        raise _Parts
+        ms = _meshset(Mesh(v, f[~dilate_faces(f, sel)]))
+        ms.meshing_remove_unreferenced_vertices()
+        ms.meshing_repair_non_manifold_edges(method=0)
+        ms.meshing_repair_non_manifold_vertices()
+        ms.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PercentageValue(50))
+        ms.meshing_remove_unreferenced_vertices()
+        cm = ms.current_mesh()
+        vm, fm = cm.vertex_matrix(), cm.face_matrix()  # here: MeshLab is not called in the child
+        v, f = run_isolated(_fill_session, vm, fm, p.max_hole_edges, False, quiet)  # unrefined
+    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
+    if (repeated | (triangle_areas_normals(Mesh(v, f))[0] <= 0)).any():  # mesh_stats' degenerate faces
+        v2, f2 = run_isolated(_degeneracy_session, v, f)
+        if mesh_stats(Mesh(v2, f2))["boundary_loops"] <= mesh_stats(Mesh(v, f))["boundary_loops"]:
+            v, f, clean = v2, f2, False  # changed after the test
+    return v, f, clean
 
 
 def _keeps_borders(p: MeshFix.Params) -> bool:
@@ -186,22 +155,19 @@ def _loaded(vertices: np.ndarray, faces: np.ndarray, quiet: bool):
 
     vertices, faces = locality_ordered(vertices, faces)
     tin = pymeshfix.PyTMesh()
-    spare(tin)  # in MeshFix's child, not freed before its answer is sent (the child's exit gives it back)
     tin.set_quiet(quiet)
     tin.load_array(vertices, faces.astype(np.int32))
     return tin
 
 
-def _meshfix_session(vertices: np.ndarray, faces: np.ndarray, p, quiet: bool, plan):
+def _meshfix_session(vertices: np.ndarray, faces: np.ndarray, p, quiet: bool):
     """MeshFix on one mesh: loaded, parts joined (``join_components``), the smaller parts MeshFix splits off
-    removed, then (with the border plan, ``plan()``: the parameters with ``open_border`` and ``max_hole_edges``
-    decided) holes filled and, unless a hole limit keeps borders open, MeshFix's cleaning. Returns the vertices,
-    the faces and whether the cleaning reported success."""
+    removed, then holes filled and, unless a hole limit keeps borders open, MeshFix's cleaning. Returns the
+    vertices, the faces and whether the cleaning reported success."""
     tin = _loaded(vertices, faces, quiet)
     if p.join_components:
         tin.join_closest_components()
     tin.remove_smallest_components()  # one part here (or the joined ones): bits MeshFix splits off
-    p = plan()  # the border plan, made beside the loading above
     if p.fill_holes:
         tin.fill_small_boundaries(nbe=p.max_hole_edges, refine=p.refine)
     clean = False  # True: the result is known to be free of self-intersections

@@ -6,13 +6,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scanreg.config import Context
 from scanreg.errors import StageError
 from scanreg.geometry import Mesh, locality_ordered, submesh
-from scanreg.registry import REPAIR
+from scanreg.mesh.topology import (_meshset, boundary_edges, boundary_loop_sizes, dilate_faces, large_components,
+                                   mesh_stats, self_intersecting_faces)
+from scanreg.stages.registry import REPAIR
 from scanreg.stages.repair.audit import AuditedRepair, GuardParams
-from scanreg.topology import (_meshset, boundary_edges, boundary_loop_sizes, dilate_faces, large_components, mesh_stats,
-                              self_intersecting_faces)
+from scanreg.types import RunContext
 
 
 @REPAIR.register("meshlab")
@@ -50,8 +50,19 @@ class MeshLab(AuditedRepair):
         max_rounds: int = 6
         """Most rounds of intersection removal and hole closing."""
 
-    def __init__(self, params: Params):
-        self.p = params
+    def fills_holes(self, p: MeshLab.Params) -> bool:
+        return p.close_holes
+
+    def run(self, mesh: Mesh, p: MeshLab.Params, ctx: RunContext) -> Mesh:
+        """The filter chain on ``mesh`` with the planned parameters ``p``."""
+        return _FilterChain(p).run(mesh)
+
+
+class _FilterChain:
+    """One run of MeshLab's filter chain with the parameters ``p``."""
+
+    def __init__(self, p: MeshLab.Params):
+        self.p = p
 
     def _clean_topology(self, ms) -> None:
         import pymeshlab
@@ -139,13 +150,12 @@ class MeshLab(AuditedRepair):
         ms.add_mesh(pymeshlab.Mesh(now.vertices, kept))
         self._clean_topology(ms)
 
-    def run(self, mesh: Mesh, ctx: Context) -> Mesh:
+    def run(self, mesh: Mesh) -> Mesh:
         import pymeshlab
 
         p = self.p
         # renumbered for memory locality when the order is scattered (locality_ordered): MeshLab's filters and the
-        # self-intersection tests below walk neighbours (the bunny: 2.6 -> 2.3 s with the audit; MeshLab's cuts
-        # and fills may then differ in detail: 99 960 faces out instead of 99 964)
+        # self-intersection tests below walk neighbours (MeshLab's cuts and fills may then differ in detail)
         ms = _meshset(Mesh(*locality_ordered(mesh.vertices, mesh.faces), mesh.source))
         if p.merge_close_vertices > 0:
             ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(100 * p.merge_close_vertices))
@@ -157,6 +167,7 @@ class MeshLab(AuditedRepair):
         if p.orient:
             ms.meshing_re_orient_faces_coherently()
         stuck = False
+        last = mesh  # the last mesh tested for self-intersections: each test starts from its outcome
         for _ in range(p.max_rounds):
             if ms.current_mesh().face_number() == 0:
                 break
@@ -170,7 +181,9 @@ class MeshLab(AuditedRepair):
                 self._cut_out(ms, now, sel)
             if p.remove_self_intersections:
                 now = _current(ms)
-                self._cut_out(ms, now, self_intersecting_faces(now))
+                sel = self_intersecting_faces(now, previous=last)
+                last = now
+                self._cut_out(ms, now, sel)
             if p.close_holes:
                 self._close(ms, prevent=True)
                 self._clean_topology(ms)
@@ -182,7 +195,10 @@ class MeshLab(AuditedRepair):
             if p.orient:
                 ms.meshing_re_orient_faces_coherently()
             now = _current(ms)
-            intersecting = int(self_intersecting_faces(now).sum()) if p.remove_self_intersections else 0
+            intersecting = 0
+            if p.remove_self_intersections:
+                intersecting = int(self_intersecting_faces(now, previous=last).sum())
+                last = now
             if not p.close_holes:
                 open_holes = 0
             elif p.max_hole_edges:  # holes under the limit left (or opened again by the clean-up)

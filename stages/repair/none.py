@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from scanreg.config import Context
 from scanreg.geometry import Mesh
-from scanreg.registry import REPAIR
+from scanreg.stages.registry import REPAIR
+from scanreg.types import Repaired, RunContext
 
 
 @REPAIR.register("none")
@@ -20,8 +20,8 @@ class NoRepair:
     def __init__(self, params: Params):
         self.p = params
 
-    def run(self, mesh: Mesh, ctx: Context) -> Mesh:
-        return mesh
+    def applies_to(self, role: str) -> bool:
+        return True
 
-    def repair(self, mesh: Mesh, ctx: Context, prefix: str, sweep: bool = False) -> tuple[Mesh, dict[str, float]]:
-        return mesh, {}
+    def repair(self, mesh: Mesh, ctx: RunContext) -> Repaired:
+        return Repaired(mesh)

@@ -1,0 +1,5 @@
+"""``python -m scanreg.app``: the ``scanreg`` command."""
+
+from scanreg.app.cli import main
+
+main()

@@ -1,0 +1,158 @@
+"""The run configuration: composing it as ``scanreg`` does, its config groups, and Hydra's composition errors as
+one line each."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+from scanreg.errors import ConfigError
+from scanreg.io.paths import PROJECT_ROOT
+from scanreg.stages.registry import CONF_PACKAGE, REGISTRIES, conf_dir, load_all, make_params, type_error
+
+STAGE_GROUPS = ("data", "repair", "sampler", "salience", "descriptor", "matcher", "coarse", "icp", "tracking")
+"""The config groups that pick one implementation each."""
+PRESET_GROUPS = ("method", "experiment", "launch")
+"""Groups of ``# @package _global_`` files that set several groups (or the sweep launcher) at once."""
+
+
+def search_path_override(config_dirs) -> list[str]:
+    """``hydra.searchpath=[...]`` for extra config folders (a user's experiments and presets), or nothing."""
+    dirs = [d if "://" in str(d) else f"file://{Path(d).expanduser().resolve()}" for d in config_dirs]
+    return [f"hydra.searchpath=[{','.join(dirs)}]"] if dirs else []
+
+
+def compose(overrides=(), config_name: str = "config", config_dirs=(), return_hydra_config: bool = False):
+    """The run configuration as ``scanreg`` composes it: the shipped configs (``pkg://scanreg.conf``), plus
+    ``config_dirs`` on Hydra's search path, with command-line style ``overrides``. Returns a ``DictConfig``
+    (with its ``hydra`` node when ``return_hydra_config``); a bad override raises one :class:`ConfigError` line."""
+    from hydra import compose as hydra_compose, initialize_config_module
+
+    register_schemas()
+    try:
+        with initialize_config_module(CONF_PACKAGE, version_base="1.3"):
+            return hydra_compose(config_name, overrides=[*overrides, *search_path_override(config_dirs)],
+                                 return_hydra_config=return_hydra_config)
+    except Exception as e:  # noqa: BLE001: Hydra's composition errors, as the CLI says them
+        raise ConfigError(config_error_line(e)) from None
+
+
+def group_choices(group: str, config_dirs=()) -> list[str]:
+    """The choices of a config group: the YAML names in the shipped configs and in extra config folders
+    (``--config-dir``, ``hydra.searchpath``: ``file://`` or plain paths, ``pkg://`` packages), and the stages
+    registered without a YAML."""
+    from importlib.resources import files
+
+    roots = [conf_dir()]
+    for d in config_dirs:
+        d = str(d)
+        if d.startswith("pkg://"):
+            try:
+                roots.append(Path(str(files(d[len("pkg://"):].replace("/", ".")))))
+            except (ModuleNotFoundError, TypeError):
+                continue
+        else:
+            roots.append(Path(d.removeprefix("file://")).expanduser())
+    names = {p.stem for r in roots for p in (r / group).glob("*.yaml")}
+    if group in REGISTRIES:
+        load_all()
+        names |= set(REGISTRIES[group].names())
+    return sorted(names)
+
+
+def help_groups() -> str:
+    """The config groups and their choices, wrapped at 100 columns, for ``scanreg --help``."""
+    import textwrap
+
+    lines = []
+    for g in sorted(p.name for p in conf_dir().iterdir() if p.is_dir() and any(p.glob("*.yaml"))):
+        lines += textwrap.wrap(f"{g}: {', '.join(group_choices(g))}", 100, subsequent_indent="    ")
+    return "\n".join(lines)
+
+
+def register_schemas() -> None:
+    """Every default as a structured config, before a config is composed: the stages' (:func:`load_all`), the
+    tracking backends', and the ``evaluate`` and ``report`` blocks' (``_evaluate``, ``_report`` in
+    ``conf/config.yaml``'s defaults list); and the resolvers ``conf/config.yaml``'s help text uses."""
+    from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
+
+    import scanreg.app.tracking  # noqa: F401  (registers the tracking backends)
+    from scanreg.app.report.params import ReportParams
+    from scanreg.eval.metrics import EvalParams
+
+    load_all()
+    ConfigStore.instance().store(name="_evaluate", node=EvalParams)
+    ConfigStore.instance().store(name="_report", node=ReportParams)
+    if not OmegaConf.has_resolver("scanreg_conf_dir"):
+        OmegaConf.register_new_resolver("scanreg_conf_dir", lambda: str(conf_dir()))
+        OmegaConf.register_new_resolver("scanreg_groups", help_groups)
+
+
+def config_error_line(e: BaseException) -> str:
+    """Hydra's composition error ``e`` as one line: an unknown choice of a group with the valid ones, an
+    unknown or mistyped parameter of a stage as the registry says it, an unknown key, a bad override."""
+    import re
+
+    from hydra.errors import MissingConfigException, OverrideParseException
+
+    text = " ".join(str(e).split())
+    cause = e.__cause__
+    if isinstance(e, OverrideParseException):
+        return f"bad override: {str(e).splitlines()[0]}"
+    if isinstance(e, MissingConfigException):
+        m = re.search(r"Could not find '([^'/]+)/([^']+)'", text)
+        if m:
+            group, choice = m.groups()
+            return f"unknown {group} '{choice}'; valid {group} choices: {', '.join(group_choices(group))}"
+        return text[:500]
+    stage = getattr(getattr(cause, "object_type", None), "__scanreg_stage__", None)
+    key = str(getattr(cause, "full_key", "") or "")
+    m = re.search(r"(?:Could not override|Error merging override) '?([\w.]+)", text)
+    key = key or (m.group(1) if m else "")
+    param = key.split(".", 1)[1] if "." in key else key
+    if stage is not None and param:
+        family, name = stage
+        params_cls = REGISTRIES[family].get(name).Params
+        where = f"{family}={name}"
+    elif key.split(".")[0] in ("evaluate", "report"):
+        params_cls, where = _block_params(key.split(".")[0]), key.split(".")[0]
+    else:
+        params_cls = where = None
+    if params_cls is not None:
+        if "Could not override" in text:  # an unknown parameter: the registry's message
+            try:
+                make_params(params_cls, {param.split(".")[0]: None}, where)
+            except ConfigError as ce:
+                return str(ce)
+        value = re.search(r"Value '([^']*)'", str(cause or ""))
+        return type_error(params_cls, param, value.group(1) if value else None, where)
+    if "Could not override" in text and key:
+        return f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)"
+    return (text + (f" ({' '.join(str(cause).split())})" if cause else ""))[:500]
+
+
+def _block_params(block: str) -> type:
+    if block == "evaluate":
+        from scanreg.eval.metrics import EvalParams
+
+        return EvalParams
+    from scanreg.app.report.params import ReportParams
+
+    return ReportParams
+
+
+def git_revision() -> str:
+    """The project's git commit (``+dirty`` when the work tree has changes), or ``unknown`` outside git."""
+    if not (PROJECT_ROOT / "pyproject.toml").is_file():  # an installed wheel: no checkout to ask
+        return "unknown"
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=PROJECT_ROOT, capture_output=True,
+                              text=True, timeout=10)
+        if head.returncode != 0:
+            return "unknown"
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=PROJECT_ROOT,
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+        return head.stdout.strip() + ("+dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"

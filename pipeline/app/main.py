@@ -1,0 +1,260 @@
+"""``scanreg``: the Hydra application that runs the pipeline and tracks it.
+
+A job (one run, or one job of a ``-m`` sweep) builds its stages (a bad name or value fails before any work),
+runs :func:`scanreg.runner.run_stages`, and logs the run with the configured tracking backend. Every expected
+failure ends as one ``error:`` line and an exit code (:data:`EXIT_FAILED` ...); the run is logged FAILED with
+its reason, and a sweep goes on with its other jobs.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from scanreg.app.config import PRESET_GROUPS, STAGE_GROUPS, config_error_line, git_revision, register_schemas
+from scanreg.errors import ConfigError, ScanregError
+from scanreg.stages.registry import CONF_PACKAGE
+
+EXIT_FAILED, EXIT_USAGE, EXIT_INTERNAL, EXIT_INTERRUPTED = 1, 2, 3, 130
+"""The exit codes (README, Errors): 0 done; 1 the input or a stage failed (the MLflow run ends FAILED), or a
+job of a sweep failed; 2 a usage or config error (unknown stage or parameter, wrong type, a required setting
+missing), found before any MLflow run is created; 3 an internal error (a bug: verbose=true for the traceback);
+130 interrupted."""
+
+
+def _err(msg: str) -> None:
+    print(f"error: {msg}", file=sys.stderr, flush=True)
+
+
+def check_config(cfg: DictConfig):
+    """Every stage built (names and parameters), what a stage needs set (``data.source``), the ``report`` block
+    when a report will be written, and the tracking backend: a :class:`ConfigError` before anything runs or is
+    tracked. Returns the built stages and the tracking backend."""
+    from scanreg.app.tracking import TRACKING
+    from scanreg.runner import build_stages
+    from scanreg.stages.registry import make_params
+
+    stages = build_stages(cfg)
+    stages.data.require()
+    if cfg.get("report") is not None and cfg.report.get("enabled"):
+        from scanreg.app.report.params import ReportParams
+
+        make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
+    return stages, TRACKING.build(cfg.tracking)
+
+
+def run_job(cfg: DictConfig) -> dict | float | None:
+    """One job: check, run, log, report. Returns the job's result (its ``objective`` metric for a tuning
+    sweeper); a single run's failure is a ``SystemExit`` with its code."""
+    from scanreg.app.tracking import NoTracking, RunRecord, flatten, report_progress
+    from scanreg.runner import run_stages, summary_lines
+    from scanreg.types import RunContext
+
+    hc = HydraConfig.get()
+    run_dir = Path(hc.runtime.output_dir)
+    multirun = hc.mode == RunMode.MULTIRUN
+    t_start = time.perf_counter_ns()
+    tracker, stages = NoTracking(NoTracking.Params()), None
+    try:
+        resolved = OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)
+    except Exception as e:  # noqa: BLE001 (a bad interpolation): still log what there is
+        resolved, problem = OmegaConf.to_container(cfg, resolve=False), ConfigError(f"config: {e}".splitlines()[0])
+    else:
+        problem = None
+    try:
+        if problem is None:
+            stages, tracker = check_config(cfg)
+    except ScanregError as e:
+        problem = e
+    if problem is not None and not multirun:  # no run is created for a single run's config error
+        _err(str(problem))
+        raise SystemExit(EXIT_USAGE if isinstance(problem, ConfigError) else EXIT_FAILED)
+    if problem is not None:  # a sweep files it as a failed job
+        from scanreg.app.tracking import TRACKING
+
+        try:
+            tracker = TRACKING.build(cfg.tracking)
+        except ScanregError:
+            pass
+    record = RunRecord(run_name=(" ".join(hc.overrides.task) or "defaults")[:250], params=flatten(resolved),
+                       tags=_tags(hc, run_dir))
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(resolved))
+    try:
+        if problem is not None:
+            raise problem
+        ctx = RunContext(seed=int(cfg.seed), run_dir=run_dir, verbose=bool(cfg.get("verbose", False)),
+                         in_sweep=multirun)
+        res = run_stages(stages, ctx, t_start)
+    except KeyboardInterrupt:
+        _log(tracker, record.ended("KILLED", "interrupted", artifacts=[run_dir / "config.yaml"]), multirun)
+        raise
+    except BaseException as e:  # noqa: BLE001: every failure ends the run FAILED with its reason
+        return _failed(e, cfg, tracker, record, run_dir, multirun)
+    run_id = _log(tracker, record.ended("FINISHED", None, res.metrics, res.histories,
+                                        [run_dir / "config.yaml", *res.artifacts]), multirun)
+    where = f"results: {run_dir}" + (f"  (MLflow run {run_id})" if run_id else "")
+    if multirun:  # one line per job on the console; the full table in the job's folder
+        (run_dir / "summary.txt").write_text("\n".join([*summary_lines(res), "", where]) + "\n")
+        report_progress("FINISHED", job_line(res.metrics))
+    else:
+        print("\n".join(summary_lines(res)))
+        print(where)
+    objective = cfg.get("objective")
+    if objective:  # what a tuning sweeper (Optuna) minimises
+        if objective not in res.metrics:
+            _err(f"objective '{objective}' is not a metric of this run; e.g. rotation_error_deg, rms, time_total_s")
+            return float("inf")
+        return float(res.metrics[objective])
+    return res.to_json()
+
+
+def _tags(hc, run_dir: Path) -> dict[str, str]:
+    """The run's tags: the chosen implementation of every group, where it wrote, its overrides, the commit."""
+    choices = {f"group.{g}": str(hc.runtime.choices.get(g)) for g in STAGE_GROUPS + PRESET_GROUPS
+               if g in hc.runtime.choices}
+    return {**choices, "scanreg.run_dir": str(run_dir), "scanreg.overrides": " ".join(hc.overrides.task),
+            "scanreg.git_commit": git_revision()}
+
+
+def _log(tracker, record, multirun: bool) -> str | None:
+    """Log the run; a failure of the store itself is one error line (the job fails, its results stay)."""
+    try:
+        return tracker.log_run(record)
+    except Exception as e:  # noqa: BLE001: a bad store
+        msg = (str(e) if isinstance(e, ScanregError) else f"tracking: {type(e).__name__}: {e}").splitlines()[0]
+        _err(msg)
+        if multirun:
+            from scanreg.app.tracking import report_progress
+
+            report_progress("FAILED", msg)
+            return None
+        raise SystemExit(EXIT_FAILED)
+
+
+def _failed(e: BaseException, cfg: DictConfig, tracker, record, run_dir: Path, multirun: bool):
+    """A failed job: its reason and exit code, the run logged FAILED with the metrics measured before the
+    failure, the repair's table when there is one; a sweep goes on."""
+    from scanreg.app.tracking import report_progress
+    from scanreg.runner import REPAIR_PREFIX, repair_table
+
+    code = EXIT_USAGE if isinstance(e, ConfigError) else EXIT_FAILED
+    if isinstance(e, ScanregError):
+        reason = str(e)
+    elif isinstance(e, SystemExit):
+        reason = f"exit {e.code}"
+        code = e.code if isinstance(e.code, int) else EXIT_FAILED
+    else:
+        code = EXIT_INTERNAL
+        reason = f"internal error: {type(e).__name__}: {e}".splitlines()[0]
+        if cfg.get("verbose", False):
+            traceback.print_exc()
+        else:
+            reason += " (run with verbose=true for the traceback)"
+    metrics = getattr(e, "metrics", None) or {}
+    _log(tracker, record.ended("FAILED", reason, metrics, artifacts=[run_dir / "config.yaml"]), multirun)
+    table = [ln for role, prefix in REPAIR_PREFIX.items() for ln in repair_table(metrics, prefix, role)[1:]]
+    if multirun:  # a sweep's console gets one line per job; the table stays in the job's folder
+        if metrics:
+            (run_dir / "summary.txt").write_text("\n".join([f"error: {reason}", *table]) + "\n")
+    elif table:
+        print("\n".join(table))
+    _err(reason)
+    if multirun:
+        report_progress("FAILED", reason)
+        return float("inf") if cfg.get("objective") else None  # the worst value: a tuning sweep goes on
+    raise SystemExit(code)
+
+
+def job_line(m: dict) -> str:
+    """A sweep job's result in a few words: its errors (with ground truth), RMS and time."""
+    parts = []
+    if "rotation_error_deg" in m:
+        parts.append(f"rot {m['rotation_error_deg']:.3g}°")
+    if "translation_error_rel" in m:
+        parts.append(f"transl {100 * m['translation_error_rel']:.2g} %")
+    elif "rms" in m:
+        parts.append(f"rms {m['rms']:.3g}")
+    if "time_total_s" in m:
+        parts.append(f"{m['time_total_s']:.1f} s")
+    return ", ".join(parts)
+
+
+@hydra.main(config_path=f"pkg://{CONF_PACKAGE}", config_name="config", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> dict | None:
+    return run_job(cfg)
+
+
+def _stdout_gone() -> None:
+    """The reader of our output went away (``scanreg --help | head``): nothing to report, and no error from the
+    interpreter's own flush at exit."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
+def main() -> None:
+    """The Hydra application: a composition error (a bad override, an unknown group choice or parameter) is one
+    ``error:`` line and exit 2; Ctrl-C or SIGTERM ends every run of a sweep that is still open."""
+    import signal
+
+    from hydra.errors import HydraException
+
+    from scanreg.app.startup import quick_help
+    from scanreg.app.tracking import _sweep_outcome, end_interrupted_sweep
+
+    argv = sys.argv[1:]
+    helps = [a for a in argv if a in ("-h", "--help")]
+    if helps and all(a in helps or ("=" in a and not a.startswith("-")) for a in argv):
+        text = quick_help([a for a in argv if a not in helps])
+        if text is not None:
+            try:
+                print(text, flush=True)
+            except BrokenPipeError:
+                _stdout_gone()
+            return
+    register_schemas()
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises its composition errors here, to be said in one line
+
+    def _terminate(signum, frame):  # SIGTERM (a scheduler's preemption, kill) ends runs like Ctrl-C does
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _terminate)
+    try:
+        _hydra_main()
+    except KeyboardInterrupt:
+        try:
+            n = end_interrupted_sweep()
+        except Exception:  # noqa: BLE001: the message below is what matters
+            n = 0
+        _err("interrupted" + (f"; {n} unfinished MLflow run(s) of the sweep marked KILLED" if n else ""))
+        raise SystemExit(EXIT_INTERRUPTED)
+    except BrokenPipeError:
+        _stdout_gone()
+        raise SystemExit(0)
+    except HydraException as e:  # the config did not compose: no run was made (a sweep's parent ends FAILED)
+        reason = config_error_line(e)
+        _end_sweep_quietly(end_interrupted_sweep, reason)
+        _err(reason)
+        raise SystemExit(EXIT_USAGE)
+    except Exception as e:  # noqa: BLE001: e.g. a launcher that cannot start; no run is left RUNNING
+        reason = f"sweep failed: {type(e).__name__}: {e}".splitlines()[0]
+        _end_sweep_quietly(end_interrupted_sweep, reason)
+        if any(a.replace(" ", "") in ("verbose=true", "verbose=True") for a in argv):
+            traceback.print_exc()
+        _err(reason + " (verbose=true for the traceback)")
+        raise SystemExit(EXIT_INTERNAL)
+    if _sweep_outcome.get("failed"):
+        raise SystemExit(EXIT_FAILED)
+
+
+def _end_sweep_quietly(end, reason: str) -> None:
+    try:
+        end(reason, status="FAILED")
+    except Exception:  # noqa: BLE001: the error line is what matters
+        pass

@@ -1,0 +1,61 @@
+"""The runs of a sweep, from MLflow, as a table (one row per run)."""
+
+from __future__ import annotations
+
+import pandas as pd
+
+def load_runs(experiment: str, uri: str | None = None, parent: str | None = None) -> pd.DataFrame:
+    """Child runs of ``parent`` (``latest``: the newest sweep), or every non-parent run of the experiment."""
+    from scanreg.app.tracking import MlflowTracking, _quiet_mlflow
+
+    _quiet_mlflow()
+    import mlflow
+
+    tr = MlflowTracking(MlflowTracking.Params(uri=uri, experiment=experiment))
+    mlflow.set_tracking_uri(tr.uri)
+    exp = mlflow.get_experiment_by_name(experiment)
+    if exp is None:
+        raise SystemExit(f"error: no experiment '{experiment}' in {tr.uri}")
+    parent_row = None
+    if parent:
+        flt = "tags.`scanreg.sweep` = 'parent'" + ("" if parent == "latest" else f" and attributes.run_id = '{parent}'")
+        parents = mlflow.search_runs([exp.experiment_id], filter_string=flt, order_by=["start_time DESC"],
+                                     max_results=1)
+        if parents.empty:
+            raise SystemExit(f"error: experiment '{experiment}' has no sweep"
+                             + ("" if parent == "latest" else f" with parent run {parent}")
+                             + " (run 'scanreg -m ...' first, pass --parent all for its single runs, or name "
+                             "another with --experiment NAME; without --experiment: the newest sweep of any)")
+        parent_row = parents.iloc[0]
+        parent = parent_row["run_id"]
+    flt = f"tags.mlflow.parentRunId = '{parent}'" if parent else ""
+    df = mlflow.search_runs([exp.experiment_id], filter_string=flt, max_results=100000)
+    if "tags.scanreg.sweep" in df:
+        df = df[df["tags.scanreg.sweep"] != "parent"]
+    if df.empty:
+        raise SystemExit(f"error: no runs found in experiment '{experiment}'" + (f" under parent {parent}" if parent else ""))
+    df = df.sort_values("start_time").reset_index(drop=True)
+    df.attrs.update(parent=parent, uri=tr.uri, experiment=experiment,
+                    parent_tags={k[5:]: v for k, v in parent_row.items() if k.startswith("tags.")}
+                    if parent_row is not None else {})
+    return df
+
+
+def latest_sweep_experiment(uri: str | None = None) -> str:
+    """The MLflow experiment holding the newest sweep (parent run) of the store, for a bare ``scanreg-report``."""
+    from scanreg.app.tracking import MlflowTracking, _quiet_mlflow
+
+    _quiet_mlflow()
+    import mlflow
+
+    tr = MlflowTracking(MlflowTracking.Params(uri=uri))
+    mlflow.set_tracking_uri(tr.uri)
+    client = mlflow.MlflowClient(tr.uri)
+    exps = client.search_experiments()
+    runs = client.search_runs([e.experiment_id for e in exps], filter_string="tags.`scanreg.sweep` = 'parent'",
+                              order_by=["attributes.start_time DESC"], max_results=1) if exps else []
+    if not runs:
+        names = ", ".join(sorted(e.name for e in exps if e.name != "Default")) or "none"
+        raise SystemExit(f"error: no sweep in {tr.uri} (run 'scanreg -m ...' first, or name an experiment with "
+                         f"--experiment NAME --parent all; experiments: {names})")
+    return next(e.name for e in exps if e.experiment_id == runs[0].info.experiment_id)

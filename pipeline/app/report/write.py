@@ -1,0 +1,257 @@
+"""``scanreg-report``: MLflow runs -> comparison tables (Markdown, CSV) and plots (PNG).
+
+    scanreg-report                                   # the newest sweep (of any experiment), grouped by what varies
+    scanreg-report --experiment bunny_benchmark --group-by group.coarse --per data.pair
+    scanreg-report --experiment sampling_density --group-by sampler.density --x sampler.density
+    scanreg-report --experiment icp_comparison --compare-to icp_comparison_old
+
+Runs are loaded with ``mlflow.search_runs``; ``--group-by`` takes config keys (``icp.tau``; ``group.coarse`` is
+the chosen implementation of a stage group). Per group: runs, failed runs, success rate (rotation error < 2°
+and translation error < 1 % of the diagonal, as configured in ``evaluate``; a failed run counts as a failure),
+median and 90th-percentile errors, median time per stage. Plots: success rate per group, error and time against
+``--x``, success per ``--per`` value (e.g. per scan pair). An experiment file turns the report on with
+``report.enabled=true`` so that ``scanreg experiment=NAME`` writes it when its sweep ends.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from scanreg.app.report.params import ReportParams
+from scanreg.app.report.plots import _slug, make_plots, plot_bins, plot_curves
+from scanreg.app.report.runs import latest_sweep_experiment, load_runs
+from scanreg.app.report.stats import interval, interval_name
+from scanreg.app.report.tables import (bin_markdown, bin_table, column_for, compare, concurrency_note, console_table,
+                                       curve_display, curve_table, display_table, find_column, fmt_value, per_table,
+                                       summarize, to_markdown, varying_keys)
+
+def run_time_line(df: pd.DataFrame) -> str:
+    """Wall-clock time of the sweep (first start to last end) and the sum of the runs' pipeline times."""
+    t0 = pd.to_datetime(df["start_time"]).min()
+    t1 = pd.to_datetime(df["end_time"]).max() if "end_time" in df else pd.NaT
+    wall = (t1 - t0).total_seconds() if pd.notna(t1) and pd.notna(t0) else float("nan")
+    busy = float(df["metrics.time_total_s"].sum()) if "metrics.time_total_s" in df else float("nan")
+    return (f"- run time: {wall / 60:.1f} min wall clock for {len(df)} runs (first start to last end); the runs' "
+            f"own pipeline times sum to {busy / 60:.1f} min")
+
+
+def configuration_line(df: pd.DataFrame) -> str:
+    """The stage choices of the runs (``tags.group.*``): one value, or the values compared."""
+    parts = []
+    for c in sorted(c for c in df.columns if c.startswith("tags.group.")):
+        vals = sorted(set(df[c].dropna().astype(str)))
+        if vals:
+            parts.append(f"{c[len('tags.group.'):]}={'|'.join(vals)}")
+    return "- stages: " + (", ".join(parts) or "unknown") + " (the defaults of that commit unless overridden above)"
+
+
+# --------------------------------------------------------------------------------------------------- report
+def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.DataFrame | None = None,
+                 plots: bool = True) -> dict:
+    """Write report.md, report.csv (and per.csv, compare.csv) and PNG plots into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    group_by = list(p.group_by) or varying_keys(df)
+    how = p.interval
+    interval(np.array([0.0, 1.0]), how)  # a bad name fails before any table is written
+    table = summarize(df, group_by, list(p.metrics), how)
+    table.drop(columns="_label").to_csv(out / "report.csv", index=False)
+    per_t = per_table(df, group_by, p.per) if p.per else None
+    if per_t is not None:
+        per_t.to_csv(out / "per.csv")
+    figs = make_plots(df, table, group_by, out, p.x, per_t) if plots else []
+    bt = bin_table(df, group_by, p.bin_by, list(p.bin_edges), list(p.bin_metrics), p.per, how) if p.bin_by else None
+    if bt is not None:
+        bt.to_csv(out / f"by_{_slug(p.bin_by)}.csv", index=False)
+        if plots:
+            figs.append(plot_bins(bt, p.bin_by, out))
+    ct = curve_table(df, group_by, p.x, list(p.curves), how) if p.x and p.curves else None
+    if ct is not None:
+        ct.to_csv(out / f"curves_vs_{_slug(p.x)}.csv", index=False)
+        if plots:
+            figs.append(plot_curves(ct, p.x, list(p.curves), out, how))
+
+    exp = df.attrs.get("experiment", "?")
+    ptags = df.attrs.get("parent_tags", {})
+    commits = sorted(set(df.get("tags.scanreg.git_commit", pd.Series(dtype=str)).dropna()))
+    command = ptags.get("scanreg.command") or (f"scanreg -m {ptags['scanreg.overrides']}" if "scanreg.overrides" in ptags else None)
+    when = pd.to_datetime(df["start_time"]).min()
+    n_fail = int((df["status"] != "FINISHED").sum())
+    jobs, warn = concurrency_note(df)
+    lines = [f"# {p.title or 'Experiment ' + exp}", ""]
+    if p.notes:
+        lines += [" ".join(p.notes.split()), ""]
+    lines += [
+        "## How this was produced", "",
+        f"- command: `{command}`" if command else f"- runs of MLflow experiment `{exp}`",
+        f"- commit: {', '.join(commits) or 'unknown'}",
+        f"- runs: {len(df)} ({n_fail} failed), started {when:%Y-%m-%d %H:%M} UTC"
+        + (f", sweep parent run `{df.attrs['parent']}`" if df.attrs.get("parent") else ""),
+        run_time_line(df),
+        configuration_line(df),
+        f"- jobs: {jobs}",
+        f"- tracking store: `{df.attrs.get('uri')}` (experiment `{exp}`)",
+        f"- report: `scanreg-report --experiment {exp}" + (f" --group-by {','.join(group_by)}" if group_by else "")
+        + (f" --x {p.x}" if p.x else "") + (f" --per {p.per}" if p.per else "") + "`, "
+        + f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
+        "",
+        "Success: rotation error < `evaluate.success_rotation_deg` (2°) and translation error < "
+        "`evaluate.success_translation` (1 %) of the target's bounding-box diagonal; a failed run counts as a "
+        "failure. Errors are against the ground truth, in degrees and input units; times are medians in seconds.",
+        "",
+        *([f"**Warning: {warn}.**", ""] if warn else []),
+        f"## Results by {', '.join(group_by) or 'run'}", "",
+        f"Each cell: the median over the group's runs (seeds, poses, pairs) [{interval_name(how)}]; success: "
+        "successes/runs = rate [Wilson 95 % score interval]. Two groups differ only where their intervals do not "
+        "overlap. Every column (p90 errors, fitness, each stage's time) is in report.csv.", "",
+        to_markdown(display_table(table, group_by, list(p.metrics))), "",
+    ]
+    if bt is not None:
+        lines += [f"## Success by {p.bin_by}", "",
+                  f"Runs binned by `{p.bin_by}`; cells: successes/runs = rate [Wilson 95 %]"
+                  + (f", and medians [{interval_name(how)}]" if p.bin_metrics else "") + f". by_{_slug(p.bin_by)}.csv "
+                  "has the numbers.", "", *bin_markdown(bt, p.bin_by, list(p.bin_metrics))]
+    if ct is not None:
+        lines += [f"## Robustness against {p.x}", "",
+                  f"Per value of `{p.x}`: success [Wilson 95 %] and medians [{interval_name(how)}]; "
+                  f"curves_vs_{_slug(p.x)}.csv has the numbers.", "",
+                  to_markdown(curve_display(ct, p.x, list(p.curves))), ""]
+    if per_t is not None:
+        lines += [f"## Success per {p.per}", "", to_markdown((per_t * 100).round(0), index=True), ""]
+    if compare_to is not None:
+        other = summarize(compare_to, [k for k in group_by if _has_key(compare_to, k)])
+        cmp = compare(table.copy(), other, [k for k in group_by if _has_key(compare_to, k)], exp,
+                      compare_to.attrs.get("experiment", "other"))
+        cmp.to_csv(out / "compare.csv", index=False)
+        lines += [f"## Compared with experiment `{compare_to.attrs.get('experiment')}`", "", to_markdown(cmp), ""]
+    if p.showcase:
+        lines += showcase_section(df, dict(p.showcase), out)
+    if figs:
+        lines += ["## Plots", ""] + [f"![{f.stem}]({f.name})" for f in figs] + [""]
+    if n_fail:
+        reasons = df.loc[df["status"] != "FINISHED", "tags.error"] if "tags.error" in df else pd.Series(dtype=str)
+        lines += ["## Failed runs", ""] + [f"- {r}" for r in reasons.fillna("(no reason recorded)").value_counts().index] + [""]
+    (out / "report.md").write_text("\n".join(lines))
+    return {"table": table, "per": per_t, "paths": [out / "report.md", out / "report.csv", *figs], "warning": warn}
+
+
+def showcase_section(df: pd.DataFrame, sel: dict, out: Path) -> list[str]:
+    """One run in detail: the first finished run matching ``sel``, its metrics, part table and pictures."""
+    import shutil
+
+    ok = df["status"] == "FINISHED"
+    for k, v in sel.items():
+        col = column_for(k, df)
+        ok &= df[col].astype(str) == str(v)
+    if not ok.any():
+        return ["## Showcase run", "", f"No finished run matches {sel}.", ""]
+    row = df[ok].iloc[0]
+    run_dir = Path(str(row.get("tags.scanreg.run_dir", "")))
+    title = ", ".join(f"{k}={v}" for k, v in sel.items())
+    lines = [f"## Showcase run: {title}", "", f"MLflow run `{row['run_id']}`, run directory `{run_dir}`.", ""]
+    metrics = {c[len("metrics."):]: row[c] for c in df.columns if c.startswith("metrics.") and pd.notna(row[c])
+               and not re.search(r"_\d+$", c)}
+    keys = [k for k in ("coarse_rotation_error_deg", "rotation_error_deg", "coarse_translation_error",
+                        "translation_error", "landmark_coarse_rms", "landmark_final_rms") if k in metrics]
+    keys += [k for k in metrics if k.startswith("dev_")]
+    if keys:
+        lines += ["| metric | value |", "|---|---|"] + [f"| {k} | {fmt_value(float(metrics[k]))} |" for k in keys] + [""]
+    for csv in sorted(run_dir.glob("deviation_*.csv")) if run_dir.is_dir() else []:
+        part = pd.read_csv(csv)
+        plural = csv.stem[len("deviation_"):]
+        lines += [f"### Per {'tooth' if plural == 'teeth' else plural.removesuffix('s')}", "", to_markdown(part), ""]
+        shutil.copy(csv, out / f"showcase_{csv.name}")
+    view = run_dir / "view3d.html"
+    if view.is_file():  # the interactive 3D view (self-contained HTML: opens without a network)
+        shutil.copy(view, out / "showcase_view3d.html")
+        lines += ["Interactive 3D view (source before and after alignment over the target, deviation colours, "
+                  "per-part table): [showcase_view3d.html](showcase_view3d.html)", ""]
+    for png in sorted(run_dir.glob("*.png")) if run_dir.is_dir() else []:
+        shutil.copy(png, out / f"showcase_{png.name}")
+        lines += [f"![{png.stem}](showcase_{png.name})", ""]
+    return lines
+
+
+def _has_key(df: pd.DataFrame, key: str) -> bool:
+    return find_column(key, df, bare=False) is not None
+
+
+def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None:
+    """Called when an experiment's sweep ends (``report.enabled``): write its report."""
+    from omegaconf import OmegaConf
+
+    from scanreg.stages.registry import make_params
+
+    p = make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
+    out = Path(p.out or Path("outputs") / "reports" / experiment)
+    df = load_runs(experiment, uri, parent_run_id)
+    res = write_report(df, p, out)
+    if res["warning"]:
+        print(f"warning: {res['warning']}")
+    print(f"report: {res['paths'][0]}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    from scanreg.app.stages_cli import _one_line_parser
+
+    ap = _one_line_parser()(prog="scanreg-report", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--experiment", default=None,
+                    help="MLflow experiment name (default: the experiment of the newest sweep in the store)")
+    ap.add_argument("--parent", default="latest",
+                    help="parent run id of a sweep; 'latest' (default): the newest sweep; 'all': every run")
+    ap.add_argument("--group-by", default=None,
+                    help="comma-separated config keys (default: the parameters that vary between the runs)")
+    ap.add_argument("--x", default=None, help="numeric key to plot errors and times against")
+    ap.add_argument("--per", default=None, help="key to show success per value of (e.g. data.pair)")
+    ap.add_argument("--compare-to", default=None, metavar="EXPERIMENT",
+                    help="another experiment (its latest sweep) to put side by side")
+    ap.add_argument("--metrics", default=None, help="comma-separated further metrics to show the median of")
+    ap.add_argument("--title", default=None, help="heading of report.md")
+    ap.add_argument("--no-plots", action="store_true", help="tables only")
+    ap.add_argument("--config", default=None, metavar="EXPERIMENT",
+                    help="take the experiment name and the report settings (group-by, x, per, metrics, showcase, "
+                         "title, notes, out) from conf/experiment/EXPERIMENT.yaml; other options override them")
+    ap.add_argument("--uri", default=None, help="tracking URI (default: $MLFLOW_TRACKING_URI or outputs/mlflow.db)")
+    ap.add_argument("--out", default=None, help="folder for the report (default: outputs/reports/<experiment>)")
+    a = ap.parse_args(argv)
+    base = ReportParams(enabled=True)
+    if a.config:
+        from omegaconf import OmegaConf
+
+        from scanreg.app.config import compose
+        from scanreg.stages.registry import make_params
+
+        cfg = compose([f"experiment={a.config}"])
+        base = make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
+        if a.experiment is None:
+            a.experiment = cfg.tracking.experiment
+    if a.experiment is None:
+        if a.parent not in ("latest",):
+            raise SystemExit("error: --parent needs --experiment NAME")
+        a.experiment = latest_sweep_experiment(a.uri)
+    df = load_runs(a.experiment, a.uri, None if a.parent == "all" else a.parent)
+    other = load_runs(a.compare_to, a.uri, "latest" if a.parent != "all" else None) if a.compare_to else None
+    from dataclasses import replace
+
+    split = lambda v: [k.strip() for k in v.split(",") if k.strip()]
+    p = replace(base, **{k: v for k, v in dict(
+        out=a.out, group_by=split(a.group_by) if a.group_by else None, x=a.x, per=a.per, title=a.title,
+        metrics=split(a.metrics) if a.metrics else None).items() if v is not None})
+    out = Path(p.out or Path("outputs") / "reports" / a.experiment)
+    res = write_report(df, p, out, other, plots=not a.no_plots)
+    print(f"{len(df)} run(s) of experiment '{a.experiment}'"
+          + (f", sweep {df.attrs['parent']}" if df.attrs.get("parent") else ""))
+    print(console_table(res["table"], p.group_by or varying_keys(df)))
+    if res["warning"]:
+        print(f"warning: {res['warning']}")
+    print(f"every column: {out / 'report.csv'}; report: {out / 'report.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

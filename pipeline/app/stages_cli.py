@@ -1,0 +1,160 @@
+"""``scanreg-stages``: every registered stage with its parameters, their types, defaults and documentation."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import sys
+import textwrap
+from typing import Any
+
+from scanreg.stages.registry import REGISTRIES, conf_dir, field_docs, load_all
+
+
+def plain(text: str) -> str:
+    """Docstring markup as plain text: ``x`` and :class:`x` become 'x'; whitespace runs become one space."""
+    import re
+
+    text = re.sub(r":[a-z]+:`~?([^`]+)`", r"'\1'", text)
+    text = re.sub(r"``([^`]+)``", r"'\1'", text)
+    return " ".join(text.split())
+
+
+def type_text(tp: Any) -> str:
+    """A parameter type as a user writes it: ``float | null``, ``spacing | absolute`` for an enum."""
+    import enum
+    import typing
+
+    args = [a for a in typing.get_args(tp) if a is not type(None)]
+    if typing.get_origin(tp) is typing.Union:
+        return " | ".join(type_text(a) for a in args) + (" | null" if type(None) in typing.get_args(tp) else "")
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return " | ".join(str(m.value) for m in tp)
+    if typing.get_origin(tp) in (list, dict, tuple):
+        return f"{typing.get_origin(tp).__name__}[{', '.join(type_text(a) for a in args)}]"
+    return getattr(tp, "__name__", str(tp).replace("typing.", ""))
+
+
+def value_text(v: Any) -> str:
+    """A value as YAML writes it (``null``, ``true``, ``[a, b]``, ``${seed}``)."""
+    import enum
+
+    if isinstance(v, enum.Enum):
+        v = v.value
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(value_text(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {value_text(x)}" for k, x in v.items()) + "}"
+    return str(v)
+
+
+def yaml_defaults(family: str, name: str) -> dict[str, Any]:
+    """The parameter values ``conf/<family>/<name>.yaml`` sets (interpolations such as ``${seed}`` as
+    written); every field missing there keeps the Params default."""
+    cls = REGISTRIES[family].get(name)
+    values: dict[str, Any] = {}
+    for f in dataclasses.fields(cls.Params):
+        if f.default is not dataclasses.MISSING:
+            values[f.name] = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            values[f.name] = f.default_factory()
+        else:
+            values[f.name] = "???"
+    path = conf_dir() / family / f"{name}.yaml"
+    if path.exists():
+        from omegaconf import OmegaConf
+
+        yaml = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+        values.update({k: v for k, v in yaml.items() if k in values and k != "name"})
+    return values
+
+
+def describe(family: str, name: str, width: int = 100) -> list[str]:
+    """One stage for ``scanreg-stages``: its summary, then each parameter with its type, its default as the
+    YAML sets it and its docstring, wrapped at ``width`` columns."""
+    import typing
+
+    cls = REGISTRIES[family].get(name)
+    wrap = lambda text, indent: textwrap.wrap(text, width, initial_indent=indent, subsequent_indent=indent) or [indent]
+    summary = plain((inspect.getdoc(cls) or "").split("\n\n")[0])
+    lines = [f"{family}={name}", *wrap(summary, "  ")]
+    docs = field_docs(cls.Params)
+    try:
+        hints = typing.get_type_hints(cls.Params)
+    except Exception:  # noqa: BLE001: fall back to the annotation text
+        hints = {}
+    defaults = yaml_defaults(family, name)
+    for f in dataclasses.fields(cls.Params):
+        tp = type_text(hints.get(f.name, f.type))
+        lines += wrap(f"{f.name} = {value_text(defaults[f.name])}   ({tp})", "  ")
+        lines += wrap(plain(docs.get(f.name, "(undocumented)")), "      ")
+    return lines
+
+
+def _one_line_parser():
+    import argparse
+
+    class OneLineErrorParser(argparse.ArgumentParser):
+        """Usage errors as one line, ``error: ...``, and exit 2 (as every scanreg command)."""
+
+        def error(self, message):
+            self.exit(2, f"error: {message} (see {self.prog} --help)\n")
+
+    return OneLineErrorParser
+
+
+STAGES_HELP = """\
+List the pipeline's stages: every implementation of every stage family, with its parameters, their
+types, their defaults as conf/<family>/<name>.yaml sets them, and their documentation (units included).
+Choose a stage with FAMILY=NAME on the scanreg command line and set a parameter with FAMILY.PARAM=VALUE,
+e.g. 'scanreg icp=horn icp.max_iterations=50'.
+
+examples:
+  scanreg-stages                  every family, every stage
+  scanreg-stages icp              the ICP variants only
+  scanreg-stages icp=horn data    one stage, and the data providers
+  scanreg-stages --list           names and one-line summaries only
+"""
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``scanreg-stages [FAMILY[=NAME] ...]``: list registered stages with their parameters and docs."""
+    import argparse
+
+    OneLineErrorParser = _one_line_parser()
+    ap = OneLineErrorParser(prog="scanreg-stages", description=STAGES_HELP,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("filter", nargs="*", metavar="FAMILY[=NAME]",
+                    help=f"show only these families or stages; families: {', '.join(REGISTRIES)}")
+    ap.add_argument("--list", action="store_true", help="names and one-line summaries only")
+    a = ap.parse_args(sys.argv[1:] if argv is None else argv)
+    load_all()
+    wanted: list[tuple[str, str]] = []
+    for item in a.filter or list(REGISTRIES):
+        fam, _, name = item.partition("=")
+        if fam not in REGISTRIES:
+            print(f"error: unknown stage family '{fam}'; valid: {', '.join(REGISTRIES)}", file=sys.stderr)
+            return 2
+        if name and name not in REGISTRIES[fam].names():
+            print(f"error: unknown {fam} '{name}'; valid {fam} names: {', '.join(REGISTRIES[fam].names())}",
+                  file=sys.stderr)
+            return 2
+        wanted += [(fam, n) for n in ([name] if name else REGISTRIES[fam].names())]
+    out: list[str] = []
+    for fam, name in wanted:
+        if a.list:
+            summary = plain((inspect.getdoc(REGISTRIES[fam].get(name)) or "").split("\n\n")[0])
+            head = f"{fam}={name}"
+            out += textwrap.wrap(f"{head:<26} {summary}", 100, subsequent_indent=" " * 27,
+                                 max_lines=2, placeholder=" …")
+        else:
+            out += [*describe(fam, name), ""]
+    try:
+        print("\n".join(out))
+    except BrokenPipeError:  # e.g. piped into head
+        sys.stdout = None
+    return 0

@@ -1,0 +1,78 @@
+"""The Hydra callback of ``-m`` sweeps that files every job's MLflow run under one parent run (see
+:mod:`scanreg.app.tracking`)."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+
+from scanreg.errors import ConfigError
+from scanreg.app.tracking import (SWEEP_ENV, SWEEP_FILE, MlflowTracking, RunLog, _children, _sweep_outcome,
+                              launcher_tags, sweep_size)
+
+
+class SweepCallback(Callback):
+    """Hydra callback for ``-m`` sweeps: creates store, experiment and parent run before the jobs start, and
+    ends the parent run (FAILED if any child failed) when they are done. Holds no state but plain values."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        _sweep_outcome.clear()
+        os.environ.pop(SWEEP_ENV, None)
+        try:
+            from scanreg.app.tracking import TRACKING as T
+
+            cls, params = T.params(config.tracking)
+        except ConfigError:
+            return  # reported by each job
+        if cls is not MlflowTracking:
+            return
+        import sys
+
+        from scanreg.app.config import git_revision
+
+        tr = MlflowTracking(params)
+        client, eid = tr.prepare()
+        sweep_dir = str(config.hydra.sweep.dir)
+        overrides = " ".join(config.hydra.overrides.task)
+        command = " ".join(["scanreg", *sys.argv[1:]]) if Path(sys.argv[0]).name == "scanreg" else \
+            f"scanreg -m {overrides}"
+        parent = client.create_run(eid, run_name=f"sweep: {overrides}"[:250],
+                                   tags={"scanreg.sweep_dir": sweep_dir, "scanreg.overrides": overrides,
+                                         "scanreg.sweep": "parent", "scanreg.command": command,
+                                         "scanreg.git_commit": git_revision(), **launcher_tags(config)})
+        Path(sweep_dir).mkdir(parents=True, exist_ok=True)
+        info = json.dumps({"uri": tr.uri, "experiment": params.experiment, "experiment_id": eid,
+                           "parent_run_id": parent.info.run_id, "total": sweep_size(config), "start": time.time(),
+                           "progress": str((Path(sweep_dir) / ".progress").resolve())})
+        os.environ[SWEEP_ENV] = info
+        (Path(sweep_dir) / SWEEP_FILE).write_text(info)
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        info = json.loads(os.environ.pop(SWEEP_ENV, "null") or "null")
+        if not info:
+            return
+        tr = MlflowTracking(MlflowTracking.Params(uri=info["uri"], experiment=info["experiment"]))
+        client = tr._client()
+        children = _children(client, info)
+        failed = sum(r.info.status != "FINISHED" for r in children)
+        log = RunLog(client, info["parent_run_id"])
+        log.log_metrics({"sweep_runs": len(children), "sweep_failed": failed})
+        log.end("FAILED" if failed else "FINISHED", f"{failed} of {len(children)} runs failed" if failed else None)
+        _sweep_outcome.update(failed=failed, total=len(children))
+        print(f"sweep: {len(children)} run(s), {failed} failed; parent run {info['parent_run_id']} in experiment "
+              f"'{info['experiment']}' at {info['uri']}")
+        if config.get("report") is not None and config.report.get("enabled"):
+            from scanreg.app.report.write import report_for_sweep
+
+            try:
+                report_for_sweep(config, info["parent_run_id"], info["uri"], info["experiment"])
+            except Exception as e:  # noqa: BLE001: the runs are safe; say why the report is missing
+                msg = str(e) if isinstance(e, (ConfigError, SystemExit)) else f"{type(e).__name__}: {e}"
+                print(f"error: report not written: {msg}".splitlines()[0])
+                _sweep_outcome["failed"] = _sweep_outcome.get("failed", 0) or 1

@@ -1,0 +1,386 @@
+"""Experiment tracking with MLflow.
+
+One MLflow run per job, logged when the job ends: its config as params, its stage choices as tags, its metrics,
+per-iteration series and artifacts, and its status (FINISHED, FAILED with its one-line reason in the tag
+``error``, KILLED when interrupted). The store and the experiment are created once, before any job starts (in the
+single run itself, or by :class:`scanreg.app.sweep.SweepCallback` in the launching process of a ``-m`` sweep), and
+every run is created with an explicit ``experiment_id``. A sweep has one parent run; each job's run is its child
+(``mlflow.parentRunId``); a failing job ends FAILED and the sweep goes on, and the parent ends FAILED if any child
+failed.
+
+A single ``scanreg`` run logs through a worker process started with the command (``python -m
+scanreg.app.tracking``, see :mod:`scanreg.app.startup`), which imports MLflow while the run works.
+
+Default store: ``sqlite:///<cwd>/outputs/mlflow.db`` (absolute path), artifacts beside it in
+``outputs/mlartifacts``; ``$MLFLOW_TRACKING_URI`` or ``tracking.uri`` override it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Optional
+
+from scanreg.stages.registry import Registry
+
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
+
+# No Hydra or OmegaConf at import: the worker process (``python -m scanreg.app.tracking``) imports this module.
+
+TRACKING = Registry("tracking")
+"""The tracking backends (``tracking=mlflow|none``)."""
+
+SWEEP_ENV = "SCANREG_SWEEP"
+"""Environment variable through which a sweep's jobs learn the store, experiment and parent run."""
+SWEEP_FILE = ".scanreg_sweep.json"
+"""The same, as a file in the sweep directory: for launchers whose workers do not inherit the launching
+process's environment (a Ray cluster, Slurm), given a shared file system."""
+
+
+def sweep_info() -> dict | None:
+    """What the launching process said about the running sweep: from the environment, else from the sweep
+    directory of the current Hydra job (multirun only)."""
+    if os.environ.get(SWEEP_ENV):
+        return json.loads(os.environ[SWEEP_ENV])
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hc = HydraConfig.get()
+        if hc.mode == RunMode.MULTIRUN:
+            f = Path(hc.sweep.dir) / SWEEP_FILE
+            if f.exists():
+                return json.loads(f.read_text())
+    except Exception:  # noqa: BLE001: not inside a Hydra job
+        pass
+    return None
+
+_sweep_outcome: dict[str, Any] = {}
+"""Set by SweepCallback.on_multirun_end in the launching process: ``{"failed": n, "total": n}``."""
+
+
+_sweep_outcome: dict[str, Any] = {}
+"""Set by SweepCallback.on_multirun_end in the launching process: ``{"failed": n, "total": n}``."""
+
+
+def _quiet_mlflow() -> None:
+    for name in ("alembic", "mlflow", "mlflow.store", "mlflow.tracking"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def flatten(d: Any, prefix: str = "") -> dict[str, str]:
+    out: dict[str, str] = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.update(flatten(v, f"{prefix}{k}."))
+    else:
+        out[prefix[:-1]] = "null" if d is None else str(d)
+    return out
+
+
+class RunLog:
+    """Logging into one MLflow run."""
+
+    def __init__(self, client, run_id: str):
+        self.client, self.run_id = client, run_id
+
+    def log_params(self, params: dict[str, str]) -> None:
+        from mlflow.entities import Param
+
+        items = [Param(k[:250], v[:6000]) for k, v in sorted(params.items())]
+        for i in range(0, len(items), 100):
+            self.client.log_batch(self.run_id, params=items[i : i + 100])
+
+    def set_tags(self, tags: dict[str, str]) -> None:
+        from mlflow.entities import RunTag
+
+        self.client.log_batch(self.run_id, tags=[RunTag(k, str(v)[:5000]) for k, v in tags.items()])
+
+    def log_metrics(self, metrics: dict[str, float], step_metrics: dict[str, list[float]] | None = None) -> None:
+        import math
+
+        from mlflow.entities import Metric
+
+        ts = int(time.time() * 1000)
+        items = [Metric(k, float(v), ts, 0) for k, v in sorted(metrics.items())
+                 if isinstance(v, (int, float)) and math.isfinite(float(v))]
+        for k, seq in (step_metrics or {}).items():
+            items += [Metric(f"{k}_step", float(v), ts, i) for i, v in enumerate(seq)]
+        for i in range(0, len(items), 500):
+            self.client.log_batch(self.run_id, metrics=items[i : i + 500])
+
+    def log_artifacts(self, paths: list[Path]) -> None:
+        for p in paths:
+            if Path(p).exists():
+                self.client.log_artifact(self.run_id, str(p))
+
+    def end(self, status: str, reason: str | None = None) -> None:
+        if reason:
+            self.set_tags({"error": reason})
+        self.client.set_terminated(self.run_id, status)
+
+
+@dataclass
+class RunRecord:
+    """Everything one run logs (plain values, so that it travels to the worker process as JSON)."""
+
+    run_name: str
+    params: dict[str, str]
+    tags: dict[str, str]
+    start_time: int = field(default_factory=lambda: int(time.time() * 1000))
+    """Milliseconds since the epoch."""
+    status: str = "FINISHED"
+    reason: Optional[str] = None
+    """Why the run failed or was stopped (the tag ``error``)."""
+    metrics: dict[str, float] = field(default_factory=dict)
+    step_metrics: dict[str, list[float]] = field(default_factory=dict)
+    """Per-iteration series, logged as ``<name>_step`` with steps 0, 1, ..."""
+    artifacts: list[str] = field(default_factory=list)
+
+    def ended(self, status: str, reason: str | None = None, metrics=None, step_metrics=None,
+              artifacts=()) -> "RunRecord":
+        """This record with how the run ended."""
+        return RunRecord(self.run_name, self.params, self.tags, self.start_time, status, reason,
+                         {k: float(v) for k, v in (metrics or {}).items() if isinstance(v, (int, float))},
+                         {k: [float(x) for x in v] for k, v in (step_metrics or {}).items()},
+                         [str(Path(p).resolve()) for p in artifacts])
+
+
+@TRACKING.register("none")
+class NoTracking:
+    """Track nothing (results stay in the run directory)."""
+
+    @dataclass
+    class Params:
+        uri: Optional[str] = None
+        """Ignored; accepted so that configs written for ``tracking=mlflow`` also run untracked."""
+        experiment: str = "scanreg"
+        """Ignored; accepted so that experiment files that name their MLflow experiment also run untracked."""
+
+    def __init__(self, params: Params):
+        self.p = params
+
+    def log_run(self, record: RunRecord) -> None:
+        return None
+
+
+@TRACKING.register("mlflow")
+class MlflowTracking:
+    """Log every run to MLflow: config as params, stage choices as tags, metrics, artifacts."""
+
+    @dataclass
+    class Params:
+        uri: Optional[str] = None
+        """Tracking URI; null: $MLFLOW_TRACKING_URI, else sqlite:///<cwd>/outputs/mlflow.db (absolute path)."""
+        experiment: str = "scanreg"
+        """MLflow experiment name the runs are filed under."""
+
+    def __init__(self, params: Params):
+        self.p = params
+        self.uri = params.uri or os.environ.get("MLFLOW_TRACKING_URI") or \
+            f"sqlite:///{(Path.cwd() / 'outputs' / 'mlflow.db').resolve()}"
+
+    def _client(self):
+        _quiet_mlflow()
+        from mlflow.tracking import MlflowClient
+
+        if self.uri.startswith("sqlite:///"):
+            Path(self.uri[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
+        return MlflowClient(tracking_uri=self.uri)
+
+    def prepare(self) -> tuple[Any, str]:
+        """Create the store and the experiment if needed; returns ``(client, experiment_id)``."""
+        client = self._client()
+        exp = client.get_experiment_by_name(self.p.experiment)
+        if exp is not None:
+            return client, exp.experiment_id
+        artifact_location = None
+        if self.uri.startswith("sqlite:///"):
+            root = Path(self.uri[len("sqlite:///"):]).parent / "mlartifacts" / self.p.experiment
+            artifact_location = root.resolve().as_uri()
+        try:
+            return client, client.create_experiment(self.p.experiment, artifact_location=artifact_location)
+        except Exception:  # created meanwhile by another process
+            exp = client.get_experiment_by_name(self.p.experiment)
+            if exp is None:
+                raise
+            return client, exp.experiment_id
+
+    def log_run(self, record: RunRecord) -> str:
+        """Log a finished run; its run id. Through the worker process when the command started one (and MLflow
+        is not imported here), else here."""
+        import sys
+
+        from scanreg.app import startup
+
+        request = {"uri": self.p.uri, "resolved_uri": self.uri, "experiment": self.p.experiment,
+                   "sweep": sweep_info(), "record": asdict(record)}
+        worker = None if "mlflow" in sys.modules else startup.take_tracking_worker()
+        if worker is not None:
+            return worker.log(request)
+        return _log_request(request)
+
+
+def _log_request(request: dict) -> str:
+    """Log ``request``'s record (see :meth:`MlflowTracking.log_run`) into its store; the new run's id. A sweep's
+    jobs log where the launching process created the parent run, unless a job names another store explicitly
+    (workers of a cluster may not share the launching process's environment or cwd)."""
+    tr = MlflowTracking(MlflowTracking.Params(uri=request["uri"], experiment=request["experiment"]))
+    tr.uri = request["resolved_uri"]
+    rec = RunRecord(**request["record"])
+    sweep = request.get("sweep")
+    tags = dict(rec.tags)
+    if sweep and (tr.p.uri is None or sweep["uri"] == tr.uri) and sweep["experiment"] == tr.p.experiment:
+        tr.uri = sweep["uri"]
+        client, eid = tr._client(), sweep["experiment_id"]
+        tags["mlflow.parentRunId"] = sweep["parent_run_id"]
+    else:
+        client, eid = tr.prepare()
+    run = client.create_run(eid, run_name=rec.run_name, tags=tags, start_time=rec.start_time)
+    log = RunLog(client, run.info.run_id)
+    log.log_params(rec.params)
+    log.log_metrics(rec.metrics, rec.step_metrics)
+    log.log_artifacts([Path(p) for p in rec.artifacts])
+    log.end(rec.status, rec.reason)
+    return run.info.run_id
+
+
+def _warm_mlflow() -> None:
+    """Import what opening a SQL store and logging into it will import (MLflow, its SQLAlchemy store, the
+    store's ORM mappers configured), so that the worker is ready when the run ends."""
+    import mlflow.tracking  # noqa: F401
+
+    try:
+        import mlflow.store.tracking.sqlalchemy_store  # noqa: F401
+        import sqlalchemy.orm
+
+        sqlalchemy.orm.configure_mappers()
+    except Exception:  # noqa: BLE001: only a head start; opening the store reports any real problem
+        pass
+
+
+
+def _worker() -> None:
+    """``python -m scanreg.app.tracking``: import MLflow at once, then log the one run described on standard
+    input (a JSON request, :meth:`MlflowTracking.log_run`) and answer its run id (or the error) on standard
+    output. Ctrl-C is ignored, so that an interrupted run can still be logged KILLED."""
+    import signal
+    import sys
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _quiet_mlflow()
+    _warm_mlflow()
+    line = sys.stdin.readline()
+    if not line:  # the command did not need it
+        return
+    try:
+        reply = {"run_id": _log_request(json.loads(line))}
+    except Exception as e:  # noqa: BLE001: the caller reports it
+        reply = {"error": f"{type(e).__name__}: {e}".splitlines()[0] if str(e) else type(e).__name__}
+    print(REPLY + json.dumps(reply), flush=True)
+
+
+REPLY = "@scanreg-tracking "
+"""Prefix of the worker's answer on its standard output (anything else a library prints is not an answer)."""
+
+
+def launcher_tags(config: DictConfig) -> dict[str, str]:
+    """The sweep's launcher and its parallelism (``n_jobs``, ``array_parallelism``...), for the report."""
+    lc = config.hydra.get("launcher") or {}
+    tags = {"scanreg.launcher": str(lc.get("_target_", "?")).rsplit(".", 1)[-1]}
+    for k in ("n_jobs", "array_parallelism"):
+        if lc.get(k) is not None:
+            tags[f"scanreg.launcher.{k}"] = str(lc.get(k))
+    return tags
+
+
+def _children(client, info: dict) -> list:
+    """The child runs of the sweep described by ``info`` (see :func:`sweep_info`)."""
+    return client.search_runs([info["experiment_id"]],
+                              filter_string=f"tags.mlflow.parentRunId = '{info['parent_run_id']}'",
+                              max_results=50000)
+
+
+def end_interrupted_sweep(reason: str = "interrupted", status: str = "KILLED") -> int:
+    """After an interrupt of a sweep (in the launching process): every child run still RUNNING, and the parent,
+    end KILLED with the reason, so that no run is left RUNNING. Returns the number of runs ended."""
+    info = json.loads(os.environ.pop(SWEEP_ENV, "null") or "null")
+    if not info:
+        return 0
+    tr = MlflowTracking(MlflowTracking.Params(uri=info["uri"], experiment=info["experiment"]))
+    client = tr._client()
+    children = _children(client, info)
+    n = 0
+    for r in children:
+        if r.info.status == "RUNNING":
+            RunLog(client, r.info.run_id).end(status, reason)
+            n += 1
+    RunLog(client, info["parent_run_id"]).end(status, reason)
+    return n + 1
+
+
+def sweep_size(config: DictConfig) -> int | None:
+    """Number of jobs of a basic-sweeper sweep (command-line sweeps and ``hydra.sweeper.params``), else None."""
+    try:
+        if "BasicSweeper" not in str(config.hydra.sweeper.get("_target_", "")):
+            return None
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+
+        lines = [f"{k}={v}" for k, v in (config.hydra.sweeper.get("params") or {}).items()]
+        lines += list(config.hydra.overrides.task)
+        sizes: dict[str, int] = {}
+        for o in OverridesParser.create().parse_overrides(lines):
+            sizes[o.get_key_element()] = len(list(o.sweep_string_iterator())) if o.is_sweep_override() else 1
+        n = 1
+        for v in sizes.values():
+            n *= v
+        return n
+    except Exception:  # noqa: BLE001: progress is a nicety
+        return None
+
+
+def report_progress(status: str, what: str = "") -> None:
+    """After a sweep job: append to the sweep's progress file and print one line, the job's outcome with a
+    progress bar and the estimated time left (the job's full table is in its folder, ``summary.txt``)."""
+    info = sweep_info()
+    if not info or not info.get("progress"):
+        return
+    try:
+        with open(info["progress"], "a") as f:
+            f.write(status + "\n")
+        done_lines = Path(info["progress"]).read_text().split()
+    except OSError:
+        return
+    done, failed = len(done_lines), sum(s != "FINISHED" for s in done_lines)
+    elapsed = time.time() - info["start"]
+    total = info.get("total")
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        job = f"#{HydraConfig.get().job.num} "
+    except Exception:  # noqa: BLE001: not inside a Hydra job
+        job = ""
+    outcome = f"{job}{'ok' if status == 'FINISHED' else status}" + (f": {what}" if what else "")
+    if total:
+        width = 10
+        fill = int(round(width * min(done, total) / total))
+        left = elapsed / done * max(total - done, 0)
+        line = (f"sweep [{'#' * fill}{'.' * (width - fill)}] {done}/{total} jobs, {failed} failed, "
+                f"~{_hms(left)} left | {outcome}")
+    else:
+        line = f"sweep: {done} jobs, {failed} failed, {_hms(elapsed)} | {outcome}"
+    print(line if len(line) <= 100 else line[:99] + "…", flush=True)
+
+
+def _hms(sec: float) -> str:
+    sec = int(round(sec))
+    return f"{sec // 3600}:{sec // 60 % 60:02d}:{sec % 60:02d}"
+
+
+if __name__ == "__main__":
+    _worker()

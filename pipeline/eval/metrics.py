@@ -1,0 +1,297 @@
+"""Evaluation of a registration: one definition of every reported number."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from scanreg.geometry import apply_T, transform_errors
+from scanreg.types import CoarseTrace, Distances, to_abs
+
+
+@dataclass
+class EvalParams:
+    inlier_distance: float = 3.0
+    """A source point is an inlier when its closest target point, after alignment, lies within this distance
+    (see ``distances``). ``fitness`` is the share of inliers, ``rms`` the RMS of their distances."""
+    distances: Distances = Distances.spacing
+    """Unit of ``inlier_distance``: multiples of the sampling spacing, or absolute input units."""
+    success_rotation_deg: float = 2.0
+    """A run with ground truth succeeds when its rotation error is below this (degrees) ..."""
+    success_translation: float = 0.01
+    """... and its translation error below this share of the target's bounding-box diagonal."""
+    deviation_map: bool = False
+    """Also write the deviation map of the aligned source (coloured PLY, histogram, picture) and log its
+    statistics ``dev_*`` overall and per part of the target (see pipeline/deviation.py)."""
+    deviation_range: float = 0.1
+    """Colour-map range: deviations beyond ± this saturate (input units: 0.1 = 100 µm for mm data)."""
+    deviation_max_distance: Optional[float] = 0.5
+    """Source points farther than this from the target are not compared (input units; e.g. the gum of a cast
+    that the CT lacks); null: every point."""
+    deviation_max_angle_deg: Optional[float] = 60.0
+    """Source points whose normal differs from the target's by more than this are not compared (degrees);
+    null: no normal test."""
+    deviation_bands: list[float] = field(default_factory=lambda: [0.05, 0.1])
+    """Report the share of compared points within ± each of these (input units)."""
+    deviation_scale: float = 1000.0
+    """Display unit per input unit (1000: mm -> µm)."""
+    deviation_unit: str = "um"
+    """Name of the display unit, used in metric names (``dev_rms_um``) and legends."""
+    view_html: bool = True
+    """Write ``view3d.html``: one self-contained interactive 3D view (plotly, its JavaScript embedded, opens
+    without network) of the target, the source before and after alignment coloured by deviation, and the
+    per-part table (see pipeline/view3d.py)."""
+    view_max_points: int = 40000
+    """At most this many points per shown surface in ``view3d.html`` (seeded subsample; keeps it a few MB)."""
+    pose_uncertainty: bool = True
+    """Log the pose covariance of the final transform from the fine stage's point-to-plane normal equations at
+    the final pairs (``pose_sigma_rot_deg`` in degrees, ``pose_sigma_trans`` in input units, ``pose_condition``
+    dimensionless; see pipeline/uncertainty.py) and, with ``deviation_map``, each compared point's deviation
+    uncertainty. Needs target normals (a mesh target, or a cloud with normals)."""
+    pose_condition_warn: float = 1.0e-3
+    """Warn (one line naming the free motions) when ``pose_condition`` (smallest over largest eigenvalue of the
+    scaled information matrix, dimensionless) is below this."""
+    pose_bootstrap: int = 0
+    """Number of bootstrap re-registrations (the fine stage rerun from the final pose on the source points
+    resampled with replacement, seeded) whose RMS spread is logged as ``pose_bootstrap_rot_deg`` (degrees) and
+    ``pose_bootstrap_trans`` (input units) beside the analytic sigmas; 0: none (each costs one fine stage)."""
+    deviation_tolerance: float = 0.05
+    """Tolerance on |signed deviation| (input units; 0.05 = 50 µm for mm data): ``dev_over_<tol><unit>_share`` is
+    the share of compared points beyond it, ``dev_over_<tol><unit>_sure_share`` the share beyond it with
+    ``deviation_confidence`` given the pose uncertainty (|deviation| - z sigma > tolerance)."""
+    deviation_confidence: float = 0.95
+    """One-sided confidence (0..1) of the ``_sure_share`` above (0.95: z = 1.645)."""
+    repeatability_distance: float = 2.0
+    """epsilon of ``keypoint_repeatability`` (see ``distances``): a source keypoint, moved by the true transform,
+    is repeatable when a target keypoint lies within this distance (Tombari et al. 2013). In spacings it counts
+    the spacing of the clouds the detector ran on: those of the coarse stage when it thins the clouds
+    (``coarse.voxel``), so that the tolerance follows the keypoints' own resolution."""
+    overlap_distance: float = 3.0
+    """A source point (or keypoint), moved by the true transform, is in the overlap when a sampled target point
+    lies within this distance (see ``distances``); used by ``keypoint_repeatability`` and ``gt_rmse``."""
+    match_inlier_distance: float = 8.0
+    """tau1 of ``inlier_ratio`` (see ``distances``): a descriptor match is correct when its source point, moved by
+    the true transform, lies within this distance of its target point. 3DMatch's 10 cm is 4 voxels of 2.5 cm,
+    and 8.3 spacings of the shared 3DMatch pair (median nearest-neighbour distance 1.2 cm): 8 spacings."""
+    match_recall_ratio: float = 0.05
+    """tau2 of ``feature_match_recall`` (share, 0..1): a pair's matching succeeds when its inlier ratio exceeds
+    this (3DMatch: 5 %)."""
+    recall_rotation_deg: float = 15.0
+    """``registration_recall``: rotation error below this (degrees; 3DMatch: 15) ..."""
+    recall_translation: float = 0.07
+    """... and translation error below this share of the target's bounding-box diagonal: 3DMatch's 30 cm over
+    its fragments' diagonal (4.45 m for the shared 3DMatch pair: 6.7 %), so the rule carries to objects of any
+    size and unit. Ignored when ``recall_translation_abs`` is set."""
+    recall_translation_abs: Optional[float] = None
+    """Absolute translation threshold of ``registration_recall`` (input units, e.g. 0.3 for metric indoor data
+    as in 3DMatch); null: ``recall_translation`` times the diagonal."""
+    write_keypoints: bool = True
+    """Write ``keypoints_target.ply``, ``keypoints_source.ply`` and ``matches.ply`` (coloured; see the README's
+    Metrics section) when the coarse stage exposes keypoints and matches. Cheap: a few thousand points."""
+
+    def check(self):
+        if not 0.5 <= self.deviation_confidence < 1:
+            raise ValueError(f"deviation_confidence must be in [0.5, 1), got {self.deviation_confidence}")
+        if self.pose_bootstrap < 0:
+            raise ValueError(f"pose_bootstrap must be >= 0, got {self.pose_bootstrap}")
+        if not 0 <= self.match_recall_ratio <= 1:
+            raise ValueError(f"match_recall_ratio must be in [0, 1], got {self.match_recall_ratio}")
+        for name in ("repeatability_distance", "overlap_distance", "match_inlier_distance", "recall_rotation_deg",
+                     "recall_translation"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.recall_translation_abs is not None and not self.recall_translation_abs > 0:
+            raise ValueError(f"recall_translation_abs must be > 0 or null, got {self.recall_translation_abs}")
+        if not self.pose_condition_warn >= 0:
+            raise ValueError(f"pose_condition_warn must be >= 0, got {self.pose_condition_warn}")
+
+
+def alignment_metrics(distances: np.ndarray, p: EvalParams, spacing: float) -> dict[str, float]:
+    """``rms`` and ``fitness`` (see :class:`EvalParams`) plus the mean distance over all points, from the
+    distances of the aligned source points to their closest target points."""
+    inl = distances <= to_abs(p.inlier_distance, p.distances, spacing)
+    return {
+        "rms": float(np.sqrt(np.mean(distances[inl] ** 2))) if inl.any() else float("nan"),
+        "fitness": float(inl.mean()),
+        "mean_distance": float(distances.mean()),
+    }
+
+
+def gt_metrics(T: np.ndarray, T_gt: np.ndarray, diagonal: float, p: EvalParams, prefix: str = "") -> dict[str, float]:
+    rot, trans = transform_errors(T, T_gt)
+    out = {
+        f"{prefix}rotation_error_deg": rot,
+        f"{prefix}translation_error": trans,
+        f"{prefix}translation_error_rel": trans / diagonal,
+    }
+    if not prefix:
+        out["success"] = float(rot < p.success_rotation_deg and trans < p.success_translation * diagonal)
+    out[f"{prefix}registration_recall"] = registration_recall(rot, trans, diagonal, p)
+    return out
+
+
+# ------------------------------------------------------------------------------- the field's registration metrics
+
+
+def registration_recall(rotation_error_deg: float, translation_error: float, diagonal: float, p: EvalParams) -> float:
+    """1.0 when the pose is within 3DMatch's thresholds (Zeng et al. 2017; RRE/RTE form of Huang et al. 2021):
+    rotation error below ``recall_rotation_deg`` and translation error (input units) below
+    ``recall_translation_abs``, or when that is null below ``recall_translation`` times ``diagonal``; else 0.0."""
+    lim = p.recall_translation_abs if p.recall_translation_abs is not None else p.recall_translation * diagonal
+    return float(rotation_error_deg < p.recall_rotation_deg and translation_error < lim)
+
+
+def overlap_mask(points: np.ndarray, target_points: np.ndarray, T_gt: np.ndarray, radius: float) -> np.ndarray:
+    """Which of ``points`` (source frame) lie, after ``T_gt``, within ``radius`` of some ``target_points``."""
+    if not len(points) or not len(target_points):
+        return np.zeros(len(points), bool)
+    d, _ = cKDTree(target_points).query(apply_T(T_gt, points), distance_upper_bound=np.nextafter(radius, np.inf))
+    return d <= radius
+
+
+@dataclass
+class Repeatability:
+    """Keypoint repeatability of one pair and the per-keypoint masks behind it."""
+
+    repeatability: float
+    """Repeatable source keypoints over source keypoints in the overlap (NaN when none is in it)."""
+    source_in_overlap: np.ndarray
+    """Per source keypoint: moved by the true transform, it lies within the overlap radius of the target."""
+    source_repeatable: np.ndarray
+    """Per source keypoint: in the overlap and a target keypoint lies within epsilon of it."""
+    target_repeatable: np.ndarray
+    """Per target keypoint: a source keypoint of the overlap, moved by the true transform, lies within epsilon."""
+
+    def metrics(self, prefix: str = "") -> dict[str, float]:
+        return {f"{prefix}keypoint_repeatability": self.repeatability,
+                f"{prefix}n_keypoints_overlap": int(self.source_in_overlap.sum()),
+                f"{prefix}n_keypoints_repeatable": int(self.source_repeatable.sum())}
+
+
+def keypoint_repeatability(kp_target: np.ndarray, kp_source: np.ndarray, T_gt: np.ndarray, eps: float,
+                           overlap_radius: float, target_points: np.ndarray | None = None) -> Repeatability:
+    """Relative repeatability of Tombari et al. 2013 (IJCV, "Performance evaluation of 3D keypoint detectors").
+
+    ``kp_target`` (K, 3) and ``kp_source`` (L, 3) are keypoint positions in their own frames, ``T_gt`` the true
+    ``T_target_source``. A source keypoint is *in the overlap* when, moved by ``T_gt``, it lies within
+    ``overlap_radius`` of a point of ``target_points`` (the sampled target cloud; the target keypoints when not
+    given). It is *repeatable* when it is in the overlap and a target keypoint lies within ``eps`` of it. The
+    repeatability is the share of repeatable keypoints among the source keypoints in the overlap (NaN when
+    none is). Distances in input units."""
+    kp_target, kp_source = np.asarray(kp_target, float).reshape(-1, 3), np.asarray(kp_source, float).reshape(-1, 3)
+    ref = kp_target if target_points is None else target_points
+    inside = overlap_mask(kp_source, ref, T_gt, overlap_radius)
+    rep = np.zeros(len(kp_source), bool)
+    trep = np.zeros(len(kp_target), bool)
+    if len(kp_target) and inside.any():
+        moved = apply_T(T_gt, kp_source[inside])
+        d, _ = cKDTree(kp_target).query(moved, distance_upper_bound=np.nextafter(eps, np.inf))
+        rep[np.flatnonzero(inside)] = d <= eps
+        d, _ = cKDTree(moved).query(kp_target, distance_upper_bound=np.nextafter(eps, np.inf))
+        trep = d <= eps
+    ratio = float(rep.sum() / inside.sum()) if inside.any() else float("nan")
+    return Repeatability(ratio, inside, rep, trep)
+
+
+def match_inliers(P_target: np.ndarray, P_source: np.ndarray, T_gt: np.ndarray, tau1: float) -> np.ndarray:
+    """Per match (row of ``P_target`` (M, 3) and ``P_source`` (M, 3)): the source point moved by ``T_gt`` lies
+    within ``tau1`` (input units) of its target point."""
+    P_target, P_source = np.asarray(P_target, float).reshape(-1, 3), np.asarray(P_source, float).reshape(-1, 3)
+    if not len(P_source):
+        return np.zeros(0, bool)
+    return np.linalg.norm(apply_T(T_gt, P_source) - P_target, axis=1) <= tau1
+
+
+def inlier_ratio(P_target: np.ndarray, P_source: np.ndarray, T_gt: np.ndarray, tau1: float) -> float:
+    """Share of descriptor matches (before any RANSAC) that are correct under the true transform: the source
+    point moved by ``T_gt`` lies within ``tau1`` of its target point (Choy et al. 2019, Huang et al. 2021).
+    NaN without matches."""
+    inl = match_inliers(P_target, P_source, T_gt, tau1)
+    return float(inl.mean()) if len(inl) else float("nan")
+
+
+def feature_match_recall(ratio: float, tau2: float = 0.05) -> float:
+    """3DMatch's feature-match recall of one pair (Deng et al. 2018, Choy et al. 2019): 1.0 when the inlier
+    ratio exceeds ``tau2``, else 0.0 (NaN when the ratio is)."""
+    return float("nan") if np.isnan(ratio) else float(ratio > tau2)
+
+
+def gt_rmse(T: np.ndarray, T_gt: np.ndarray, source_points: np.ndarray, in_overlap: np.ndarray | None = None) -> float:
+    """RMSE of the ground-truth correspondences (3DMatch, Zeng et al. 2017): over the source points in the
+    overlap (``in_overlap``; all when None), the RMS distance between each point moved by ``T`` and the same
+    point moved by ``T_gt`` (input units; NaN when no point is in the overlap)."""
+    pts = np.asarray(source_points, float).reshape(-1, 3)
+    if in_overlap is not None:
+        pts = pts[in_overlap]
+    if not len(pts):
+        return float("nan")
+    r = apply_T(T, pts) - apply_T(T_gt, pts)
+    return float(np.sqrt(np.mean(np.einsum("ij,ij->i", r, r))))
+
+
+def field_metrics(trace: CoarseTrace | None, T0: np.ndarray, T: np.ndarray, T_gt: np.ndarray,
+                  source_points: np.ndarray, target_points: np.ndarray, p: EvalParams,
+                  spacing: float) -> tuple[dict[str, float], dict]:
+    """The field's metrics of one run with ground truth, and the per-keypoint / per-match masks for the PLYs.
+
+    ``trace`` is what the coarse stage exposes (:class:`~scanreg.types.CoarseTrace`): keypoints, descriptor
+    matches, RANSAC's inliers; any may be missing, and the metrics that need it are then absent. ``gt_rmse`` and
+    ``coarse_gt_rmse`` are always given."""
+    to = lambda v: to_abs(v, p.distances, spacing)
+    inside = overlap_mask(source_points, target_points, T_gt, to(p.overlap_distance))
+    out = {"gt_rmse": gt_rmse(T, T_gt, source_points, inside), "coarse_gt_rmse": gt_rmse(T0, T_gt, source_points, inside),
+           "overlap_share_gt": float(inside.mean())}
+    masks: dict = {}
+    trace = trace or CoarseTrace()
+    kt, ks = trace.keypoints_target, trace.keypoints_source
+    if kt is not None and ks is not None:
+        out["n_keypoints_target"], out["n_keypoints_source"] = len(kt), len(ks)
+        eps = to_abs(p.repeatability_distance, p.distances, spacing if trace.spacing is None else trace.spacing)  # the detector's
+        rep = keypoint_repeatability(kt, ks, T_gt, eps, to(p.overlap_distance), target_points)
+        out.update(rep.metrics())
+        masks["repeatability"] = rep
+    P0, P1 = trace.matches_target, trace.matches_source
+    if P0 is not None and P1 is not None:
+        inl = match_inliers(P0, P1, T_gt, to(p.match_inlier_distance))
+        ratio = float(inl.mean()) if len(inl) else float("nan")
+        out["n_matches"] = len(inl)
+        out["inlier_ratio"] = ratio
+        out["feature_match_recall"] = feature_match_recall(ratio, p.match_recall_ratio)
+        masks["match_inliers"] = inl
+        acc = trace.ransac_inliers
+        if acc is not None and len(acc) == len(inl) and acc.any():  # how many of the accepted matches are right
+            out["ransac_inlier_precision"] = float(inl[acc].mean())
+    return out, masks
+
+
+def surface_deviation(aligned: np.ndarray, closest: tuple, p: EvalParams, spacing: float) -> dict[str, float]:
+    """Point-to-surface distances of the aligned source points to the target, over the inliers (distance
+    within ``inlier_distance``), in input units.
+
+    ``closest`` is what :class:`scanreg.geometry.ClosestPoints` returns for ``aligned``: closest points on the target
+    mesh's triangles when the target is a mesh, else the nearest target points, their distances, and the
+    target normals there. Distances are signed (positive outside, along the outward normal) when normals are
+    known: a mesh, whose orientation the repair made coherent, or a cloud with normals; ``p2s_signed`` is then
+    1. Reported: ``p2s_mean`` and ``p2s_median`` (signed when available), ``p2s_rms``, ``p2s_p95_abs``,
+    ``p2s_max_abs``.
+    """
+    q, d, n = closest
+    signed = n is not None
+    if signed:
+        d = np.where(np.einsum("ij,ij->i", aligned - q, n) < 0, -d, d)
+    a = np.abs(d)
+    inl = a <= to_abs(p.inlier_distance, p.distances, spacing)
+    if not inl.any():
+        return {"p2s_signed": float(signed)}
+    d, a = d[inl], a[inl]
+    return {
+        "p2s_mean": float(d.mean()),
+        "p2s_median": float(np.median(d)),
+        "p2s_rms": float(np.sqrt(np.mean(a ** 2))),
+        "p2s_p95_abs": float(np.quantile(a, 0.95)),
+        "p2s_max_abs": float(a.max()),
+        "p2s_signed": float(signed),
+    }

@@ -1,0 +1,113 @@
+"""Neighbour searches: closest points on a target cloud or mesh (the correspondence search that ICP, the
+evaluation and the deviation map share), fixed-radius neighbourhoods, the sampling spacing, normal estimation,
+and the conversion to Open3D's point cloud."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scanreg.geometry.arrays import row_norms
+from scanreg.geometry.containers import Cloud, Mesh
+from scanreg.geometry.voxels import morton_order
+
+
+class ClosestPoints:
+    """Closest target points of query points: nearest target *points* (k-d tree, pykdtree), or exact closest
+    points on the target's *triangles* (Open3D raycasting scene; coordinates centred before the float32
+    conversion). A call returns ``(closest points, distances, target normals at them or None)``."""
+
+    def __init__(self, target: Cloud, mesh: Mesh | None = None):
+        self.mesh = mesh
+        self.normals = target.normals
+        if mesh is not None:
+            import open3d as o3d
+
+            self.centre = mesh.vertices.mean(axis=0)
+            self.scene = o3d.t.geometry.RaycastingScene()
+            self.scene.add_triangles(o3d.core.Tensor((mesh.vertices - self.centre).astype(np.float32)),
+                                     o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+        else:
+            from pykdtree.kdtree import KDTree
+
+            # the tree's points stored in Morton order: a leaf's points lie together in memory
+            order = morton_order(target.points)
+            self.points = np.ascontiguousarray(target.points[order])
+            self.normals = None if target.normals is None else target.normals[order]
+            self.tree = KDTree(self.points, leafsize=16)
+
+    def __call__(self, q: np.ndarray, max_distance: float | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Closest points; with ``max_distance`` the search is bounded (farther points get distance inf and an
+        arbitrary closest point), which is what makes a k-d tree fast far from the surface."""
+        return self.query(q, max_distance)[:3]
+
+    def query(self, q: np.ndarray, max_distance: float | None = None,
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """As a call, plus the face of each closest point on a mesh target (None on a cloud)."""
+        if self.mesh is not None:
+            import open3d as o3d
+
+            r = self.scene.compute_closest_points(o3d.core.Tensor((q - self.centre).astype(np.float32)))
+            cp = r["points"].numpy().astype(np.float64) + self.centre
+            faces = r["primitive_ids"].numpy().astype(np.int64)
+            return cp, row_norms(q - cp), r["primitive_normals"].numpy().astype(np.float64), faces
+        if max_distance is None:
+            d, j = self.tree.query(np.ascontiguousarray(q), k=1)
+        else:
+            d, j = self.tree.query(np.ascontiguousarray(q), k=1, distance_upper_bound=max_distance)
+            j = np.minimum(j, len(self.points) - 1)
+        return self.points.take(j, axis=0), d, None if self.normals is None else self.normals.take(j, axis=0), None
+
+
+def estimate_normals(points: np.ndarray, k: int = 20) -> np.ndarray:
+    """Unit normals from the ``k`` nearest neighbours (Open3D), unoriented."""
+    pc = to_o3d(points)
+    import open3d as o3d
+
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
+    return np.asarray(pc.normals).copy()
+
+
+def estimate_spacing(points: np.ndarray, rng: np.random.Generator, n: int = 5000) -> float:
+    """Median distance from a point to its nearest other point (over a seeded subset of at most ``n``)."""
+    from scipy.spatial import cKDTree
+
+    idx = rng.choice(len(points), size=min(n, len(points)), replace=False) if len(points) > n else np.arange(len(points))
+    d, _ = cKDTree(points).query(points[idx], k=2, workers=-1)
+    d = d[:, 1]
+    d = d[d > 0]
+    return float(np.median(d)) if len(d) else 0.0
+
+
+def neighbourhoods(points: np.ndarray, radius: float, max_neighbors: int, queries: np.ndarray | None = None):
+    """Neighbours within ``radius`` (at most ``max_neighbors``, the nearest): ``(indices (N, K), distances (N,
+    K), valid mask (N, K))``; a point is its own neighbour."""
+    from pykdtree.kdtree import KDTree
+
+    q = points if queries is None else queries
+    k = min(max_neighbors, len(points))
+    d, j = KDTree(points).query(np.ascontiguousarray(q), k=k, distance_upper_bound=radius)
+    d, j = d.reshape(len(q), k), j.reshape(len(q), k).astype(np.int64)
+    valid = j < len(points)
+    j = np.where(valid, j, 0)
+    return j, np.where(valid, d, np.inf), valid
+
+
+def to_o3d(points: np.ndarray, normals: np.ndarray | None = None):
+    """An Open3D ``PointCloud`` of ``points`` (and ``normals``)."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points)))
+    if normals is not None:
+        pc.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(normals))
+    return pc
+
+
+def to_o3d_mesh(mesh: Mesh):
+    """An Open3D ``TriangleMesh`` of ``mesh``, with its triangle normals."""
+    import open3d as o3d
+
+    om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                   o3d.utility.Vector3iVector(mesh.faces.astype(np.int32)))
+    om.compute_triangle_normals()
+    return om

@@ -1,0 +1,175 @@
+"""The steps of a registration, each a call that takes values and returns a value:
+
+- :func:`load_problem`: the data provider's problem, checked before any expensive work;
+- :func:`prepare_scan`: one scan repaired, sampled and measured (:class:`~scanreg.types.PreparedScan`);
+- :func:`register_pair`: coarse then fine registration of two prepared scans (:class:`~scanreg.types.PairResult`);
+- :func:`evaluate_pair`: every number the run reports about a registered pair (:class:`Evaluation`).
+
+``scanreg.runner.pipeline.run_pipeline`` chains them for one pair; many scans of one object reuse
+:func:`prepare_scan` for every scan and :func:`register_pair` for every pair.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from scanreg.errors import InputError
+from scanreg.eval.checks import check_inputs
+from scanreg.eval.metrics import (EvalParams, alignment_metrics, field_metrics, gt_metrics, surface_deviation)
+from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
+                                      relative_motion)
+from scanreg.geometry import ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, transform_geometry
+from scanreg.runner.build import Stages
+from scanreg.runner.outputs import write_keypoints
+from scanreg.types import Correspondences, PairResult, PreparedScan, Problem, RunContext
+
+MIN_POINTS = 10
+"""Fewest points a cloud may have after sampling (the coarse and fine stages need neighbourhoods)."""
+
+
+def _seconds_since(t0: int) -> float:
+    return (time.perf_counter_ns() - t0) / 1e9
+
+
+def load_problem(stages: Stages, ctx: RunContext) -> Problem:
+    """The data provider's problem; too few points, coincident, collinear or planar inputs stop here."""
+    problem = stages.data.load(ctx)
+    check_inputs(problem, MIN_POINTS)
+    return problem
+
+
+def prepare_scan(geometry: Geometry, stages: Stages, ctx: RunContext, name: str, salt: int) -> PreparedScan:
+    """One scan ready to register: a mesh repaired (when the repair applies to ``name``, the scan's role) and
+    then its scanned side sampled; a cloud sampled (thinned) as the sampler says; the sampling spacing estimated
+    with ``ctx.rng(salt)``."""
+    t0 = time.perf_counter_ns()
+    surface, audit = geometry, {}
+    if isinstance(geometry, Mesh) and stages.repair.applies_to(name):
+        repaired = stages.repair.repair(geometry, ctx)
+        surface, audit = repaired.mesh, repaired.metrics
+    # a scan closed as a shell by the repair (repair.open_border=shell) is sampled and compared on its scanned side
+    surface = surface.scanned() if isinstance(surface, Mesh) else surface
+    t1 = time.perf_counter_ns()
+    cloud = stages.sampler.sample(surface, ctx)
+    if cloud.n_points < MIN_POINTS:
+        raise InputError(f"{surface.source}: {cloud.n_points} point(s) after sampling; at least {MIN_POINTS} are needed")
+    timings = {"repair": (t1 - t0) / 1e9, "sample": _seconds_since(t1)}
+    return PreparedScan(name, geometry, surface, cloud, estimate_spacing(cloud.points, ctx.rng(salt)), audit, timings)
+
+
+def register_pair(target: PreparedScan, source: PreparedScan, stages: Stages, ctx: RunContext,
+                  landmarks: Optional[tuple[np.ndarray, np.ndarray]] = None) -> PairResult:
+    """``source`` registered to ``target``: the coarse stage from any pose, then the fine stage from its result,
+    at the pair's spacing (the larger of the two scans')."""
+    spacing = max(target.spacing, source.spacing)
+    if not spacing > 0:
+        raise InputError(f"{source.cloud.source} / {target.cloud.source}: all points coincide; cannot estimate a "
+                         "sampling spacing")
+    diagonal = bbox_diagonal(target.cloud.points)
+    if not diagonal > 0:
+        raise InputError(f"{target.cloud.source}: degenerate geometry (zero extent)")
+    t0 = time.perf_counter_ns()
+    coarse = stages.coarse.align(target.cloud, source.cloud, spacing, ctx, landmarks)
+    t1 = time.perf_counter_ns()
+    icp = stages.icp.refine(target.cloud, source.cloud, coarse.T_target_source, spacing, ctx, target.mesh)
+    return PairResult(coarse, icp, spacing, diagonal, {"coarse": (t1 - t0) / 1e9, "icp": _seconds_since(t1)})
+
+
+@dataclass
+class Evaluation:
+    """What :func:`evaluate_pair` measured."""
+
+    metrics: dict[str, float] = field(default_factory=dict)
+    histories: dict[str, list[float]] = field(default_factory=dict)
+    artifacts: list[Path] = field(default_factory=list)
+    """Files written: keypoints and matches, deviation maps, the 3D view."""
+
+
+def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, pair: PairResult, stages: Stages,
+                  ctx: RunContext) -> Evaluation:
+    """Every number the run reports about a registered pair: the fit (``rms``, ``fitness``), the distances to
+    the target's surface, with ground truth the errors and the field's metrics, the landmarks' residuals, the
+    pose covariance; and, into ``ctx.run_dir``, the keypoints and matches, the deviation map and the 3D view as
+    ``evaluate`` asks."""
+    ev: EvalParams = stages.evaluate
+    T, T0, T_gt = pair.T_target_source, pair.coarse.T_target_source, problem.T_gt
+    src, tgt, spacing = source.cloud, target.cloud, pair.spacing
+    out = Evaluation()
+    m = out.metrics
+    aligned = apply_T(T, src.points)
+    on_points = ClosestPoints(tgt)(aligned)
+    m.update(alignment_metrics(on_points[1], ev, spacing))
+    surface = None if target.mesh is None else ClosestPoints(tgt, target.mesh)
+    on_surface = on_points if surface is None else surface(aligned)
+    m.update(surface_deviation(aligned, on_surface, ev, spacing))
+    masks = None
+    if T_gt is not None:
+        m.update(gt_metrics(T0, T_gt, pair.diagonal, ev, prefix="coarse_"))
+        m.update(gt_metrics(T, T_gt, pair.diagonal, ev))
+        fm, masks = field_metrics(pair.coarse.trace, T0, T, T_gt, src.points, tgt.points, ev, spacing)
+        m.update(fm)
+    write = ctx.run_dir is not None
+    keypoint_files, view_files = [], []
+    if write and ev.write_keypoints and pair.coarse.trace is not None:
+        keypoint_files = write_keypoints(ctx.run_dir, pair.coarse.trace, masks, T_gt if T_gt is not None else T)
+    if problem.landmarks is not None:  # how well the picks agree before and after the fine stage
+        lt, ls = problem.landmarks
+        for name, TT in (("coarse", T0), ("final", T)):
+            r = np.linalg.norm(apply_T(TT, ls) - lt, axis=1)
+            m[f"landmark_{name}_rms"] = float(np.sqrt(np.mean(r ** 2)))
+        out.histories["landmark_final_residual"] = r.tolist()
+    pc = None
+    if ev.pose_uncertainty:
+        pc = pose_from_pairs(pair.icp.final_pairs, ev)
+        if pc is not None:
+            m.update(pc.metrics())
+            if T_gt is not None:  # the true error where pose_sigma_trans is measured
+                m["pose_gt_centre_shift"] = relative_motion(T, T_gt, pc.centre)[1]
+            if ev.pose_bootstrap > 0:
+                m.update(bootstrap(stages, target, source, pair, pc.centre, ev.pose_bootstrap, ctx))
+    dev_view = None
+    if write and ev.deviation_map:
+        from scanreg.eval.deviation import evaluate_deviation
+
+        labels = problem.target_labels if target.surface is problem.target else None
+        dm, paths, dev_view = evaluate_deviation(ctx.run_dir, transform_geometry(T, src),
+                                                 transform_geometry(T, source.surface), surface or ClosestPoints(tgt),
+                                                 labels, ev, problem.label_name, pose=pc)
+        m.update(dm)
+        view_files += paths
+    if write and ev.view_html:
+        from scanreg.eval.view3d import write_view
+
+        view_files.append(write_view(ctx.run_dir / "view3d.html", target.surface, source.surface, T, aligned,
+                                     on_surface, dev_view, ev, seed=ctx.seed))
+    out.artifacts = view_files + keypoint_files
+    return out
+
+
+def pose_from_pairs(pairs: Correspondences | None, ev: EvalParams) -> PoseCovariance | None:
+    """The pose covariance at the final pose from the pairs the fine stage kept there (None when the target has
+    no normals or fewer than 7 pairs remain); prints one warning line when the pose is poorly constrained."""
+    if pairs is None or pairs.normals is None or len(pairs.source) < 7:
+        return None
+    pc = pose_covariance(pairs.source, pairs.target, pairs.normals)
+    msg = degeneracy_warning(pc, ev.pose_condition_warn)
+    if msg:
+        print(f"warning: {msg}", flush=True)
+    return pc
+
+
+def bootstrap(stages: Stages, target: PreparedScan, source: PreparedScan, pair: PairResult, centre: np.ndarray,
+              runs: int, ctx: RunContext) -> dict[str, float]:
+    """Re-register ``runs`` sources resampled with replacement (seeded) from the coarse pose with the same fine
+    stage; their RMS spread about the final pose (see :func:`scanreg.eval.uncertainty.bootstrap_spread`)."""
+    src, T0 = source.cloud, pair.coarse.T_target_source
+    Ts = []
+    for b in range(runs):
+        idx = ctx.rng(1000 + b).integers(0, src.n_points, src.n_points)
+        Ts.append(stages.icp.refine(target.cloud, src.subset(idx), T0, pair.spacing, ctx, target.mesh).T_target_source)
+    return bootstrap_spread(Ts, pair.T_target_source, centre)

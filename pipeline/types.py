@@ -1,0 +1,233 @@
+"""The run's vocabulary: the values that the pipeline's steps and stages take and return.
+
+- :class:`RunContext`: read-only facts of one run (seed, run folder, verbosity) that stages may use besides
+  their own parameters;
+- :class:`Problem`: what a data provider loads (source, target, ground truth, landmarks);
+- :class:`Repaired`, :class:`CoarseResult`, :class:`IcpResult`: what a repair, a coarse and a fine stage return;
+- :class:`PreparedScan`: one scan loaded, repaired, sampled and measured (``scanreg.runner.prepare_scan``);
+- :class:`PairResult`: one pair registered (``scanreg.runner.register_pair``);
+- :class:`Result`: one run, as the CLI writes it and the Python API returns it.
+
+Distances in parameters are in input units or in sampling spacings (:class:`Distances`, :func:`to_abs`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from scanreg.geometry import Cloud, Geometry, Mesh
+
+
+class Distances(str, Enum):
+    """How a stage reads its distance parameters."""
+
+    spacing = "spacing"
+    """Multiples of the run's sampling spacing (median nearest-neighbour distance, see ``estimate_spacing``)."""
+    absolute = "absolute"
+    """Input units (the units of the mesh or cloud files: mm for dental scans, m for the Stanford bunny)."""
+
+
+def to_abs(value: float | None, unit: Distances, spacing: float) -> float | None:
+    """A distance parameter in input units (None stays None)."""
+    if value is None:
+        return None
+    return float(value) * spacing if unit == Distances.spacing else float(value)
+
+
+@dataclass(frozen=True)
+class RunContext:
+    """What a stage may use besides its own parameters: facts of the run, fixed before it starts."""
+
+    seed: int = 0
+    """The run's seed (``seed`` of the config)."""
+    run_dir: Optional[Path] = None
+    """The folder the run writes into (None: nothing is written)."""
+    verbose: bool = False
+    """Full tracebacks and the stages' own chatter."""
+    in_sweep: bool = False
+    """The run is a job of a Hydra multirun sweep (``repair.cache: auto`` caches repaired meshes only then)."""
+
+    def rng(self, salt: int = 0) -> np.random.Generator:
+        """A generator seeded by the run's seed and ``salt`` (each use its own salt)."""
+        return np.random.default_rng([self.seed, salt])
+
+
+@dataclass
+class Problem:
+    """A registration problem as a data provider loads it: find ``T_target_source``."""
+
+    source: Geometry
+    target: Geometry
+    T_gt: Optional[np.ndarray] = None
+    """Ground-truth ``T_target_source`` when known."""
+    landmarks: Optional[tuple[np.ndarray, np.ndarray]] = None
+    """Picked pairs ``(target points (K, 3), source points (K, 3))``."""
+    info: dict = field(default_factory=dict)
+    """Numbers about the case, logged as metrics (e.g. ``gt_overlap``)."""
+    target_labels: Optional[np.ndarray] = None
+    """A part number per face of a target mesh (e.g. tooth numbers), for per-part deviation statistics."""
+    label_name: str = "part"
+    """What a part is called in metric names (``tooth``)."""
+    target_generated: bool = False
+    """The target was made by the provider (not read from a file as it is): the run writes it beside the result."""
+
+
+@dataclass
+class Repaired:
+    """What a repair stage returns: the mesh to go on with, and its audit (unprefixed metric names:
+    ``before_faces``, ``after_faces``, ``removed_area_share``, ...; empty when nothing was audited)."""
+
+    mesh: Mesh
+    metrics: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class CoarseTrace:
+    """What a coarse stage compared, for the evaluation (``scanreg.eval.metrics.field_metrics``): each only
+    when the stage has it. Positions are in the clouds' own frames."""
+
+    keypoints_target: Optional[np.ndarray] = None
+    keypoints_source: Optional[np.ndarray] = None
+    matches_target: Optional[np.ndarray] = None
+    """The descriptor matches' target points (before RANSAC)."""
+    matches_source: Optional[np.ndarray] = None
+    ransac_inliers: Optional[np.ndarray] = None
+    """Mask over the matches: accepted by RANSAC."""
+    spacing: Optional[float] = None
+    """The spacing of the clouds the keypoints were detected on (the coarse stage may thin the clouds)."""
+
+
+@dataclass
+class CoarseResult:
+    """What a coarse stage returns."""
+
+    T_target_source: np.ndarray
+    metrics: dict[str, float] = field(default_factory=dict)
+    """``coarse_*`` numbers (keypoints, matches, inliers, ...)."""
+    trace: Optional[CoarseTrace] = None
+    histories: dict[str, list[float]] = field(default_factory=dict)
+    """Per-item series logged as MLflow step metrics (e.g. ``landmark_residual``)."""
+
+
+@dataclass
+class Correspondences:
+    """Pairs at a pose: aligned source points and their closest target points, in the target frame."""
+
+    source: np.ndarray
+    """The source points moved by the pose (N, 3)."""
+    target: np.ndarray
+    """Their closest target points (N, 3)."""
+    normals: Optional[np.ndarray]
+    """The target normals there (N, 3), or None when the target has none."""
+    distances: np.ndarray
+    """``|source - target|`` (N,), input units."""
+
+
+@dataclass
+class IcpResult:
+    """What a fine stage returns."""
+
+    T_target_source: np.ndarray
+    iterations: int
+    """Number of transform updates made."""
+    rms_history: list[float]
+    """RMS distance of the pairs used at each iterate, before its update; the last entry at the final pose."""
+    converged: bool
+    final_distances: Optional[np.ndarray] = None
+    """Closest-point distances of the source at the final pose, bounded by ``max_correspondence_distance`` (inf
+    beyond)."""
+    metrics: dict[str, float] = field(default_factory=dict)
+    """``icp_*`` numbers (fitness, inlier RMS, acceptance test, pair limits)."""
+    final_limit: Optional[float] = None
+    """The pair limit at the last iterate (input units; None: unlimited)."""
+    final_pairs: Optional[Correspondences] = None
+    """The pairs the stage keeps at the pose it returns (its distance, normal and trim rejections at the final
+    pair limit, on the target it searches): what the pose covariance is computed from."""
+
+
+@dataclass
+class PreparedScan:
+    """One scan ready to register: loaded, repaired, sampled, measured (``scanreg.runner.prepare_scan``)."""
+
+    name: str
+    """What the scan is called in messages and metric names (``source``, ``target``, a file name)."""
+    geometry: Geometry
+    """As loaded (the input's pose and units)."""
+    surface: Geometry
+    """The surface registration and evaluation see: the repaired mesh (its scanned side) or the cloud."""
+    cloud: Cloud
+    """The sampled points (with normals when the surface has them)."""
+    spacing: float
+    """Median nearest-neighbour distance of ``cloud`` (input units)."""
+    repair: dict[str, float] = field(default_factory=dict)
+    """The repair's audit (unprefixed names; empty without one)."""
+    timings: dict[str, float] = field(default_factory=dict)
+    """Seconds per step: ``repair``, ``sample``."""
+
+    @property
+    def mesh(self) -> Optional[Mesh]:
+        """The repaired mesh, or None for a cloud."""
+        return self.surface if isinstance(self.surface, Mesh) else None
+
+
+@dataclass
+class PairResult:
+    """One pair registered (``scanreg.runner.register_pair``): the coarse and the fine stage's results."""
+
+    coarse: CoarseResult
+    icp: IcpResult
+    spacing: float
+    """The pair's sampling spacing: the larger of the two scans' (input units)."""
+    diagonal: float
+    """The target cloud's bounding-box diagonal (input units)."""
+    timings: dict[str, float] = field(default_factory=dict)
+    """Seconds per step: ``coarse``, ``icp``."""
+
+    @property
+    def T_target_source(self) -> np.ndarray:
+        return self.icp.T_target_source
+
+    @property
+    def metrics(self) -> dict[str, float]:
+        """The coarse and fine stages' numbers, as one run logs them."""
+        icp = self.icp
+        return {**self.coarse.metrics, "icp_iterations": icp.iterations, "icp_converged": float(icp.converged),
+                "icp_rms": icp.rms_history[-1], **icp.metrics}
+
+    @property
+    def histories(self) -> dict[str, list[float]]:
+        return {**self.coarse.histories, "icp_rms": list(self.icp.rms_history)}
+
+
+@dataclass
+class Result:
+    """What one run produced: the transform, every metric, the per-iteration series and the files written."""
+
+    T_target_source: Optional[np.ndarray]
+    """4x4 transform mapping source points into the target frame (input units)."""
+    metrics: dict[str, float] = field(default_factory=dict)
+    """Every metric the run logs (the names of ``result.json`` and MLflow: ``rms``, ``rotation_error_deg``, ...)."""
+    histories: dict[str, list[float]] = field(default_factory=dict)
+    """Per-iteration series, e.g. ``icp_rms`` (MLflow step metric ``icp_rms_step``)."""
+    run_dir: Optional[Path] = None
+    """The folder holding the artifacts."""
+    artifacts: list[Path] = field(default_factory=list)
+    """Files written: ``result.json``, ``T_target_source.txt``, ``aligned_source.ply``, deviation maps, ..."""
+    run_id: Optional[str] = None
+    """The MLflow run id when the run was tracked."""
+
+    @property
+    def success(self) -> Optional[bool]:
+        """With ground truth: rotation and translation errors under the ``evaluate.success_*`` limits."""
+        s = self.metrics.get("success")
+        return None if s is None else bool(s)
+
+    def to_json(self) -> dict[str, Any]:
+        """``result.json``'s content: the transform and every metric."""
+        T = self.T_target_source
+        return {"T_target_source": None if T is None else T.tolist(), **self.metrics}

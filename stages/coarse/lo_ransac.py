@@ -1,0 +1,189 @@
+"""``coarse=lo_ransac``: the paper's coarse registration (keypoints, descriptors, matches, LO-RANSAC)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+from scanreg.errors import StageError
+from scanreg.geometry import Cloud
+from scanreg.process import blas_single_thread
+from scanreg.stages.coarse.ransac import lo_ransac
+from scanreg.stages.coarse.thinning import downsampled, without_isolated
+from scanreg.stages.registry import COARSE, SALIENCE
+from scanreg.types import CoarseResult, CoarseTrace, Distances, RunContext, to_abs
+
+
+@COARSE.register("lo_ransac")
+class LoRansac:
+    """The paper's feature pipeline: keypoints (``salience``), descriptors (``descriptor``), correspondences
+    (``matcher``), then locally optimised RANSAC (Chum et al. 2003; :mod:`scanreg.stages.coarse.ransac`). It
+    draws minimal samples of 3 correspondences (in seeded, vectorised batches), counts inliers within
+    ``distance_threshold``, and adapts the number of iterations so that the chance of missing the best model is
+    at most ``miss_probability``. Each new best model is locally optimised: iterative least squares on its
+    inliers. A final fit over the inliers minimises sum |R p1 + t - p0|^2 + w |R n1 - n0|^2 (points and
+    normals)."""
+
+    uses: tuple[str, ...] = ("salience", "descriptor", "matcher")
+
+    @dataclass
+    class Params:
+        distance_threshold: float = 3.0
+        """Largest distance of an inlier correspondence after the transform (see ``distances``)."""
+        miss_probability: float = 0.01
+        """Stop when the chance of not having drawn an all-inlier sample is below this (mu). ``sampling: uniform``
+        draws N = ceil(log(mu) / log(1 - w^3)) hypotheses, w the inlier share of the best model so far, rounded
+        up to a whole number of batches and at least ``min_iterations``; ``guided`` uses its own all-inlier
+        probability instead of w^3 (see ``sampling``)."""
+        max_iterations: int = 100000
+        """Most hypotheses drawn."""
+        min_iterations: int = 200
+        """Fewest hypotheses drawn."""
+        batch: int = 256
+        """Hypotheses evaluated together (vectorised) by ``sampling: uniform``; guided sampling draws 64 seeds
+        of 8 samples at a time."""
+        lo_iterations: int = 10
+        """Rounds of least-squares re-estimation on the inliers of each new best model."""
+        sampling: str = "guided"
+        """How minimal samples are drawn: ``uniform`` (3 correspondences at random, plain RANSAC) or ``guided``
+        (the first at random, the second among those rigidly compatible with it, the third among those
+        compatible with both: the distance between their source points equals that between their target
+        points to within ``distance_threshold``). Guided samples are all-inlier far more often when inliers
+        are rare; the adaptive stopping rule uses the measured probability of an all-inlier guided sample."""
+        normal_weight: float = 1.0
+        """Weight w of the normal term of the final fit, in squared inlier thresholds: a normal residual of
+        1 (about 60 degrees) costs as much as a point residual of ``w`` times ``distance_threshold`` (0: points
+        only). Scaled so, the fit does not depend on the input's units."""
+        min_inliers: int = 10
+        """Fewer inliers than this is reported as a failure."""
+        seed: int = 0
+        """Seed of the sampling; the same seed gives the same transform."""
+        distances: Distances = Distances.spacing
+        """Unit of ``distance_threshold``: multiples of the sampling spacing, or input units."""
+        fallback_voxel: Optional[float] = 2.0
+        """When the configured keypoints fail (fewer than 3, fewer than 3 descriptor matches, or a best model
+        with fewer than ``min_inliers`` inliers), try again once with uniform keypoints, one per voxel of this
+        edge (in sampling spacings, whatever ``distances`` says; with ``voxel`` those of the downsampled clouds):
+        denser and detector-free, they still match where salient points are few or not repeatable (flat indoor
+        scenes). Logged as ``coarse_fallback`` (0:
+        the configured keypoints served, 1: the uniform ones). null: no fallback, fail at once."""
+        voxel: Optional[float] = 4.0
+        """Run the whole coarse stage (keypoints, descriptors, matching, RANSAC) on the clouds voxel-downsampled to
+        this edge, in sampling spacings of the full clouds (one point per voxel, the one nearest the voxel's
+        centroid); inside the stage the spacing is then the downsampled clouds' own (median nearest-neighbour
+        distance), so that every radius in spacings (salience, descriptor, ``distance_threshold``,
+        ``fallback_voxel``) scales with it, as Open3D's recipe scales its radii with its voxel. The fine stage
+        still sees every point. null: every sampled point."""
+        max_points: Optional[int] = 12000
+        """With ``voxel``: when a downsampled cloud still has more points than this (dense sampling, e.g.
+        ``sampler.n_points=1000000``), the voxel grows by sqrt(points / max_points) (a surface's count falls with
+        the square of the voxel), up to 3 times, so that the coarse stage's cost stays bounded as Open3D's recipe
+        bounds it with a voxel of 1 % of the diagonal. null: no bound. The default sampling (20 000 points) gives
+        about 6 500, below it."""
+
+        min_points: Optional[int] = 2000
+        """With ``voxel``: the thinner of the two downsampled clouds keeps at least this many points; the voxel
+        shrinks by sqrt(points / min_points) while it has fewer (up to 3 times), and a cloud that has fewer than
+        this to begin with is not thinned at all. Sparse inputs (a few thousand points, a source 4-8x sparser
+        than its target) then keep enough keypoints: with the 4-spacing voxel alone, 3 000 sampled points
+        became 900 and a demo pose failed (README, findings). null: no lower bound."""
+
+        isolated_ratio: Optional[float] = 0.25
+        """With ``voxel``: before thinning, drop isolated points (outliers). On the grid of the initial voxel
+        (4 spacings), a cell is sparse when it holds fewer than this share (a ratio, no unit) of a full cell's
+        points (the 90th percentile of the points' cell counts); its points go when its 3 x 3 x 3 block holds
+        fewer than two full cells, or when no other point lies within 3 spacings (of the full clouds) of them
+        (:func:`scanreg.geometry.sparse_voxel_mask`). When over 5 % of a cloud proves isolated, the spacing is
+        measured again without those points and, if smaller, they are looked for again on its grid and the
+        clouds thinned with it (at 50 % outliers the run's spacing is 1.5 times the surface's). A sampled
+        surface fills its cells alike, outliers scattered through the volume sit one to a cell; thinning keeps
+        one point per occupied cell, so without this at 30 % outliers most of the thinned source was outliers,
+        the keypoints and FPFH neighbourhoods with it, and every detector failed where on every point each
+        succeeded (README, findings). A clean bunny scan loses 0.2-0.7 % of its points. Logged as ``coarse_isolated_target`` / ``_source`` (points
+        dropped). null: keep every point."""
+
+        def check(self):
+            if self.min_points is not None and self.min_points < 10:
+                raise ValueError(f"min_points must be >= 10 or null, got {self.min_points}")
+            if self.max_points is not None and self.max_points < 10:
+                raise ValueError(f"max_points must be >= 10 or null, got {self.max_points}")
+            if self.isolated_ratio is not None and not 0 < self.isolated_ratio <= 1:
+                raise ValueError(f"isolated_ratio must be in (0, 1] or null, got {self.isolated_ratio}")
+            if self.voxel is not None and not self.voxel > 0:
+                raise ValueError(f"voxel must be > 0 or null, got {self.voxel}")
+            if self.fallback_voxel is not None and not self.fallback_voxel > 0:
+                raise ValueError(f"fallback_voxel must be > 0 or null, got {self.fallback_voxel}")
+            if not 0 < self.miss_probability < 1:
+                raise ValueError(f"miss_probability must be in (0, 1), got {self.miss_probability}")
+            if self.batch < 1 or self.max_iterations < 1:
+                raise ValueError("batch and max_iterations must be >= 1")
+            if self.sampling not in ("guided", "uniform"):
+                raise ValueError(f"sampling must be guided or uniform, got '{self.sampling}'")
+
+    def __init__(self, params: Params, salience, descriptor, matcher):
+        self.p = params
+        self.salience, self.descriptor, self.matcher = salience, descriptor, matcher
+
+    def align(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext,
+              landmarks=None) -> CoarseResult:
+        p = self.p
+        with blas_single_thread():
+            if p.voxel is None:
+                return self._run(target, source, spacing, ctx)
+            voxel, dropped = p.voxel * spacing, (0, 0)
+            if p.isolated_ratio is not None and (p.min_points is None or
+                                                 min(target.n_points, source.n_points) > p.min_points):
+                target, source, dropped, voxel = without_isolated(target, source, spacing, p.voxel,
+                                                                  p.isolated_ratio, ctx)
+            target, source, thinned = downsampled(target, source, spacing, ctx, voxel, p.max_points, p.min_points)
+            res = self._run(target, source, thinned, ctx)
+            res.metrics.update({"coarse_points_target": target.n_points, "coarse_points_source": source.n_points,
+                                "coarse_spacing": thinned, "coarse_isolated_target": dropped[0],
+                                "coarse_isolated_source": dropped[1]})
+            return res
+
+    def _run(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext) -> CoarseResult:
+        """The configured keypoints, else (``fallback_voxel``) uniform ones."""
+        try:
+            res = self._attempt(target, source, spacing, self.salience)
+            res.metrics["coarse_fallback"] = 0
+            return res
+        except StageError as first:
+            if self.p.fallback_voxel is None or getattr(self.salience, "name", "") == "uniform":
+                raise
+            uniform = SALIENCE.build({"name": "uniform", "voxel": self.p.fallback_voxel, "distances": "spacing"})
+            if ctx.verbose:
+                print(f"coarse=lo_ransac: {first}; trying uniform keypoints every {self.p.fallback_voxel:g} spacings")
+            try:
+                res = self._attempt(target, source, spacing, uniform)
+            except StageError as second:
+                raise StageError(f"{first}; the fallback to uniform keypoints failed too: "
+                                 f"{str(second).removeprefix('coarse=lo_ransac: ')}") from None
+            res.metrics["coarse_fallback"] = 1
+            return res
+
+    def _attempt(self, target: Cloud, source: Cloud, spacing: float, salience) -> CoarseResult:
+        """Keypoints by ``salience``, descriptors, matches and RANSAC; a :class:`StageError` when any is too few."""
+        kt, ks = salience.keypoints(target, spacing), salience.keypoints(source, spacing)
+        if len(kt) < 3 or len(ks) < 3:
+            raise StageError(f"coarse=lo_ransac: too few keypoints (target {len(kt)}, source {len(ks)}); "
+                             "lower the salience radii or use more points")
+        dt, ds = self.descriptor.compute(target, kt, spacing), self.descriptor.compute(source, ks, spacing)
+        pairs = self.matcher.match(dt, ds)
+        metrics = {"coarse_keypoints_target": len(kt), "coarse_keypoints_source": len(ks),
+                   "coarse_correspondences": len(pairs)}
+        if len(pairs) < 3:
+            raise StageError(f"coarse=lo_ransac: only {len(pairs)} descriptor matches; need at least 3")
+        P0, P1 = target.points[kt[pairs[:, 0]]], source.points[ks[pairs[:, 1]]]
+        N0 = None if target.normals is None else target.normals[kt[pairs[:, 0]]]
+        N1 = None if source.normals is None else source.normals[ks[pairs[:, 1]]]
+        thr = to_abs(self.p.distance_threshold, self.p.distances, spacing)
+        r = lo_ransac(P0, P1, N0, N1, thr, self.p, self.p.seed)
+        inl = r.inliers
+        metrics.update({"coarse_ransac_iterations": r.hypotheses, "coarse_inliers": int(inl.sum()),
+                        "coarse_inlier_ratio": float(inl.mean())})
+        if inl.sum() < self.p.min_inliers:
+            raise StageError(f"coarse=lo_ransac: best model has {int(inl.sum())} inliers of {len(pairs)} matches "
+                             f"(min_inliers {self.p.min_inliers}); the scans may not overlap or the descriptors not match")
+        trace = CoarseTrace(target.points[kt], source.points[ks], P0, P1, inl, spacing)
+        return CoarseResult(r.T_target_source, metrics, trace)

@@ -1,0 +1,61 @@
+"""Thinning a pair of clouds for a coarse stage: isolated points (outliers) dropped, one point per voxel kept,
+the voxel bounded by the counts it leaves, and the thinned pair's own spacing."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scanreg.geometry import Cloud, estimate_spacing, sparse_voxel_mask, voxel_representatives
+from scanreg.types import RunContext
+
+
+def pair_spacing(target_points: np.ndarray, source_points: np.ndarray, ctx: RunContext) -> float:
+    """The spacing of a pair of clouds as the runner measures a run's: the larger of the two median
+    nearest-neighbour distances, each estimated with the run's seeded generators (``ctx.rng(1)``, ``ctx.rng(2)``)."""
+    return max(estimate_spacing(target_points, ctx.rng(1)), estimate_spacing(source_points, ctx.rng(2)))
+
+
+def without_isolated(target: Cloud, source: Cloud, spacing: float, voxel_spacings: float, ratio: float,
+                     ctx: RunContext) -> tuple[Cloud, Cloud, tuple[int, int], float]:
+    """Both clouds without their isolated points (:func:`scanreg.geometry.sparse_voxel_mask` on a grid of
+    ``voxel_spacings`` spacings, ``ratio`` of a full cell, no neighbour within 3 spacings), the counts dropped and
+    the voxel (input units) to thin with. ``spacing`` is measured on the clouds as given; when more than 5 % of a
+    cloud proved isolated, it is measured again without them (the larger median nearest-neighbour distance) and,
+    if smaller, the isolated points are looked for again on its finer grid, which the clouds are then thinned
+    with: at 50 % outliers the first spacing is 1.5 times the surface's."""
+    for attempt in range(2):
+        voxel = voxel_spacings * spacing
+        keep_t = sparse_voxel_mask(target.points, voxel, ratio, 3 * spacing)
+        keep_s = sparse_voxel_mask(source.points, voxel, ratio, 3 * spacing)
+        dropped = (int((~keep_t).sum()), int((~keep_s).sum()))
+        if attempt or max(dropped[0] / target.n_points, dropped[1] / source.n_points) <= 0.05:
+            break
+        again = pair_spacing(target.points[keep_t], source.points[keep_s], ctx)
+        if not 0 < again < spacing:
+            break
+        spacing = again
+    return (target.subset(keep_t) if dropped[0] else target, source.subset(keep_s) if dropped[1] else source,
+            dropped, voxel)
+
+
+def downsampled(target: Cloud, source: Cloud, spacing: float, ctx: RunContext, voxel: float,
+                max_points: int | None = None, min_points: int | None = None) -> tuple[Cloud, Cloud, float]:
+    """Both clouds voxel-downsampled (edge ``voxel``, input units; one point per voxel, the one nearest its
+    centroid; the voxel grown while the larger cloud has more than ``max_points`` points, or shrunk while the
+    smaller has fewer than ``min_points``, by the square root of the ratio, up to 3 times) and their spacing (the
+    larger median nearest-neighbour distance, as the runner measures the full clouds'; ``spacing`` when it comes
+    out 0). Clouds with fewer than ``min_points`` points are returned as they are, with ``spacing``."""
+    if min_points is not None and min(target.n_points, source.n_points) <= min_points:
+        return target, source, spacing
+    for _ in range(4):
+        ti, si = voxel_representatives(target.points, voxel), voxel_representatives(source.points, voxel)
+        hi, lo = max(len(ti), len(si)), min(len(ti), len(si))
+        if max_points is not None and hi > max_points:
+            voxel *= float(np.sqrt(hi / max_points))
+        elif min_points is not None and lo < min_points:
+            voxel *= float(np.sqrt(lo / min_points))
+        else:
+            break
+    tgt, src = target.subset(ti), source.subset(si)
+    thinned = pair_spacing(tgt.points, src.points, ctx)
+    return tgt, src, thinned if thinned > 0 else spacing

@@ -1,0 +1,128 @@
+"""``data=files``: source and target read from files, with optional ground truth and landmarks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from scanreg.errors import ConfigError, InputError
+from scanreg.geometry import Cloud, Geometry, Mesh, apply_T, bbox_diagonal, invert_T, points_of, transform_geometry
+from scanreg.io import expand_path, read_input, read_landmarks, read_transform
+from scanreg.stages.data.perturb import PoseParams
+from scanreg.stages.data.base import Provider
+from scanreg.stages.registry import DATA
+from scanreg.types import Problem, RunContext
+
+
+UNIT_FACTORS = {1000.0: "mm vs m", 10.0: "mm vs cm", 100.0: "cm vs m", 25.4: "mm vs inches",
+                39.37: "inches vs m", 304.8: "mm vs feet", 12.0: "inches vs feet"}
+"""Common ratios between length units, to name the likely cause of a size mismatch."""
+
+
+def scale_geometry(g: Geometry, s: float) -> Geometry:
+    """``g`` with its coordinates multiplied by ``s`` (normals unchanged)."""
+    if s == 1.0:
+        return g
+    if isinstance(g, Mesh):
+        return Mesh(g.vertices * s, g.faces, g.source)
+    return Cloud(g.points * s, g.normals, g.source, dict(g.extra))
+
+
+def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> None:
+    """Before any expensive stage: the two inputs' sizes agree to within ``max_size_ratio``, else one line
+    naming both extents and the likely unit factor (counts and flatness: ``scanreg.eval.checks``)."""
+    if min(len(points_of(src)), len(points_of(tgt))) < 10:
+        return  # too few points: scanreg.eval.checks says so
+    ds, dt = bbox_diagonal(points_of(src)), bbox_diagonal(points_of(tgt))
+    if max_size_ratio is None or not (ds > 0 and dt > 0):
+        return
+    r = ds / dt
+    if 1 / max_size_ratio <= r <= max_size_ratio:
+        return
+    big, f = ("source", r) if r > 1 else ("target", 1 / r)
+    unit, factor = min(((u, k) for k, u in UNIT_FACTORS.items()), key=lambda uk: abs(np.log(f / uk[1])))
+    if abs(np.log(f / factor)) > np.log(1.3):  # no common unit ratio: suggest the measured one
+        unit, factor = "different units or a different object", float(f"{f:.3g}")
+    fix = (f"data.source_scale={1 / factor:g}" if big == "source" else f"data.target_scale={1 / factor:g}")
+    raise InputError(
+        f"{src.source or 'source'} is {ds:.4g} across (bounding-box diagonal) and {tgt.source or 'target'} {dt:.4g}: "
+        f"{f:.3g}x apart, likely {unit}; set {fix} (or data.max_size_ratio=null to register them as they are)")
+
+
+@DATA.register("files")
+class Files(Provider):
+    """Source and target read from files (meshes or point clouds), with optional ground truth and landmarks."""
+
+    @dataclass
+    class Params(PoseParams):
+        max_angle_deg: float = 0.0
+        """Largest rotation of a further random pose of the source, degrees (0 with ``max_translation`` 0: the
+        source as read; >= 180: any rotation); the ground truth and landmarks follow it."""
+        max_translation: float = 0.0
+        """Largest translation of that pose, as a share of the target's bounding-box diagonal."""
+        source: Optional[str] = None
+        """Path of the source (the scan to move): mesh (.ply .stl .obj .off) or cloud (.ply .pcd .xyz .txt .pts .csv
+        .asc .npy).
+        ``pkg:PACKAGE/PATH`` names a file inside an installed package, ``shared:PATH`` one under ../shared/data."""
+        target: Optional[str] = None
+        """Path of the target (the fixed scan), same formats."""
+        gt: Optional[str] = None
+        """Optional ground-truth T_target_source: 4x4 text or .npy, mapping source points into the target frame
+        (translation in input units)."""
+        landmarks: Optional[str] = None
+        """Optional CSV of picked pairs: target x,y,z then source x,y,z per row (input units)."""
+        source_scale: float = 1.0
+        """Multiply the source's coordinates (and its landmarks) by this on reading: a unit fix, e.g. 0.001 for
+        a source in mm registered to a target in m. ``data.gt`` maps the scaled source into the target."""
+        target_scale: float = 1.0
+        """Multiply the target's coordinates (and its landmarks) by this on reading (see ``source_scale``)."""
+        max_size_ratio: Optional[float] = 10.0
+        """Stop, before any repair or registration, when the bounding-box diagonals of source and target (after
+        scaling) differ by more than this factor: such inputs are almost always in different units, and the
+        message names the likely unit factor. null: no check (a small part registered into a large scene)."""
+        columns: Optional[str] = None
+        """What the columns of a text (.xyz .txt .pts .csv) or .npy cloud are, e.g. 'x y z nx ny nz' or
+        'x y z r g b a' (names x y z nx ny nz r g b a; - ignores a column). Unset: a header line's names, or
+        detected from the values (unit vectors are normals, 0..1 or integer 0..255 values are colours). Applies to
+        the source and the target when they are such files (see source_columns, target_columns)."""
+        source_columns: Optional[str] = None
+        """The columns of the source alone (overrides ``columns`` for it)."""
+        target_columns: Optional[str] = None
+        """The columns of the target alone (overrides ``columns`` for it)."""
+
+        def check(self):
+            super().check()
+            for key in ("source_scale", "target_scale"):
+                if not getattr(self, key) > 0:
+                    raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
+            if self.max_size_ratio is not None and not self.max_size_ratio > 1:
+                raise ValueError(f"max_size_ratio must be > 1 or null, got {self.max_size_ratio}")
+
+    def require(self) -> None:
+        """Both files named (checked before a run starts)."""
+        for key in ("source", "target"):
+            if not getattr(self.p, key):
+                raise ConfigError(
+                    f"data=files: data.{key} is not set; run e.g. 'scanreg data.source=A.ply data.target=B.ply', "
+                    "or the demo: 'scanreg data=synthetic'"
+                )
+
+    def load(self, ctx: RunContext) -> Problem:
+        self.require()
+        src, n_src_bad = read_input(expand_path(self.p.source), "source", self.p.source_columns or self.p.columns)
+        tgt, n_tgt_bad = read_input(expand_path(self.p.target), "target", self.p.target_columns or self.p.columns)
+        info = {"n_source_invalid_points": n_src_bad, "n_target_invalid_points": n_tgt_bad}
+        src, tgt = scale_geometry(src, self.p.source_scale), scale_geometry(tgt, self.p.target_scale)
+        check_pair(src, tgt, self.p.max_size_ratio)
+        gt = read_transform(expand_path(self.p.gt), "ground truth data.gt") if self.p.gt else None
+        lm = read_landmarks(expand_path(self.p.landmarks)) if self.p.landmarks else None
+        if lm is not None:
+            lm = (lm[0] * self.p.target_scale, lm[1] * self.p.source_scale)
+        if self.p.max_angle_deg > 0 or self.p.max_translation > 0:  # a further seeded pose of the source
+            P = self.p.pose(808, points_of(src), bbox_diagonal(points_of(tgt)))
+            src = transform_geometry(P, src)
+            gt = None if gt is None else gt @ invert_T(P)
+            lm = None if lm is None else (lm[0], apply_T(P, lm[1]))
+        return Problem(src, tgt, gt, lm, info)

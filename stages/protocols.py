@@ -1,0 +1,103 @@
+"""The contract of each stage family, written once: what a new stage implements.
+
+A stage is a class registered by name in its family's registry (:mod:`scanreg.stages.registry`), with a typed
+``Params`` dataclass (one docstring per field, units included) and a constructor that takes the params (and, for
+a coarse stage, the helper stages it ``uses``). The methods below are all the pipeline calls; every stage takes
+values and returns values, and keeps nothing of one run for the next.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Optional, Protocol, runtime_checkable
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from scanreg.geometry import Cloud, Geometry, Mesh
+    from scanreg.types import CoarseResult, IcpResult, Problem, Repaired, RunContext
+
+
+@runtime_checkable
+class DataProvider(Protocol):
+    """``data=NAME``: loads the registration problem."""
+
+    def require(self) -> None:
+        """Raise a :class:`~scanreg.errors.ConfigError` when a setting the provider needs is missing (checked
+        before a run starts)."""
+
+    def load(self, ctx: RunContext) -> Problem:
+        """The source, the target, and what is known about them (ground truth, landmarks)."""
+
+
+@runtime_checkable
+class RepairStage(Protocol):
+    """``repair=NAME``: repairs a mesh and reports what changed."""
+
+    def applies_to(self, role: str) -> bool:
+        """Whether the mesh of ``role`` (``source`` or ``target``) is repaired."""
+
+    def repair(self, mesh: Mesh, ctx: RunContext) -> Repaired:
+        """The repaired mesh and its audit."""
+
+
+@runtime_checkable
+class Sampler(Protocol):
+    """``sampler=NAME``: turns a mesh into points (clouds pass through, optionally thinned)."""
+
+    def sample(self, geometry: Geometry, ctx: RunContext) -> Cloud:
+        """The points (with normals when the mesh has them) of a mesh or a cloud."""
+
+
+@runtime_checkable
+class Salience(Protocol):
+    """``salience=NAME``: a keypoint detector."""
+
+    def keypoints(self, cloud: Cloud, spacing: float) -> np.ndarray:
+        """Sorted indices of the keypoints among ``cloud``'s points; ``spacing``: the cloud's sampling spacing
+        (input units), the unit of distances given in spacings."""
+
+
+@runtime_checkable
+class Descriptor(Protocol):
+    """``descriptor=NAME``: a local shape descriptor."""
+
+    def compute(self, cloud: Cloud, keypoints: np.ndarray, spacing: float) -> np.ndarray:
+        """(K, D) descriptors of ``cloud.points[keypoints]``."""
+
+
+@runtime_checkable
+class Matcher(Protocol):
+    """``matcher=NAME``: pairs of similar descriptors."""
+
+    def match(self, desc_target: np.ndarray, desc_source: np.ndarray) -> np.ndarray:
+        """(M, 2) int array of ``(target index, source index)``, sorted."""
+
+
+@runtime_checkable
+class CoarseStage(Protocol):
+    """``coarse=NAME``: an initial ``T_target_source`` from any starting pose. ``uses`` names the helper
+    families (``salience``, ``descriptor``, ``matcher``) its constructor takes."""
+
+    uses: tuple[str, ...]
+
+    def align(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext,
+              landmarks: Optional[tuple[np.ndarray, np.ndarray]] = None) -> CoarseResult:
+        """``spacing``: the pair's sampling spacing (input units); ``landmarks``: picked pairs ``(target, source)``
+        when the problem has them."""
+
+
+@runtime_checkable
+class FineStage(Protocol):
+    """``icp=NAME``: refines a transform (ICP and its variants)."""
+
+    def refine(self, target: Cloud, source: Cloud, T_init: np.ndarray, spacing: float, ctx: RunContext,
+               target_mesh: Optional[Mesh] = None) -> IcpResult:
+        """``T_init``: the start (the coarse stage's result); ``target_mesh``: the target's triangles when it is a
+        mesh (closest points on them instead of on its points)."""
+
+
+PROTOCOLS: dict[str, type] = {
+    "data": DataProvider, "repair": RepairStage, "sampler": Sampler, "salience": Salience,
+    "descriptor": Descriptor, "matcher": Matcher, "coarse": CoarseStage, "icp": FineStage,
+}
+"""Each stage family's contract; a class registered in a family must have its methods."""
