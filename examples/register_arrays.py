@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import scanreg
-from scanreg.types import RunContext as Context
+from scanreg.types import RunContext
 from scanreg.geometry import Cloud, barycentric_sample, make_T, transform_errors
 from scanreg.io import read_mesh
 
@@ -32,7 +32,7 @@ assert rot < 0.5 and res.success, "registration failed"
 
 # one stage on its own: built from the registry by name, its Params validated
 icp = scanreg.build_stage("icp", "horn", tau=1e-9)
-ctx = Context(seed=0, run_dir=Path("."), spacing=float(res.metrics["spacing"]))
-refined = icp.run(Cloud(target), Cloud(source), res.T_target_source, ctx)
+ctx = RunContext(seed=0)  # the run's facts a stage may use (no run_dir: nothing is written)
+refined = icp.refine(Cloud(target), Cloud(source), res.T_target_source, float(res.metrics["spacing"]), ctx)
 print(f"horn ICP from that pose: {refined.iterations} iterations, "
       f"rotation error {transform_errors(refined.T_target_source, T_true)[0]:.4f} deg")

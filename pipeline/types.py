@@ -220,6 +220,10 @@ class Result:
     """Files written: ``result.json``, ``T_target_source.txt``, ``aligned_source.ply``, deviation maps, ..."""
     run_id: Optional[str] = None
     """The MLflow run id when the run was tracked."""
+    children: list[tuple[str, dict[str, float]]] = field(default_factory=list)
+    """The runs inside this one, each a name and its metrics: a scan set's registered pairs (MLflow: child runs)."""
+    scanset: Any = None
+    """A scan set's registration (``scanreg.runner.scanset.SetRegistration``: poses, edges, merged points, surface)."""
 
     @property
     def success(self) -> Optional[bool]:
@@ -231,3 +235,45 @@ class Result:
         """``result.json``'s content: the transform and every metric."""
         T = self.T_target_source
         return {"T_target_source": None if T is None else T.tolist(), **self.metrics}
+
+
+@dataclass
+class ScanSet:
+    """Many scans of one object, to register into one model (what a scan-set data provider loads)."""
+
+    scans: list[Geometry]
+    names: list[str]
+    """Each scan's name (its file name), in the order of ``scans`` (sorted: the first is the world frame)."""
+    poses_gt: Optional[list[np.ndarray]] = None
+    """The true ``T_world_scan`` of each scan in any common world frame, when known."""
+    order: str = "unordered"
+    """What the order of the scans says: ``sequential`` (neighbours in the list overlap), ``turntable`` (and the
+    last overlaps the first), ``unordered``."""
+    info: dict = field(default_factory=dict)
+    """Numbers about the set, logged as metrics."""
+    reference: Optional[Geometry] = None
+    """A reference surface in the world frame of ``poses_gt``, to measure the reconstruction against."""
+
+
+@dataclass
+class ViewEdge:
+    """One pair of a scan set registered and verified: ``T_i_j`` maps scan ``j`` into scan ``i``'s frame."""
+
+    i: int
+    j: int
+    T_i_j: np.ndarray
+    information: np.ndarray
+    """6x6 information of the error ``(w, t)`` about ``centre`` (the inverse of the pose covariance)."""
+    centre: np.ndarray
+    """The centre of the pairs the fine stage kept (scan ``i``'s frame)."""
+    fitness: float
+    """Share of scan ``j``'s points within the inlier distance of scan ``i`` (and the other way, the smaller)."""
+    inlier_rms: float
+    """RMS distance of those points, in sampling spacings."""
+    normal_agreement: float
+    """Share of those points whose normals agree with the target's (cosine above 0.5)."""
+    accepted: bool = False
+    reason: str = ""
+    """Why the edge was rejected (empty when accepted)."""
+    metrics: dict[str, float] = field(default_factory=dict)
+    """The pair's registration metrics (as a pair run logs them)."""

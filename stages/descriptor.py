@@ -138,7 +138,7 @@ class Histogram3P:
         pts = cloud.points
         nrm = cloud.normals if cloud.normals is not None else estimate_normals(pts)
         # One k-d tree for both searches. scipy's cKDTree returns the same neighbours, distances and order as
-        # :func:`scanreg.geometry.neighbourhoods` (pykdtree), 2-3x faster at 256 neighbours; only where
+        # :func:`scanreg.geometry.neighbourhoods` (pykdtree), and faster at 256 neighbours; only where
         # neighbours lie at exactly equal distances (grids, not scans) may their order, and which of them the
         # cap keeps, differ (tests/test_histogram3p_speed_equal.py).
         tree = cKDTree(pts)

@@ -14,7 +14,8 @@ if TYPE_CHECKING:
     import numpy as np
 
     from scanreg.geometry import Cloud, Geometry, Mesh
-    from scanreg.types import CoarseResult, IcpResult, Problem, Repaired, RunContext
+    from scanreg.stages.coarse.base import Described
+    from scanreg.types import CoarseResult, IcpResult, Problem, Repaired, RunContext, ScanSet, ViewEdge
 
 
 @runtime_checkable
@@ -25,8 +26,9 @@ class DataProvider(Protocol):
         """Raise a :class:`~scanreg.errors.ConfigError` when a setting the provider needs is missing (checked
         before a run starts)."""
 
-    def load(self, ctx: RunContext) -> Problem:
-        """The source, the target, and what is known about them (ground truth, landmarks)."""
+    def load(self, ctx: RunContext) -> Problem | ScanSet:
+        """The source, the target, and what is known about them (ground truth, landmarks); or, from a scan-set
+        provider, every scan of one object."""
 
 
 @runtime_checkable
@@ -85,6 +87,14 @@ class CoarseStage(Protocol):
         """``spacing``: the pair's sampling spacing (input units); ``landmarks``: picked pairs ``(target, source)``
         when the problem has them."""
 
+    def describe_set(self, clouds: list[Cloud], spacing: float, ctx: RunContext) -> list[Described]:
+        """Every scan of a set described once (:class:`~scanreg.stages.coarse.base.CoarseBase` describes a scan
+        by its cloud; a feature-based stage computes its keypoints and descriptors here)."""
+
+    def align_described(self, target: Described, source: Described, ctx: RunContext,
+                        budget: int | None = None) -> CoarseResult:
+        """One pair of a set from the scans' descriptions (``budget``: at most this many hypotheses)."""
+
 
 @runtime_checkable
 class FineStage(Protocol):
@@ -96,8 +106,28 @@ class FineStage(Protocol):
         mesh (closest points on them instead of on its points)."""
 
 
+@runtime_checkable
+class GraphStage(Protocol):
+    """``graph=NAME``: the poses of many scans from their registered pairs (a pose graph)."""
+
+    def solve(self, n: int, edges: list[ViewEdge], spacing: float, diagonal: float, anchor: int,
+              ctx: RunContext) -> tuple[list[Optional[np.ndarray]], dict[str, float]]:
+        """Each scan's ``T_world_scan`` (the anchor's frame is the world; None: not placed) from the edges,
+        whose ``accepted`` and ``reason`` it sets; and its numbers (``graph_*``)."""
+
+
+@runtime_checkable
+class SurfaceStage(Protocol):
+    """``surface=NAME``: one surface from the merged points of a scan set."""
+
+    def reconstruct(self, points: Cloud, from_meshes: bool, spacing: float, ctx: RunContext) -> Optional[Mesh]:
+        """A mesh of the surface the points (with normals) sample, or None when the stage makes none
+        (``from_meshes``: the scans were meshes)."""
+
+
 PROTOCOLS: dict[str, type] = {
     "data": DataProvider, "repair": RepairStage, "sampler": Sampler, "salience": Salience,
-    "descriptor": Descriptor, "matcher": Matcher, "coarse": CoarseStage, "icp": FineStage,
+    "descriptor": Descriptor, "matcher": Matcher, "coarse": CoarseStage, "icp": FineStage, "graph": GraphStage,
+    "surface": SurfaceStage,
 }
 """Each stage family's contract; a class registered in a family must have its methods."""

@@ -179,9 +179,11 @@ DESCRIPTOR = Registry("descriptor", PROTOCOLS["descriptor"])
 MATCHER = Registry("matcher", PROTOCOLS["matcher"])
 COARSE = Registry("coarse", PROTOCOLS["coarse"])
 ICP = Registry("icp", PROTOCOLS["icp"])
+GRAPH = Registry("graph", PROTOCOLS["graph"])
+SURFACE = Registry("surface", PROTOCOLS["surface"])
 
 REGISTRIES: dict[str, Registry] = {
-    r.family: r for r in (DATA, REPAIR, SAMPLER, SALIENCE, DESCRIPTOR, MATCHER, COARSE, ICP)
+    r.family: r for r in (DATA, REPAIR, SAMPLER, SALIENCE, DESCRIPTOR, MATCHER, COARSE, ICP, GRAPH, SURFACE)
 }
 """The stage families in the order of the pipeline."""
 

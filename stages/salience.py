@@ -107,7 +107,8 @@ class SalienceParams:
 
 
 class EigenSalience:
-    """Base of the 12 eigenvalue measures (see the module doc)."""
+    """Base of the 12 eigenvalue measures (see the module doc). A new measure of the eigenvalues of ``C_p`` (or
+    of ``C_n``, with ``matrix = "cn"``) is a subclass that overrides :meth:`salience`."""
 
     Params = SalienceParams
     matrix = "cp"
@@ -123,8 +124,12 @@ class EigenSalience:
         r = to_abs(self.p.radius, self.p.distances, spacing)
         lp, ln, counts = eigen_features(cloud.points, cloud.normals if self.matrix == "cn" else None, r,
                                         self.p.max_neighbors, self.p.weights == "gaussian")
-        h = measure_values(lp if self.matrix == "cp" else ln, self.measure)
+        h = self.salience(lp if self.matrix == "cp" else ln)
         return np.where(counts >= self.p.min_neighbors, h, -np.inf)
+
+    def salience(self, lam: np.ndarray) -> np.ndarray:
+        """The salience of each point from the eigenvalues (N, 3) of its covariance, ascending (l1, l2, l3)."""
+        return measure_values(lam, self.measure)
 
     def keypoints(self, cloud: Cloud, spacing: float) -> np.ndarray:
         h = self.values(cloud, spacing)

@@ -78,13 +78,11 @@ def runs(uri: str, experiment: str):
     return mlflow.search_runs([exp.experiment_id])
 
 
-def stage_ctx(spacing=1.0, seed=0):
-    """A stage context with this sampling spacing (no run directory)."""
-    from scanreg.types import RunContext as Context
+def stage_ctx(seed=0):
+    """A run context for stages called directly (no run directory)."""
+    from scanreg.types import RunContext
 
-    c = Context(seed=seed, run_dir=None)
-    c.spacing = spacing
-    return c
+    return RunContext(seed=seed)
 
 
 def build(reg, name, **kw):
@@ -104,3 +102,13 @@ def oriented_triangles(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     order = np.lexsort(tuple(rows[:, k] for k in range(8, -1, -1)) + (face,))  # by face, then by the row
     rows = rows[order[::3]]
     return rows[np.lexsort(rows.T[::-1])]
+
+
+def build_coarse(name, helpers=None, **kw):
+    """A coarse stage of ``COARSE`` by name, its Params validated, built with the helper stages it ``uses``
+    (``helpers``: family -> built stage; a family not given gets None, for tests that use only its Params)."""
+    from scanreg.stages.registry import COARSE, make_params
+
+    cls = COARSE.get(name)
+    helpers = helpers or {}
+    return cls(make_params(cls.Params, kw, name), **{fam: helpers.get(fam) for fam in cls.uses})

@@ -113,12 +113,16 @@ BAD_CASES = {
     "wrong_type": (["icp.max_iterations=many"], "icp=point_to_plane: parameter 'max_iterations' expects int, got 'many'"),
     "unknown_param": (["sampler.n_pionts=5"], "sampler=barycentric: unknown parameter 'n_pionts'"),
     "no_source": (["data.source=null"], "data=files: data.source is not set"),
+    "wrong_enum": (["icp.distances=furlongs"], "icp=point_to_plane: parameter 'distances' expects Distances, got 'furlongs'"),
+    "unknown_tracking_param": (["tracking.bogus=1"], "tracking=mlflow: unknown parameter 'bogus'; valid parameters: uri, experiment"),
 }
 
 
-CONFIG_CASES = {"unknown_group_choice", "unknown_stage_name", "wrong_type", "unknown_param", "no_source"}
+CONFIG_CASES = {"unknown_group_choice", "unknown_stage_name", "wrong_type", "unknown_param", "no_source", "wrong_enum",
+                "unknown_tracking_param"}
 """Usage and config errors: exit 2 before any MLflow run exists. The others are input errors: exit 1, and the
 run ends FAILED with the reason."""
+
 
 
 @pytest.mark.slow
@@ -187,6 +191,23 @@ def test_sweep_goes_on_after_a_failed_job(tmp_path, mlflow_uri):
     assert sorted(children["status"]) == ["FAILED", "FINISHED"]
     assert parent["status"] == "FAILED"
     assert (tmp_path / "sweep" / "1" / "result.json").exists()
+
+
+@pytest.mark.slow
+def test_sweep_with_an_unknown_choice_runs_no_job(tmp_path, mlflow_uri):
+    """A swept value that is no choice of its group: Hydra composes each job, so the sweep has started (its
+    parent run exists) when the bad one is found; one error line, exit 2, no job ran, and the parent ends FAILED
+    with the reason (nothing left RUNNING, no child run)."""
+    r = run_cli(["-m", "data=synthetic", "repair=none,foo", "tracking.experiment=sweepchoice",
+                 f"hydra.sweep.dir={tmp_path / 'sweep'}"], tmp_path, mlflow_uri)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    message = "unknown repair 'foo'; valid repair choices: meshfix, meshlab, none"
+    assert lines == [f"error: {message}"], r.stderr
+    assert not (tmp_path / "sweep" / "0").exists()
+    df = runs(mlflow_uri, "sweepchoice")
+    assert list(df["tags.scanreg.sweep"]) == ["parent"]
+    assert df.iloc[0]["status"] == "FAILED" and df.iloc[0]["tags.error"] == message
 
 
 @pytest.mark.slow

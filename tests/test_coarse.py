@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from conftest import build, shared
-from conftest import stage_ctx as ctx
-from scanreg.types import Distances
+from conftest import build, build_coarse, shared
+from scanreg.types import Distances, RunContext
 from scanreg.errors import StageError
 from scanreg.geometry import Cloud, apply_T, random_pose, transform_errors
 from scanreg.io import read_mesh
 from scanreg.geometry import estimate_spacing
-from scanreg.stages.registry import COARSE, DESCRIPTOR, SALIENCE, load_all
+from scanreg.stages.coarse.ransac import lo_ransac
+from scanreg.stages.registry import DESCRIPTOR, MATCHER, SALIENCE, load_all
 from scanreg.stages.salience import MATRICES, MEASURES
 from scanreg.geometry import barycentric_sample
 
@@ -42,7 +42,7 @@ def direct(points, normals, i, radius, gaussian):
 def test_salience_matches_a_direct_eigenvalue_computation(bunny, matrix, measure, weights):
     cloud, sp = bunny
     st = build(SALIENCE, f"{matrix}_{measure}", radius=4.0, weights=weights, max_neighbors=512)
-    h = st.values(cloud, ctx(sp))
+    h = st.values(cloud, sp)
     for i in np.random.default_rng(1).choice(len(cloud.points), 25, replace=False):
         lp, ln, cnt = direct(cloud.points, cloud.normals, i, 4.0 * sp, weights == "gaussian")
         lam = lp if matrix == "cp" else ln
@@ -62,26 +62,26 @@ def test_isolated_points_are_never_keypoints_and_nms_holds(bunny):
     nrm = np.vstack([cloud.normals, np.tile([0, 0, 1.0], (5, 1))])
     st = build(SALIENCE, "cp_l1", radius=4.0, nms_radius=4.0)
     c = Cloud(pts, nrm)
-    h = st.values(c, ctx(sp))
+    h = st.values(c, sp)
     assert (h[-5:] == -np.inf).all()
-    kp = st.keypoints(c, ctx(sp))
+    kp = st.keypoints(c, sp)
     assert not (kp >= len(cloud.points)).any() and len(kp) > 10
     for i in kp[:50]:
         nb = np.linalg.norm(pts - pts[i], axis=1) <= 4.0 * sp
         assert h[i] >= h[nb].max()
-    top = build(SALIENCE, "cp_l1", radius=4.0, nms_radius=4.0, top_k=7).keypoints(c, ctx(sp))
+    top = build(SALIENCE, "cp_l1", radius=4.0, nms_radius=4.0, top_k=7).keypoints(c, sp)
     assert len(top) == 7 and set(top) <= set(kp)
 
 
 @pytest.mark.parametrize("name", ["histogram3p", "fpfh"])
 def test_descriptor_invariant_to_rotation(bunny, name):
     cloud, sp = bunny
-    kp = build(SALIENCE, "cp_min_ratio").keypoints(cloud, ctx(sp))
+    kp = build(SALIENCE, "cp_min_ratio").keypoints(cloud, sp)
     T = random_pose(np.random.default_rng(2), 180, 50)
     moved = Cloud(apply_T(T, cloud.points), cloud.normals @ T[:3, :3].T)
     kw = {"support_voxel": 0.0, "radius": 8.0} if name == "fpfh" else {}
     st = build(DESCRIPTOR, name, **kw)
-    d0, d1 = st.compute(cloud, kp, ctx(sp)), st.compute(moved, kp, ctx(sp))
+    d0, d1 = st.compute(cloud, kp, sp), st.compute(moved, kp, sp)
     assert d0.shape == (len(kp), 216 if name == "histogram3p" else 33)
     rel = np.linalg.norm(d0 - d1, axis=1) / np.linalg.norm(d0, axis=1)
     assert np.median(rel) < 1e-6 and np.quantile(rel, 0.95) < 1e-3
@@ -107,18 +107,19 @@ def test_lo_ransac_recovers_a_pose_from_matches_with_70_percent_outliers():
     P0 = apply_T(T, P1) + rng.normal(scale=0.01, size=P1.shape)
     out = rng.choice(300, 210, replace=False)
     P0[out] = rng.uniform(-20, 20, size=(210, 3))
-    st = build(COARSE, "lo_ransac", distance_threshold=0.05, distances=Distances.absolute, seed=3)
-    T_est, inl, drawn = st.estimate(P0, P1, None, None, 0.05)
+    st = build_coarse("lo_ransac", distance_threshold=0.05, distances=Distances.absolute, seed=3)
+    r = lo_ransac(P0, P1, None, None, 0.05, st.p, st.p.seed)
+    T_est, inl, drawn = r.T_target_source, r.inliers, r.hypotheses
     rot, trans = transform_errors(T_est, T)
     assert rot < 0.05 and trans < 0.02 and 85 <= inl.sum() <= 95
     assert drawn < 5000  # adaptive stopping: w = 0.3 needs ~170 samples for mu = 0.01
-    T2, _, _ = st.estimate(P0, P1, None, None, 0.05)
+    T2 = lo_ransac(P0, P1, None, None, 0.05, st.p, st.p.seed).T_target_source
     assert np.array_equal(T_est, T2)  # seeded: bit for bit
 
 
 def stanford_case(pose_seed: int, n: int, salience):
     """bun045 -> bun000 sampled with n points each, the source under a random pose: (target, source, truth,
-    a context whose coarse helper stages use ``salience``, FPFH and mutual kNN)."""
+    the pair's spacing, the coarse stage's helper stages: ``salience``, FPFH and mutual kNN)."""
     from scanreg.io import read_stanford_conf
     from scanreg.geometry import invert_T
 
@@ -130,15 +131,15 @@ def stanford_case(pose_seed: int, n: int, salience):
     tp, tn, _ = barycentric_sample(t, n, np.random.default_rng(0))
     sp_, sn, _ = barycentric_sample(s, n, np.random.default_rng(1))
     tgt, src = Cloud(tp, tn), Cloud(apply_T(P, sp_), sn @ P[:3, :3].T)
-    c = ctx(max(estimate_spacing(tp, np.random.default_rng(0)), estimate_spacing(sp_, np.random.default_rng(0))))
-    c.stages = {"salience": salience, "descriptor": build(DESCRIPTOR, "fpfh"),
-                "matcher": build(__import__("scanreg.registry").registry.MATCHER, "mutual_knn")}
-    return tgt, src, T_gt, c
+    sp = max(estimate_spacing(tp, np.random.default_rng(0)), estimate_spacing(sp_, np.random.default_rng(0)))
+    helpers = {"salience": salience, "descriptor": build(DESCRIPTOR, "fpfh"), "matcher": build(MATCHER, "mutual_knn")}
+    return tgt, src, T_gt, sp, helpers
 
 
 def test_lo_ransac_end_to_end_on_stanford_scans():
-    tgt, src, T_gt, c = stanford_case(7, 20000, build(SALIENCE, "uniform"))
-    T, m = build(COARSE, "lo_ransac").run(tgt, src, c)
+    tgt, src, T_gt, sp, helpers = stanford_case(7, 20000, build(SALIENCE, "uniform"))
+    res = build_coarse("lo_ransac", helpers).align(tgt, src, sp, RunContext(seed=0))
+    T, m = res.T_target_source, res.metrics
     rot, trans = transform_errors(T, T_gt)
     assert rot < 5 and m["coarse_inliers"] >= 6, (rot, m)
 
@@ -148,15 +149,17 @@ def test_lo_ransac_falls_back_to_uniform_keypoints():
     """When the configured keypoints fail (here ISS with a support radius so small that no point is salient),
     lo_ransac retries with uniform keypoints, solves the Stanford pair and logs coarse_fallback = 1; with the
     fallback off it fails with the keypoint message."""
-    tgt, src, T_gt, c = stanford_case(11, 15000, build(SALIENCE, "iss", salient_radius=0.1, non_max_radius=0.1))
-    T, m = build(COARSE, "lo_ransac").run(tgt, src, c)
+    tgt, src, T_gt, sp, helpers = stanford_case(11, 15000, build(SALIENCE, "iss", salient_radius=0.1,
+                                                                  non_max_radius=0.1))
+    res = build_coarse("lo_ransac", helpers).align(tgt, src, sp, RunContext(seed=0))
+    T, m = res.T_target_source, res.metrics
     assert m["coarse_fallback"] == 1 and transform_errors(T, T_gt)[0] < 5, m
     with pytest.raises(StageError, match="too few keypoints"):
-        build(COARSE, "lo_ransac", fallback_voxel=None).run(tgt, src, c)
+        build_coarse("lo_ransac", helpers, fallback_voxel=None).align(tgt, src, sp, RunContext(seed=0))
 
 
 def test_landmarks_known_transform_and_a_bad_pick():
-    from scanreg.stages.coarse import landmark_fit
+    from scanreg.stages.coarse.landmarks import landmark_fit
 
     rng = np.random.default_rng(0)
     src = rng.uniform(0, 50, size=(6, 3))
@@ -168,10 +171,8 @@ def test_landmarks_known_transform_and_a_bad_pick():
     bad[2] += [3.0, 0, 0]  # one landmark clicked 3 mm off
     _, mb, loo_b = landmark_fit(bad, src)
     assert int(np.argmax(loo_b)) == 2 and loo_b[2] > 2.0 and loo_b[2] > 1.5 * np.delete(loo_b, 2).max()
-    st = build(COARSE, "landmarks", max_residual=1.0)
-    c = ctx()
-    c.landmarks = (bad, src)
+    st = build_coarse("landmarks", max_residual=1.0)
     with pytest.raises(StageError, match="landmark 3 has a leave-one-out error"):
-        st.run(Cloud(tgt), Cloud(src), c)
+        st.align(Cloud(tgt), Cloud(src), 1.0, RunContext(seed=0), landmarks=(bad, src))
     with pytest.raises(StageError, match="collinear"):
         landmark_fit(tgt[:3], np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2.0]]))

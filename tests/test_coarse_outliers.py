@@ -3,9 +3,10 @@
 import numpy as np
 import pytest
 
-from conftest import build
+from conftest import build, build_coarse
 from scanreg.geometry import Cloud, apply_T, bbox_diagonal, sparse_voxel_mask, transform_errors, voxel_occupancy
-from scanreg.stages.registry import COARSE, SALIENCE, load_all
+from scanreg.stages.registry import SALIENCE, load_all
+from scanreg.types import RunContext
 
 load_all()
 
@@ -58,21 +59,24 @@ def test_lo_ransac_registers_scans_with_30_percent_outliers_on_thinned_clouds():
 
     from scanreg.errors import StageError
 
-    tgt, src, T_gt, c = stanford_case(3, 10000, build(SALIENCE, "uniform"))
+    tgt, src, T_gt, sp, helpers = stanford_case(3, 10000, build(SALIENCE, "uniform"))
+    c = RunContext(seed=0)
     rng = np.random.default_rng(5)
     n_out = int(round(0.3 / 0.7 * src.n_points))
     lo, hi = src.points.min(axis=0), src.points.max(axis=0)
     out = rng.uniform(lo, hi, size=(n_out, 3))
     nrm = rng.normal(size=(n_out, 3))
     src = Cloud(np.vstack([src.points, out]), np.vstack([src.normals, nrm / np.linalg.norm(nrm, axis=1)[:, None]]))
-    T, m = build(COARSE, "lo_ransac", fallback_voxel=None).run(tgt, src, c)
+    res = build_coarse("lo_ransac", helpers, fallback_voxel=None).align(tgt, src, sp, c)
+    T, m = res.T_target_source, res.metrics
     rot, trans = transform_errors(T, T_gt)
     assert rot < 5 and trans < 0.05 * bbox_diagonal(tgt.points), (rot, trans, m)
     # nearly every outlier dropped (those within 3 spacings of the surface stay), few surface points
     assert 0.85 * n_out < m["coarse_isolated_source"] < 1.05 * n_out, (n_out, m)
     assert m["coarse_isolated_target"] < 0.01 * tgt.n_points, m
     try:
-        T0, _ = build(COARSE, "lo_ransac", fallback_voxel=None, isolated_ratio=None).run(tgt, src, c)
+        T0 = build_coarse("lo_ransac", helpers, fallback_voxel=None, isolated_ratio=None).align(
+            tgt, src, sp, c).T_target_source
     except StageError:
         return
     assert transform_errors(T0, T_gt)[0] > 5, "the case no longer shows the guard's effect"
@@ -86,17 +90,19 @@ def test_lo_ransac_remeasures_the_spacing_at_50_percent_outliers():
 
     from scanreg.geometry import estimate_spacing
 
-    tgt, src, T_gt, c = stanford_case(3, 10000, build(SALIENCE, "uniform"))
-    clean_coarse = build(COARSE, "lo_ransac", fallback_voxel=None).run(tgt, src, c)[1]["coarse_spacing"]
+    tgt, src, T_gt, clean, helpers = stanford_case(3, 10000, build(SALIENCE, "uniform"))
+    c = RunContext(seed=0)
+    stage = build_coarse("lo_ransac", helpers, fallback_voxel=None)
+    clean_coarse = stage.align(tgt, src, clean, c).metrics["coarse_spacing"]
     rng = np.random.default_rng(6)
     out = rng.uniform(src.points.min(axis=0), src.points.max(axis=0), size=(src.n_points, 3))
     nrm = rng.normal(size=out.shape)
     src = Cloud(np.vstack([src.points, out]), np.vstack([src.normals, nrm / np.linalg.norm(nrm, axis=1)[:, None]]))
-    clean = c.spacing
-    c.spacing = max(estimate_spacing(tgt.points, np.random.default_rng(1)),
-                    estimate_spacing(src.points, np.random.default_rng(2)))
-    assert c.spacing > 1.3 * clean  # the runner's spacing, inflated by the outliers
-    T, m = build(COARSE, "lo_ransac", fallback_voxel=None).run(tgt, src, c)
+    spacing = max(estimate_spacing(tgt.points, np.random.default_rng(1)),
+                  estimate_spacing(src.points, np.random.default_rng(2)))
+    assert spacing > 1.3 * clean  # the runner's spacing, inflated by the outliers
+    res = build_coarse("lo_ransac", helpers, fallback_voxel=None).align(tgt, src, spacing, c)
+    T, m = res.T_target_source, res.metrics
     assert transform_errors(T, T_gt)[0] < 5, m
     assert 0.8 * len(out) < m["coarse_isolated_source"] < 1.05 * len(out), m
     # thinned on the grid of the spacing measured again (coarse spacing 1.17 times the clean run's here), not
@@ -108,4 +114,4 @@ def test_isolated_ratio_is_checked():
     from scanreg.errors import ConfigError
 
     with pytest.raises((ConfigError, ValueError), match="isolated_ratio"):
-        build(COARSE, "lo_ransac", isolated_ratio=0.0)
+        build_coarse("lo_ransac", isolated_ratio=0.0)

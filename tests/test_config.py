@@ -1,18 +1,22 @@
-"""Level 1: every config option composes and builds; registries and YAML files match one to one."""
+"""Level 1: every config option composes and builds; registries and YAML files match one to one; every
+default lives in its stage's Params dataclass; composition errors are one clear line."""
 
 import dataclasses
-from pathlib import Path
+import enum
 
 import pytest
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from scanreg.app import CONF_DIR, STAGE_GROUPS, check_group_overrides, precheck
+from scanreg.app.config import PRESET_GROUPS, STAGE_GROUPS, compose, group_choices
+from scanreg.app.tracking import TRACKING
 from scanreg.errors import ConfigError
-from scanreg.stages.registry import REGISTRIES, field_docs, load_all, make_params
-from scanreg.app import validate_config as build_stages
+from scanreg.runner import build_stages
+from scanreg.stages.registry import REGISTRIES, conf_dir, field_docs, load_all, make_params
 
 load_all()
+CONF_DIR = conf_dir()
+GROUP_REGISTRIES = {**REGISTRIES, "tracking": TRACKING}
+"""The registry behind each stage group (the tracking backends are the app's, not a stage family)."""
 
 
 def options(group: str) -> list[str]:
@@ -22,35 +26,57 @@ def options(group: str) -> list[str]:
 ALL_OPTIONS = [(g, o) for g in STAGE_GROUPS for o in options(g)]
 
 
+def defaults_of(params_cls) -> dict:
+    """A Params dataclass's defaults, field by field."""
+    out = {}
+    for f in dataclasses.fields(params_cls):
+        if f.default is not dataclasses.MISSING:
+            out[f.name] = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            out[f.name] = f.default_factory()
+    return out
+
+
 def test_every_group_has_options_and_a_registry():
-    assert set(STAGE_GROUPS) == set(REGISTRIES)
+    assert set(STAGE_GROUPS) == set(REGISTRIES) | {"tracking"}
     for g in STAGE_GROUPS:
         assert options(g), f"conf/{g}/ is empty"
 
 
 @pytest.mark.parametrize("group,option", ALL_OPTIONS)
 def test_option_composes_and_builds(group, option):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose("config", overrides=[f"{group}={option}"])
-    assert cfg[group].name == option, f"conf/{group}/{option}.yaml must have name: {option}"
-    inst = REGISTRIES[group].build(cfg[group])
+    cfg = compose([f"{group}={option}"])
+    assert cfg[group].name == option, f"{group}={option} must compose to name: {option}"
+    stages = build_stages(cfg)  # the whole pipeline builds with this choice
+    if group == "tracking":
+        inst = TRACKING.build(cfg.tracking)
+    else:  # a coarse stage takes the helper stages it uses: built with the pipeline
+        inst = stages.helpers[group] if group in stages.helpers else getattr(stages, group)
     assert type(inst).name == option
-    build_stages(cfg)  # the whole pipeline builds with this choice
 
 
-@pytest.mark.parametrize("family", list(REGISTRIES))
+@pytest.mark.parametrize("family", list(GROUP_REGISTRIES))
 def test_every_registered_stage_has_a_yaml_and_docs(family):
-    reg = REGISTRIES[family]
+    """Each registered stage has its YAML, which holds only the defaults line and its links to the run's seed:
+    composed, every parameter has its Params default (the linked ones the run's seed)."""
+    reg = GROUP_REGISTRIES[family]
     assert reg.names() == options(family), f"registry {family} and conf/{family}/ differ"
     for name in reg.names():
         cls = reg.get(name)
         assert cls.__doc__, f"{family}={name} has no docstring"
         docs = field_docs(cls.Params)
-        for f in dataclasses.fields(cls.Params):
-            assert docs.get(f.name), f"{family}={name}: parameter '{f.name}' has no docstring"
-        yaml_keys = set(OmegaConf.load(CONF_DIR / family / f"{name}.yaml")) - {"name"}
-        assert yaml_keys == {f.name for f in dataclasses.fields(cls.Params)}, \
-            f"conf/{family}/{name}.yaml should list every parameter of {cls.__name__}.Params"
+        fields = {f.name for f in dataclasses.fields(cls.Params)}
+        for f in fields:
+            assert docs.get(f), f"{family}={name}: parameter '{f}' has no docstring"
+        yaml = OmegaConf.to_container(OmegaConf.load(CONF_DIR / family / f"{name}.yaml"), resolve=False)
+        assert yaml.pop("defaults") == [f"_{name}", "_self_"], f"conf/{family}/{name}.yaml: defaults"
+        assert set(yaml) <= fields and set(yaml.values()) <= {"${seed}"}, \
+            f"conf/{family}/{name}.yaml should hold only links to the run's seed; defaults belong in Params"
+        cfg = compose([f"{family}={name}", "seed=7"])
+        composed = OmegaConf.to_container(cfg[family], resolve=True)
+        assert composed.pop("name") == name and set(composed) == fields, (family, name)
+        want = {**defaults_of(cls.Params), **{k: 7 for k in yaml}}
+        assert composed == want, (family, name)
 
 
 def test_unknown_name_lists_valid_ones():
@@ -59,7 +85,7 @@ def test_unknown_name_lists_valid_ones():
 
 
 def test_wrong_type_and_unknown_parameter():
-    from scanreg.stages.icp import Horn
+    from scanreg.stages.icp.point import Horn
 
     with pytest.raises(ConfigError, match=r"icp=horn: parameter 'max_iterations' expects int, got 'abc'"):
         make_params(Horn.Params, {"max_iterations": "abc"}, "icp=horn")
@@ -78,15 +104,45 @@ def test_check_hook_runs():
         make_params(Barycentric.Params, {"n_points": None, "density": None}, "sampler=barycentric")
 
 
-def test_precheck_messages():
-    assert check_group_overrides(["repair=foo"]) == "unknown repair 'foo'; valid repair choices: meshfix, meshlab, none"
-    assert check_group_overrides(["-m", "repair=none,meshfix"]) is None
-    msg, cfg = precheck(["icp.bogus=1"])
-    assert msg.startswith("icp=point_to_plane: unknown parameter 'bogus'; valid parameters:")
-    assert cfg is not None and cfg.icp.name == "point_to_plane"
-    assert precheck(["icp.tau=0.5", "-m", "sampler.n_points=100,200"]) is None
-    msg, _ = precheck(["nosuchkey=3"])
-    assert "nosuchkey" in msg
+def _compose_error(overrides) -> str:
+    with pytest.raises(ConfigError) as e:
+        compose(overrides)
+    msg = str(e.value)
+    assert "\n" not in msg
+    return msg
+
+
+def test_composition_error_lines():
+    """Hydra's composition errors as the CLI says them (scanreg.app.config.config_error_line): an unknown group
+    choice with the valid ones, an unknown or mistyped parameter as the stage's registry says it, an unknown
+    key with how to add it; overrides that compose raise nothing (a sweep's values are Hydra's to expand)."""
+    assert _compose_error(["repair=foo"]) == "unknown repair 'foo'; valid repair choices: meshfix, meshlab, none"
+    assert _compose_error(["method=nope"]) == "unknown method 'nope'; valid method choices: open3d, scanreg"
+    assert _compose_error(["icp.bogus=1"]).startswith(
+        "icp=point_to_plane: unknown parameter 'bogus'; valid parameters:")
+    assert _compose_error(["icp=horn", "icp.max_iterations=abc"]) == \
+        "icp=horn: parameter 'max_iterations' expects int, got 'abc'"
+    assert _compose_error(["evaluate.bogus=1"]).startswith("evaluate: unknown parameter 'bogus'; valid parameters:")
+    assert _compose_error(["report.enabled=maybe"]) == "report: parameter 'enabled' expects bool, got 'maybe'"
+    msg = _compose_error(["nosuchkey=3"])
+    assert "nosuchkey" in msg and "+nosuchkey=" in msg
+    assert _compose_error(["icp.tau=[1"]).startswith("bad override:")
+    assert compose(["icp.tau=0.5", "sampler.n_points=100"]).icp.tau == 0.5
+
+
+def test_unknown_tracking_parameter_is_one_line():
+    assert _compose_error(["tracking.bogus=1"]) == \
+        "tracking=mlflow: unknown parameter 'bogus'; valid parameters: uri, experiment"
+
+
+def test_wrong_enum_value_names_the_value():
+    assert _compose_error(["icp.distances=furlongs"]) == \
+        "icp=point_to_plane: parameter 'distances' expects Distances, got 'furlongs'"
+
+
+def test_unknown_hydra_group_choice_lists_the_valid_ones():
+    msg = _compose_error(["hydra/launcher=nope"])
+    assert msg.startswith("unknown hydra/launcher 'nope'; valid hydra/launcher choices: ") and "joblib" in msg
 
 
 def test_experiment_files_are_global_overrides():
@@ -94,44 +150,55 @@ def test_experiment_files_are_global_overrides():
         lines = p.read_text().splitlines()
         assert lines[0] == "# @package _global_", f"{p.name}: must start as a '# @package _global_' override"
         assert lines[1].startswith("# run: scanreg"), f"{p.name}: second line must be the command that runs it"
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose("config", overrides=[f"experiment={p.stem}"])
-        build_stages(cfg)
+        build_stages(compose([f"experiment={p.stem}"]))
 
 
 def test_user_config_dir_plugs_in(tmp_path):
-    """A user's own config folder (their presets and experiments) on Hydra's search path: --config-dir on the
-    command line, config_dirs in the Python API."""
-    from scanreg.app import precheck
-    from scanreg.app.config import compose
+    """A user's own config folder (their presets and experiments) on Hydra's search path: --config-dir or
+    hydra.searchpath on the command line, config_dirs in the Python API."""
+    from conftest import run_cli
 
     (tmp_path / "experiment").mkdir()
     (tmp_path / "experiment" / "my_density.yaml").write_text(
         "# @package _global_\ndefaults:\n  - override /icp: horn\nsampler:\n  n_points: 3000\n")
-    assert precheck(["--config-dir", str(tmp_path), "experiment=my_density"]) is None
-    assert precheck([f"hydra.searchpath=[file://{tmp_path}]", "experiment=my_density"]) is None
-    msg, _ = precheck(["experiment=my_density"])
-    assert "unknown experiment 'my_density'" in msg
     cfg = compose(["experiment=my_density"], config_dirs=[tmp_path])
     assert cfg.sampler.n_points == 3000 and cfg.icp.name == "horn"
+    assert "unknown experiment 'my_density'" in _compose_error(["experiment=my_density"])
+    assert "my_density" in group_choices("experiment", [tmp_path])
+    assert "my_density" in group_choices("experiment", [f"file://{tmp_path}"])
+    assert "my_density" not in group_choices("experiment")
+    work = tmp_path / "work"
+    work.mkdir()
+    for args in (["--config-dir", str(tmp_path)], [f"hydra.searchpath=[file://{tmp_path}]"]):
+        r = run_cli([*args, "experiment=my_density", "--cfg", "job"], work)
+        assert r.returncode == 0, r.stderr
+        shown = OmegaConf.create(r.stdout)
+        assert shown.sampler.n_points == 3000 and shown.icp.name == "horn", args
+    assert not list(work.iterdir())  # showing the config runs nothing
 
 
 def _yaml_text(v) -> str:
+    if isinstance(v, enum.Enum):
+        v = v.value
     if v is None:
         return "null"
     if isinstance(v, bool):
         return str(v).lower()
-    if isinstance(v, list):
+    if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_yaml_text(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_yaml_text(x)}" for k, x in v.items()) + "}"
     return str(v)
 
 
-def test_scanreg_stages_shows_the_yaml_defaults_at_100_columns(capsys):
-    """scanreg-stages: every stage, every parameter, with the value its YAML sets (point_to_plane's
-    initial_share is 0.25 there, 1.0 in the shared Params), in at most 100 columns and without markup."""
+def test_scanreg_stages_shows_the_defaults_at_100_columns(capsys):
+    """scanreg-stages: every stage, every parameter, with its Params default (or the YAML's link to the run's
+    seed), in at most 100 columns and without markup. point_to_plane's initial_share is 0.25 in its own Params
+    (the shared IcpParams say 1.0)."""
     import re
 
     from scanreg.app.stages_cli import main as stages_main
+    from scanreg.stages.icp.base import IcpParams
 
     assert stages_main([]) == 0
     text = capsys.readouterr().out
@@ -147,16 +214,18 @@ def test_scanreg_stages_shows_the_yaml_defaults_at_100_columns(capsys):
         m = re.fullmatch(r"  (\w+) = (.*)   \((.*)\)", ln)
         if m and stage:
             shown[stage][m.group(1)] = m.group(2)
-    assert set(shown) == set(ALL_OPTIONS)
-    for group, option in ALL_OPTIONS:
+    stage_options = [(g, o) for g, o in ALL_OPTIONS if g in REGISTRIES]
+    assert set(shown) == set(stage_options)
+    for group, option in stage_options:
+        params = REGISTRIES[group].get(option).Params
         yaml = OmegaConf.to_container(OmegaConf.load(CONF_DIR / group / f"{option}.yaml"), resolve=False)
-        fields = {f.name for f in dataclasses.fields(REGISTRIES[group].get(option).Params)}
-        assert set(shown[group, option]) == fields, (group, option)
-        for k, v in yaml.items():
-            if k != "name":
-                assert shown[group, option][k] == _yaml_text(v), (group, option, k)
-    assert shown["icp", "point_to_plane"]["initial_share"] == "0.25"
+        assert set(shown[group, option]) == {f.name for f in dataclasses.fields(params)}, (group, option)
+        for k, v in defaults_of(params).items():
+            want = yaml[k] if k in yaml else _yaml_text(v)  # the YAML holds only '${seed}' links
+            assert shown[group, option][k] == want, (group, option, k)
+    assert shown["icp", "point_to_plane"]["initial_share"] == "0.25" and IcpParams().initial_share == 1.0
     assert shown["icp", "point_to_plane"]["distances"] == "spacing"
+    assert shown["sampler", "barycentric"]["seed"] == "${seed}"
 
 
 def test_scanreg_stages_help_and_filter(capsys):
@@ -186,46 +255,18 @@ def test_scanreg_help_is_the_projects_own(tmp_path):
 
 
 def test_quick_help_is_hydras_text(tmp_path):
-    """`scanreg --help` writes the template itself (scanreg.app.quick_help) instead of Hydra's help machinery;
-    the text must be exactly what Hydra writes, with and without an override."""
+    """`scanreg --help` writes the template itself (scanreg.app.startup.quick_help) instead of Hydra's help
+    machinery; the text must be exactly what Hydra writes, with and without an override."""
     import subprocess
     import sys
 
     for extra in ([], ["experiment=demo_density"]):
         code = ("import sys; sys.argv = ['scanreg', '--help', *sys.argv[1:]]\n"
-                "from scanreg.app import _hydra_main; _hydra_main()")
+                "from scanreg.app.config import register_schemas; register_schemas()\n"
+                "from scanreg.app.main import _hydra_main; _hydra_main()")
         hydra = subprocess.run([sys.executable, "-c", code, *extra], cwd=tmp_path, capture_output=True, text=True,
                                timeout=300)
         ours = subprocess.run([sys.executable, "-m", "scanreg.app.cli", "--help", *extra], cwd=tmp_path,
                               capture_output=True, text=True, timeout=300)
         assert hydra.returncode == 0 and ours.returncode == 0, hydra.stderr + ours.stderr
         assert ours.stdout == hydra.stdout and "Config groups" in ours.stdout
-
-
-def test_run_mode_read_off_the_precheck(tmp_path):
-    """Hydra's first composition (``Hydra.get_mode``) is answered from the config the precheck composed: the
-    same mode as Hydra finds itself, from a config file too; unknown when the command line overrides Hydra's
-    own mode or groups; Hydra's method back in place afterwards."""
-    from hydra._internal.hydra import Hydra
-    from hydra.types import RunMode
-
-    from scanreg.app import _UNKNOWN, _hydra_mode_known, _mode_of, compose_checked
-
-    (tmp_path / "experiment").mkdir()
-    (tmp_path / "experiment" / "swept.yaml").write_text(
-        "# @package _global_\nhydra:\n  mode: MULTIRUN\n  sweeper:\n    params:\n      sampler.n_points: 100,200\n")
-    argv = ["--config-dir", str(tmp_path), "experiment=swept"]
-    problem, cfg = compose_checked(argv)
-    assert problem is None and _mode_of(argv, cfg) == RunMode.MULTIRUN
-    problem, cfg = compose_checked(["icp.tau=0.5"])
-    assert problem is None and _mode_of(["icp.tau=0.5"], cfg) is None  # Hydra's default: run
-    for args in (["hydra.mode=MULTIRUN"], ["hydra/launcher=basic"], ["+hydra.mode=RUN"], ["icp.tau=0.1,0.2"],
-                 ["experiment=swept,other"], ["-cp", str(tmp_path)], ["--config-path=x"]):
-        assert _mode_of(args, cfg) is _UNKNOWN, args  # Hydra may read another mode than the precheck's config
-    assert _mode_of(["--config-dir", str(tmp_path), "icp.tau=0.5"], cfg) is None  # a flag's value is no override
-    original = Hydra.get_mode
-    with _hydra_mode_known(RunMode.MULTIRUN):
-        assert Hydra.get_mode(None, "config", []) == RunMode.MULTIRUN
-    assert Hydra.get_mode is original
-    with _hydra_mode_known(_UNKNOWN):
-        assert Hydra.get_mode is original

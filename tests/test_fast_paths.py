@@ -64,17 +64,16 @@ def case():
     p, n, _ = barycentric_sample(m, 6000, np.random.default_rng(5))
     cloud = Cloud(p, n)
     sp = estimate_spacing(p, np.random.default_rng(0))
-    ctx = Context(seed=0, run_dir=".", spacing=sp)
-    kp = SALIENCE.build({"name": "uniform", "voxel": 6.0}).keypoints(cloud, ctx)
-    return cloud, kp, ctx
+    kp = SALIENCE.build({"name": "uniform", "voxel": 6.0}).keypoints(cloud, sp)
+    return cloud, kp, sp
 
 
 @pytest.mark.parametrize("params", [{}, {"radius": 8.0, "max_neighbors": 64, "frame_radius": 5.0}])
 def test_histogram3p_equals_the_reference_implementation(case, params):
-    cloud, kp, ctx = case
+    cloud, kp, sp = case
     st = DESCRIPTOR.build({"name": "histogram3p", **params})
-    got = st.compute(cloud, kp, ctx)
-    want = reference_histogram3p(st.p, cloud, kp, ctx.spacing)
+    got = st.compute(cloud, kp, sp)
+    want = reference_histogram3p(st.p, cloud, kp, sp)
     assert len(kp) > 100 and got.shape == want.shape == (len(kp), 216)
     assert np.count_nonzero(want) > 0.3 * want.size  # real histograms, not mostly empty ones
     assert np.abs(got - want).max() < 1e-12
@@ -82,10 +81,10 @@ def test_histogram3p_equals_the_reference_implementation(case, params):
 
 def test_histogram3p_equals_the_reference_without_normals(case):
     """Estimated normals (and frames oriented by the mean offset) take the same path in both."""
-    cloud, kp, ctx = case
+    cloud, kp, sp = case
     bare = Cloud(cloud.points)
     st = DESCRIPTOR.build({"name": "histogram3p", "radius": 10.0})
-    assert np.abs(st.compute(bare, kp[:80], ctx) - reference_histogram3p(st.p, bare, kp[:80], ctx.spacing)).max() < 1e-12
+    assert np.abs(st.compute(bare, kp[:80], sp) - reference_histogram3p(st.p, bare, kp[:80], sp)).max() < 1e-12
 
 
 def reference_voxel_representatives(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -117,20 +116,20 @@ def test_voxel_representatives_equal_the_reference(n, voxel):
 
 
 def test_coarse_thinning_keeps_min_points_and_caps_max_points():
-    """The coarse stage's voxel thinning (stages/coarse.py ``downsampled``): a sparse pair is left as it is, the
+    """The coarse stage's voxel thinning (stages/coarse/thinning.py ``downsampled``): a sparse pair is left as it is, the
     thinner cloud keeps at least ``min_points`` (the voxel shrinks), and ``max_points`` bounds a dense one."""
     from scanreg.stages.coarse.thinning import downsampled
 
     m = read_mesh("pkg:pymeshlab/tests/sample_meshes/bunny.obj")
     dense, sparse = (Cloud(*barycentric_sample(m, n, np.random.default_rng(n))[:2]) for n in (40_000, 3_000))
     ctx = Context(seed=0, run_dir=None)
-    ctx.spacing = estimate_spacing(dense.points, np.random.default_rng(0))
-    t, s, c = downsampled(dense, sparse, ctx, 4 * ctx.spacing, 12000, 3000)
-    assert t is dense and s is sparse and c is ctx  # 3 000 points: not thinned at all
-    t, s, c = downsampled(dense, dense, ctx, 4 * ctx.spacing, None, None)
+    sp = estimate_spacing(dense.points, np.random.default_rng(0))
+    t, s, c = downsampled(dense, sparse, sp, ctx, 4 * sp, 12000, 3000)
+    assert t is dense and s is sparse and c == sp  # 3 000 points: not thinned at all, the spacing as given
+    t, s, c = downsampled(dense, dense, sp, ctx, 4 * sp, None, None)
     n4 = t.n_points
-    assert n4 < dense.n_points // 2 and c.spacing > ctx.spacing  # the plain 4-spacing voxel
-    t, s, c = downsampled(dense, dense, ctx, 4 * ctx.spacing, None, 20000)
+    assert n4 < dense.n_points // 2 and c > sp  # the plain 4-spacing voxel
+    t, s, c = downsampled(dense, dense, sp, ctx, 4 * sp, None, 20000)
     assert min(t.n_points, s.n_points) >= 0.8 * 20000 and t.n_points > n4  # shrunk towards min_points
-    t, s, c = downsampled(dense, dense, ctx, ctx.spacing, 5000, None)
+    t, s, c = downsampled(dense, dense, sp, ctx, sp, 5000, None)
     assert max(t.n_points, s.n_points) <= 1.25 * 5000  # grown towards max_points

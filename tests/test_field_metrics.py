@@ -2,6 +2,7 @@
 sets they are shown with, and a run with ground truth that logs them all."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -9,6 +10,7 @@ import pytest
 from conftest import shared
 from scanreg.geometry import Cloud
 from scanreg.io import write_ply
+from scanreg.types import CoarseTrace
 from scanreg.eval.metrics import (EvalParams, feature_match_recall, field_metrics, gt_metrics, gt_rmse, inlier_ratio,
                              keypoint_repeatability, match_inliers, overlap_mask, registration_recall)
 
@@ -98,9 +100,9 @@ def test_gt_rmse_by_hand():
 
 def test_field_metrics_from_a_trace():
     p = EvalParams(repeatability_distance=0.1, overlap_distance=1.0, match_inlier_distance=0.1)
-    trace = {"keypoints_target": KT, "keypoints_source": KS,
-             "matches_target": KT[:3], "matches_source": KS[[0, 2, 1]],  # 1st right, 2nd and 3rd swapped: wrong
-             "ransac_inliers": np.array([True, True, False])}
+    trace = CoarseTrace(keypoints_target=KT, keypoints_source=KS,
+                        matches_target=KT[:3], matches_source=KS[[0, 2, 1]],  # 1st right, 2nd and 3rd swapped: wrong
+                        ransac_inliers=np.array([True, True, False]))
     dense = np.array([[x, 0, 0] for x in np.arange(0, 4.0)])
     m, masks = field_metrics(trace, shift(10.2), shift(10.0), T_GT, KS, dense, p, spacing=1.0)
     assert m["n_keypoints_target"] == 4 and m["n_keypoints_source"] == 4
@@ -110,13 +112,13 @@ def test_field_metrics_from_a_trace():
     assert m["gt_rmse"] == 0.0 and m["coarse_gt_rmse"] == pytest.approx(0.2)
     assert masks["match_inliers"].tolist() == [True, False, False]
     # a coarse stage that exposes only keypoints: the matching metrics are absent, not zero
-    m, _ = field_metrics({"keypoints_target": KT, "keypoints_source": KS}, np.eye(4), T_GT, T_GT, KS, dense, p, 1.0)
+    m, _ = field_metrics(CoarseTrace(keypoints_target=KT, keypoints_source=KS), np.eye(4), T_GT, T_GT, KS, dense, p, 1.0)
     assert "keypoint_repeatability" in m and "inlier_ratio" not in m and "feature_match_recall" not in m
     # spacings: tolerances scale with the spacing (eps 0.1 spacings of 6 = 0.6: the 0.5-away keypoint counts)
     m, _ = field_metrics(trace, T_GT, T_GT, T_GT, KS, dense, p, spacing=6.0)
     assert m["keypoint_repeatability"] == pytest.approx(1.0)
     # eps counts the spacing the detector ran on (the coarse stage's thinned clouds) when the trace names it
-    m, _ = field_metrics({**trace, "spacing": 6.0}, T_GT, T_GT, T_GT, KS, dense, p, spacing=1.0)
+    m, _ = field_metrics(replace(trace, spacing=6.0), T_GT, T_GT, T_GT, KS, dense, p, spacing=1.0)
     assert m["keypoint_repeatability"] == pytest.approx(1.0)
 
 

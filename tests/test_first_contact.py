@@ -9,7 +9,7 @@ import pytest
 from conftest import run_cli
 from scanreg.geometry import Cloud, barycentric_sample, make_T, random_pose, transform_errors
 from scanreg.io import read_mesh, write_ply, write_transform
-from scanreg.stages.data import check_pair
+from scanreg.stages.data.files import check_pair
 
 
 def _bunny_pair(tmp_path, source_factor: float):

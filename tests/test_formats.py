@@ -283,7 +283,7 @@ def test_bumpy_but_thin_input_passes():
 def test_point_to_plane_singular_system_takes_the_least_norm_step():
     """Point-to-plane on a plane: the 6x6 system is singular (sliding in the plane, turning about its normal).
     No LinAlgError: the least-norm step moves only along what the pairs determine (the plane's normal)."""
-    from scanreg.stages.icp import PointToPlane
+    from scanreg.stages.icp.plane import PointToPlane
 
     u, v = np.mgrid[0:10, 0:10].reshape(2, -1).astype(float)
     pts = np.stack([u, v, np.zeros_like(u)], 1)

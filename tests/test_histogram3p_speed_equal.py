@@ -6,11 +6,12 @@ registration, bit for bit, on a real bunny scan; and scipy's searches against th
 import numpy as np
 import pytest
 
-from conftest import shared, stage_ctx
+from conftest import build_coarse, shared
 from scanreg.geometry import Cloud, apply_T, barycentric_sample, invert_T, random_pose
 from scanreg.io import read_mesh, read_stanford_conf
 from scanreg.geometry import estimate_spacing, transform_errors
-from scanreg.stages.registry import COARSE, DESCRIPTOR, MATCHER, SALIENCE, load_all
+from scanreg.stages.registry import DESCRIPTOR, MATCHER, SALIENCE, load_all
+from scanreg.types import RunContext
 # the references: the pykdtree search histogram3p used before (still the salience measures' search), and the
 # straightforward implementation from before issue #16 that test_fast_paths keeps (the benchmark's "before")
 from scanreg.geometry import neighbourhoods as reference_neighbourhoods
@@ -25,8 +26,8 @@ class ReferenceHistogram3P:
     def __init__(self, params):
         self.p = params
 
-    def compute(self, cloud, keypoints, ctx):
-        return reference_histogram3p(self.p, cloud, keypoints, ctx.spacing)
+    def compute(self, cloud, keypoints, spacing):
+        return reference_histogram3p(self.p, cloud, keypoints, spacing)
 
 
 # ------------------------------------------------------------------ the real case
@@ -43,10 +44,10 @@ def bunny():
     tp, tn, _ = barycentric_sample(read_mesh(folder / "bun000.ply"), 20000, np.random.default_rng(0))
     sp_, sn, _ = barycentric_sample(read_mesh(folder / "bun045.ply"), 20000, np.random.default_rng(1))
     tgt, src = Cloud(tp, tn), Cloud(apply_T(P, sp_), sn @ P[:3, :3].T)
-    c = stage_ctx(max(estimate_spacing(tp, np.random.default_rng(0)), estimate_spacing(sp_, np.random.default_rng(0))))
-    thin, _, cc = downsampled(tgt, src, c, 4 * c.spacing, 12000, 2000)
+    sp = max(estimate_spacing(tp, np.random.default_rng(0)), estimate_spacing(sp_, np.random.default_rng(0)))
+    thin, _, cc = downsampled(tgt, src, sp, RunContext(seed=0), 4 * sp, 12000, 2000)
     kp = SALIENCE.build({"name": "uniform"}).keypoints(thin, cc)
-    return tgt, src, T_gt, c, thin, kp, cc
+    return tgt, src, T_gt, sp, thin, kp, cc
 
 
 def test_neighbour_search_equals_pykdtree_on_a_bunny_scan(bunny):
@@ -57,7 +58,7 @@ def test_neighbour_search_equals_pykdtree_on_a_bunny_scan(bunny):
 
     *_, thin, kp, cc = bunny
     pts = thin.points
-    for r, k, q, full in ((15 * cc.spacing, 256, pts[kp], True), (2 * cc.spacing, 64, pts, False)):
+    for r, k, q, full in ((15 * cc, 256, pts[kp], True), (2 * cc, 64, pts, False)):
         got, want = _knn(cKDTree(pts), q, r, k), reference_neighbourhoods(pts, r, k, q)
         count = want[2].sum(axis=1)
         assert count.min() >= 1 and (count.max() == k) == full  # the support search: the cap truncates some
@@ -89,7 +90,7 @@ def test_histogram3p_equals_the_previous_implementation_on_a_bunny_scan(bunny, p
     *_, thin, kp, cc = bunny
     st = DESCRIPTOR.build({"name": "histogram3p", **params})
     got = st.compute(thin, kp, cc)
-    want = reference_histogram3p(st.p, thin, kp, cc.spacing)
+    want = reference_histogram3p(st.p, thin, kp, cc)
     assert len(kp) > 500 and got.shape == want.shape == (len(kp), 216)
     assert np.count_nonzero(want) > 0.3 * want.size  # real histograms, not mostly empty ones
     assert np.abs(got - want).max() < 1e-12
@@ -99,24 +100,24 @@ def test_histogram3p_equals_the_previous_implementation_without_normals(bunny):
     *_, thin, kp, cc = bunny
     bare = Cloud(thin.points)
     st = DESCRIPTOR.build({"name": "histogram3p"})
-    got, want = st.compute(bare, kp[:100], cc), reference_histogram3p(st.p, bare, kp[:100], cc.spacing)
+    got, want = st.compute(bare, kp[:100], cc), reference_histogram3p(st.p, bare, kp[:100], cc)
     assert np.count_nonzero(want) > 0.3 * want.size and np.abs(got - want).max() < 1e-12
 
 
 def test_coarse_registration_unchanged(bunny):
     """The default coarse stage with histogram3p: the same matches, inliers and transform, bit for bit, with
     the new implementation as with the reference; and the right answer."""
-    tgt, src, T_gt, c, *_ = bunny
+    tgt, src, T_gt, sp, *_ = bunny
     results = []
     for desc in (DESCRIPTOR.build({"name": "histogram3p"}), ReferenceHistogram3P(DESCRIPTOR.build({"name": "histogram3p"}).p)):
-        c.stages = {"salience": SALIENCE.build({"name": "uniform"}), "descriptor": desc,
-                    "matcher": MATCHER.build({"name": "mutual_knn"})}
-        T, m = COARSE.build({"name": "lo_ransac"}).run(tgt, src, c)
-        results.append((T, m, c.coarse_trace))
+        helpers = {"salience": SALIENCE.build({"name": "uniform"}), "descriptor": desc,
+                   "matcher": MATCHER.build({"name": "mutual_knn"})}
+        res = build_coarse("lo_ransac", helpers).align(tgt, src, sp, RunContext(seed=0))
+        results.append((res.T_target_source, res.metrics, res.trace))
     (T0, m0, tr0), (T1, m1, tr1) = results
-    assert np.array_equal(tr0["matches_target"], tr1["matches_target"])
-    assert np.array_equal(tr0["matches_source"], tr1["matches_source"])
-    assert np.array_equal(tr0["ransac_inliers"], tr1["ransac_inliers"]) and m0 == m1
+    assert np.array_equal(tr0.matches_target, tr1.matches_target)
+    assert np.array_equal(tr0.matches_source, tr1.matches_source)
+    assert np.array_equal(tr0.ransac_inliers, tr1.ransac_inliers) and m0 == m1
     assert np.array_equal(T0, T1)
     rot, trans = transform_errors(T0, T_gt)
     assert rot < 5 and m0["coarse_inliers"] >= 10, (rot, m0)

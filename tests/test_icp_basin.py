@@ -11,7 +11,7 @@ from scanreg.errors import ConfigError
 from scanreg.geometry import Cloud, apply_T, barycentric_sample, bbox_diagonal, make_T, random_pose, transform_errors
 from scanreg.io import read_mesh
 from scanreg.geometry import estimate_spacing
-from scanreg.stages.icp import IcpBase, kernel_weights
+from scanreg.stages.icp.base import IcpBase, kernel_weights
 
 
 def icp_stage(name, **kw):
@@ -22,10 +22,8 @@ def icp_stage(name, **kw):
     return cls(make_params(cls.Params, kw, f"icp={name}"))
 
 
-def ctx(spacing):
-    c = Context(seed=0, run_dir=None)
-    c.spacing = spacing
-    return c
+CTX = Context(seed=0, run_dir=None)
+"""The run context of every refinement here (read-only; the spacing is an argument of ``refine``)."""
 
 
 def sampled(mesh, n, seed):
@@ -52,7 +50,7 @@ def bunny_10deg():
     a, b = sampled(m, 30000, 1), sampled(m, 30000, 2)
     T = moved_pose(a.points, 10.0, 0.02, 0)
     tgt = Cloud(apply_T(T, a.points), a.normals @ T[:3, :3].T)
-    return tgt, b, T, ctx(estimate_spacing(tgt.points, np.random.default_rng(0)))
+    return tgt, b, T, estimate_spacing(tgt.points, np.random.default_rng(0))
 
 
 @pytest.mark.slow
@@ -60,23 +58,23 @@ def bunny_10deg():
 def test_icp_alone_converges_from_10_degrees_and_2_percent(variant, bunny_10deg):
     """coarse=none: the pair limit starts at 5 % of the diagonal and tightens to 3 spacings; every variant
     reaches the truth (< 0.1 deg). With the limit fixed at 3 spacings Besl-McKay stays degrees off."""
-    tgt, src, T, c = bunny_10deg
+    tgt, src, T, sp = bunny_10deg
     assert transform_errors(np.eye(4), T)[0] == pytest.approx(10.0)
-    res = icp_stage(variant).run(tgt, src, np.eye(4), c)
+    res = icp_stage(variant).refine(tgt, src, np.eye(4), sp, CTX)
     rot, trans = transform_errors(res.T_target_source, T)
     assert rot < 0.1 and trans < 1e-3 * bbox_diagonal(tgt.points), (variant, rot, trans)
     assert res.converged and res.metrics["icp_accepted"] == 1.0
     # the stopping rule held at the final limit, after the limit had tightened from 5 % of the diagonal
     assert res.metrics["icp_pair_limit_end_spacings"] == pytest.approx(3.0)
-    assert res.metrics["icp_pair_limit_start_spacings"] * c.spacing == pytest.approx(0.05 * bbox_diagonal(tgt.points))
+    assert res.metrics["icp_pair_limit_start_spacings"] * sp == pytest.approx(0.05 * bbox_diagonal(tgt.points))
     assert res.metrics["icp_fitness"] > 0.99 and len(res.rms_history) == res.iterations + 1
     if variant == "horn":
-        fixed = icp_stage(variant, schedule="fixed", accept=False).run(tgt, src, np.eye(4), c)
+        fixed = icp_stage(variant, schedule="fixed", accept=False).refine(tgt, src, np.eye(4), sp, CTX)
         assert transform_errors(fixed.T_target_source, T)[0] > 5.0
 
 
 def test_schedule_tightens_only_when_settled_and_stops_only_at_the_floor():
-    from scanreg.stages.icp import PairLimit
+    from scanreg.stages.icp.base import PairLimit
 
     lim = PairLimit(16.0, 3.0, shrink=0.5, settle=0.01)
     assert not lim.advance(1.0, 0.9, tau=1e-4)  # 10 % change: not settled, the limit stays
@@ -102,24 +100,23 @@ def test_kernel_weights():
     with pytest.raises(Exception, match="kernel"):
         icp_stage("horn", kernel="welsch")
     with pytest.raises(ConfigError, match="kernel"):
-        icp_stage("gicp", kernel="huber").run(Cloud(np.random.default_rng(0).normal(size=(100, 3))),
-                                              Cloud(np.random.default_rng(1).normal(size=(100, 3))), np.eye(4),
-                                              ctx(0.1))
+        icp_stage("gicp", kernel="huber").refine(Cloud(np.random.default_rng(0).normal(size=(100, 3))),
+                                                 Cloud(np.random.default_rng(1).normal(size=(100, 3))), np.eye(4),
+                                                 0.1, CTX)
     with pytest.raises(ConfigError, match="kernel"):
-        icp_stage("open3d", kernel="huber").run(Cloud(np.zeros((10, 3))), Cloud(np.zeros((10, 3))), np.eye(4),
-                                                ctx(0.1))
+        icp_stage("open3d", kernel="huber").refine(Cloud(np.zeros((10, 3))), Cloud(np.zeros((10, 3))), np.eye(4),
+                                                   0.1, CTX)
 
 
 def partial_overlap_case():
     """Target: 40 % of the bunny under a 5-degree pose T; source: an independent sampling of all of it.
-    Returns (target, source, T, context)."""
+    Returns (target, source, T, the target's spacing)."""
     m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
     a, b = sampled(m, 20000, 1), sampled(m, 20000, 2)
     keep = a.points[:, 1] < np.quantile(a.points[:, 1], 0.4)
     T = random_pose(np.random.default_rng(5), 5, 1.0)
     tgt = Cloud(apply_T(T, a.points[keep]), a.normals[keep] @ T[:3, :3].T)
-    c = ctx(estimate_spacing(tgt.points, np.random.default_rng(0)))
-    return tgt, b, T, c
+    return tgt, b, T, estimate_spacing(tgt.points, np.random.default_rng(0))
 
 
 @pytest.mark.parametrize("variant", ["horn", "point_to_plane", "open3d_plane"])
@@ -127,11 +124,11 @@ def test_robust_kernels_hold_a_partial_overlap(variant):
     """Target: 40 % of the bunny; source: all of it, started 5 deg off. With a wide fixed limit (20 spacings)
     least squares is pulled by the source's unmatched part; a Geman-McClure kernel at 1 spacing holds the truth
     (weighted Horn, the weighted 6x6 solve, Open3D's GMLoss)."""
-    tgt, b, T, c = partial_overlap_case()
+    tgt, b, T, sp = partial_overlap_case()
     name, kw = ("open3d", dict(estimation="point_to_plane")) if variant == "open3d_plane" else (variant, {})
     kw.update(schedule="fixed", max_correspondence_distance=20.0, accept=False, max_iterations=200)
-    ls = icp_stage(name, kernel="none", **kw).run(tgt, b, np.eye(4), c)
-    gm = icp_stage(name, kernel="geman_mcclure", kernel_scale=1.0, **kw).run(tgt, b, np.eye(4), c)
+    ls = icp_stage(name, kernel="none", **kw).refine(tgt, b, np.eye(4), sp, CTX)
+    gm = icp_stage(name, kernel="geman_mcclure", kernel_scale=1.0, **kw).refine(tgt, b, np.eye(4), sp, CTX)
     e_ls, e_gm = transform_errors(ls.T_target_source, T)[0], transform_errors(gm.T_target_source, T)[0]
     assert e_gm < 0.3 and e_gm < 0.5 * e_ls, (variant, e_gm, e_ls)
 
@@ -141,17 +138,17 @@ def test_acceptance_keeps_the_start_pose_when_icp_drifts():
     degrees away: fewer source points within 3 spacings afterwards (accept_distance), so the start pose is kept
     and logged as icp_accepted = 0; with the default schedule ICP stays and is accepted (accept_distance null: the
     final pair limit, 3 spacings)."""
-    tgt, b, T, c = partial_overlap_case()
+    tgt, b, T, sp = partial_overlap_case()
     kw = dict(schedule="fixed", max_correspondence_distance=20.0, accept_distance=3.0)
-    drift = icp_stage("horn", accept=False, **kw).run(tgt, b, T, c)
+    drift = icp_stage("horn", accept=False, **kw).refine(tgt, b, T, sp, CTX)
     assert transform_errors(drift.T_target_source, T)[0] > 2.0 and drift.metrics["icp_accepted"] == 1.0
-    kept = icp_stage("horn", **kw).run(tgt, b, T, c)
+    kept = icp_stage("horn", **kw).refine(tgt, b, T, sp, CTX)
     assert kept.metrics["icp_accepted"] == 0.0
     assert np.array_equal(kept.T_target_source, T)
     assert kept.metrics["icp_accept_end_fitness"] < 0.99 * kept.metrics["icp_accept_start_fitness"]
     # the reported fitness is the kept pose's
     assert kept.metrics["icp_fitness"] > drift.metrics["icp_fitness"] - 1.0
-    good = icp_stage("horn").run(tgt, b, T, c)
+    good = icp_stage("horn").refine(tgt, b, T, sp, CTX)
     assert good.metrics["icp_accepted"] == 1.0 and transform_errors(good.T_target_source, T)[0] < 0.3
 
 
@@ -167,10 +164,10 @@ def test_accept_rule():
 
 @pytest.mark.parametrize("variant", ["point_to_plane", "gicp", "anderson"])
 def test_same_seed_same_transform(variant, bunny_10deg):
-    tgt, src, T, c = bunny_10deg
+    tgt, src, T, sp = bunny_10deg
     sub = Cloud(src.points[::4], src.normals[::4])
-    r1 = icp_stage(variant).run(tgt, sub, np.eye(4), c)
-    r2 = icp_stage(variant).run(tgt, sub, np.eye(4), c)
+    r1 = icp_stage(variant).refine(tgt, sub, np.eye(4), sp, CTX)
+    r2 = icp_stage(variant).refine(tgt, sub, np.eye(4), sp, CTX)
     assert np.array_equal(r1.T_target_source, r2.T_target_source) and r1.rms_history == r2.rms_history
 
 
@@ -186,11 +183,11 @@ def test_3dmatch_pair_icp_keeps_a_good_coarse_pose():
     src = np.load(folder / "src.npy")[:, :3].astype(float)
     ref = np.load(folder / "ref.npy")[:, :3].astype(float)
     gt = np.load(folder / "gt.npy")
-    c = ctx(max(estimate_spacing(ref, np.random.default_rng(1)), estimate_spacing(src, np.random.default_rng(2))))
+    sp = max(estimate_spacing(ref, np.random.default_rng(1)), estimate_spacing(src, np.random.default_rng(2)))
     T0 = moved_pose(apply_T(gt, src), 0.9, 0.008 / bbox_diagonal(apply_T(gt, src)), 1) @ gt
     r0, t0 = transform_errors(T0, gt)
     assert r0 == pytest.approx(0.9, abs=1e-3) and t0 < 0.05
-    res = icp_stage("point_to_plane").run(Cloud(ref), Cloud(src), T0, c)
+    res = icp_stage("point_to_plane").refine(Cloud(ref), Cloud(src), T0, sp, CTX)
     rot, trans = transform_errors(res.T_target_source, gt)
     assert rot < 2.0 and trans < 0.10, (rot, trans)
     assert res.metrics["icp_accepted"] == 1.0

@@ -1,5 +1,5 @@
-"""The exact self-intersection test (scanreg.intersect) against known answers and against a brute-force reference
-in rational arithmetic that uses a different algorithm (separating axes, every pair of faces)."""
+"""The exact self-intersection test (scanreg.mesh.intersect) against known answers and against a brute-force
+reference in rational arithmetic that uses a different algorithm (separating axes, every pair of faces)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from scanreg.mesh.intersect import _MEMO, candidate_pairs, intersecting_across, orient2d, orient3d, self_intersecting_faces
+from scanreg.mesh.intersect import (Intersections, candidate_pairs, intersecting_across, orient2d, orient3d,
+                                    self_intersecting_faces, self_intersections)
 
 
 # ------------------------------------------------------------------------------------- rational reference
@@ -223,7 +224,7 @@ def test_predicates_are_exact_near_degeneracy():
 
 
 def _fresh(v, f):
-    _MEMO.clear()
+    """A full test: without ``previous`` every test is one (there is no memo of earlier tests any more)."""
     return self_intersecting_faces(v, f)
 
 
@@ -235,10 +236,24 @@ def _two_spheres():
     return np.vstack([v1, v1 * 0.9 + [0.8, 0.1, 0.05]]), np.vstack([f1, f1 + len(v1)])
 
 
+def _pair_set(res: Intersections) -> set:
+    return set(map(tuple, res.pairs.tolist()))
+
+
+def _spy_incremental(monkeypatch) -> list:
+    """Count the incremental tests (``_incremental``) made from now on."""
+    import scanreg.mesh.intersect as intersect
+
+    calls = []
+    incremental = intersect._incremental
+    monkeypatch.setattr(intersect, "_incremental", lambda *a: calls.append(1) or incremental(*a))
+    return calls
+
+
 def test_pair_blocks_give_the_same_faces(monkeypatch):
     """The exact pair test runs in blocks of candidate pairs (PAIR_BLOCK): blocks of 7 pairs find the same
     faces as one block, on two interpenetrating spheres and on random triangles."""
-    import scanreg.intersect as intersect
+    import scanreg.mesh.intersect as intersect
 
     rng = np.random.default_rng(11)
     cases = [_two_spheres(), (rng.random((90, 3)), rng.integers(0, 90, (60, 3)))]
@@ -248,13 +263,16 @@ def test_pair_blocks_give_the_same_faces(monkeypatch):
     assert whole[0].sum() > 0 and whole[1].sum() > 0
 
 
-def test_incremental_equals_full():
+def test_incremental_equals_full(monkeypatch):
     """An edited copy (faces cut out, new faces that cross others, the rest permuted, vertices renumbered)
-    tested right after the original reuses its outcome; the result equals a fresh full test."""
+    tested with the original's outcome as ``previous`` goes on from it (incrementally); the result equals a
+    full test's bit for bit: the same intersecting pairs, the same mask. The previous outcome is left as it
+    was."""
     rng = np.random.default_rng(5)
     v, f = _two_spheres()
-    base = _fresh(v, f)
-    assert base.any()
+    base = self_intersections(v, f)  # the original first, as a repair's input
+    assert base.mask.any() and base.keys is not None
+    base_pairs = base.pairs.copy()
     keep = rng.random(len(f)) > 0.05
     extra_v = rng.uniform(-1, 1.5, (30, 3))
     extra_f = len(v) + rng.integers(0, 30, (10, 3))
@@ -266,198 +284,83 @@ def test_incremental_equals_full():
     v2, f2 = v2[renum], inv[f2]
     perm = rng.permutation(len(f2))
     f2 = f2[perm]
-    _MEMO.clear()
-    self_intersecting_faces(v, f)  # the original first, as a repair's input
-    inc = self_intersecting_faces(v2, f2)
-    assert len(_MEMO._entries) == 2
-    assert np.array_equal(inc, _fresh(v2, f2))
-    # and in another thread, the later test waiting for the earlier one
-    import threading
-
-    _MEMO.clear()
-    out = {}
-    t = threading.Thread(target=lambda: out.setdefault("a", self_intersecting_faces(v, f)))
-    t.start()
-    b = self_intersecting_faces(v2, f2)
-    t.join()
-    assert np.array_equal(out["a"], base) and np.array_equal(b, inc)
+    calls = _spy_incremental(monkeypatch)
+    inc = self_intersections(v2, f2, previous=base)
+    assert calls == [1]  # incremental
+    full = self_intersections(v2, f2)
+    assert calls == [1]  # without previous: a full test
+    assert np.array_equal(inc.mask, full.mask) and inc.count == full.count
+    assert _pair_set(inc) == _pair_set(full) and len(inc.pairs) == len(full.pairs)
+    assert np.array_equal(inc.mask, self_intersecting_faces(v2, f2))
+    assert np.array_equal(base.pairs, base_pairs)
+    assert (inc.mask & (perm >= keep.sum())).any()  # some of the new faces cross others
 
 
-def test_memo_finds_the_mesh_an_edit_came_from():
-    """The memo pairs a mesh with the earlier one that shares at least half its faces, through the sampled
-    pre-check and the full count; an unrelated mesh, or one sharing too few faces, is tested afresh."""
-    from scanreg.mesh.intersect import _face_keys
+def test_previous_is_used_only_when_it_shares_half_the_faces(monkeypatch):
+    """``previous`` is used when it holds more than half of the new mesh's faces (a sampled pre-check, then
+    the full count); an unrelated previous, one sharing too few faces, one more than MAX_RATIO times larger,
+    and a mesh under MIN_FACES are tested in full; the result is the full test's in every case."""
+    from scanreg.mesh.intersect import MAX_RATIO, MIN_FACES, PROBE, _face_keys, _shares_half
 
     rng = np.random.default_rng(2)
     v, f = _two_spheres()
     keys = _face_keys(v, f.astype(np.int64))
-    assert len(keys) > 2 * _MEMO.PROBE  # the pre-check samples the faces
-    _MEMO.clear()
-    first, prev = _MEMO.begin(keys)
-    assert prev is None
-    edited = keys[rng.permutation(len(keys))[: int(0.7 * len(keys))]]  # 70 % of the faces, reordered
-    assert _MEMO.begin(edited)[1] is first
-    assert _MEMO.begin(keys[: int(0.4 * len(keys))] + 1)[1] is None  # nothing shared
+    assert len(keys) > 2 * PROBE  # the pre-check samples the faces
+
+    def outcome(k):  # an outcome with these face keys (only the keys decide whether it is used)
+        return Intersections(v, f, np.zeros((0, 2), np.int64), k)
+
+    whole = outcome(keys)
+    edited = outcome(keys[rng.permutation(len(keys))[: int(0.7 * len(keys))]])  # 70 % of the faces, reordered
+    assert _shares_half(edited, whole)
+    unrelated = outcome(keys[: int(0.4 * len(keys))] + 1)  # nothing shared
+    assert not _shares_half(unrelated, whole) and not _shares_half(unrelated, edited)
     filler = (np.arange(1, len(keys) + 1, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)).astype(keys.dtype)
     few = np.concatenate([keys[: int(0.4 * len(keys))], filler])  # 40 % of these faces: too few
     assert few.dtype == keys.dtype
-    assert _MEMO.begin(few)[1] is None
-    n = len(_MEMO._entries)
-    small = f[: _MEMO.MIN_FACES // 2]  # an edit's neighbourhood: tested in full, no place in the memo
-    got = self_intersecting_faces(v, small)
-    assert len(_MEMO._entries) == n and np.array_equal(got, _fresh(v, small))
-    _MEMO.clear()
+    assert not _shares_half(outcome(few), whole) and not _shares_half(outcome(few), edited)
+    tenth = outcome(keys[: len(keys) // 10])  # all its faces in ``whole``, but ``whole`` is over 8 times larger
+    assert len(keys) > MAX_RATIO * (len(keys) // 10) and not _shares_half(tenth, whole)
+    # the same decisions in the test itself, with the full test's result
+    full = self_intersections(v, f)
+    calls = _spy_incremental(monkeypatch)
+    far = self_intersections(v + 10.0, f)  # the same faces moved: no face shared
+    assert np.array_equal(self_intersections(v + 10.0, f, previous=full).mask, far.mask) and calls == []
+    small = f[: MIN_FACES // 2]  # an edit's neighbourhood: tested in full, no keys kept for it
+    got = self_intersections(v, small, previous=full)
+    assert got.keys is None and calls == [] and np.array_equal(got.mask, _fresh(v, small))
+    # four copies of the spheres, the first in place: over 8 times the faces of 1200 of the first copy's
+    vb = np.vstack([v + [5.0 * k, 0.0, 0.0] for k in range(4)])
+    fb = np.vstack([f + k * len(v) for k in range(4)])
+    big = self_intersections(vb, fb)
+    part = f[:1200]
+    assert len(part) >= MIN_FACES and len(fb) > MAX_RATIO * len(part)
+    assert np.array_equal(self_intersections(v, part, previous=big).mask, _fresh(v, part)) and calls == []
+    later = f[: int(0.7 * len(f))]
+    assert np.array_equal(self_intersections(v, later, previous=full).mask, _fresh(v, later)) and calls == [1]
 
 
-def test_beside_gives_the_same_in_a_child_a_thread_and_after_a_failure(monkeypatch):
-    """Beside (the repair's input test, run beside the backend): in a forked child, in a thread
-    (SCANREG_NO_FORK), after the child failed in its first or extra work (done here instead) and after a child
-    that took too long (stopped, done here), the mask is the fresh test's and the first and extra values are
-    returned; the memo gets the outcome, so that an edited copy tested next goes on incrementally (the same as a
-    full test)."""
-    import os
-    import sys
-
-    from scanreg.mesh.intersect import Beside
-
-    v, f = _two_spheres()
-    want, edited = _fresh(v, f), f[5:]
-    want_edited = _fresh(v, edited)
-    parent = os.getpid()
-
-    def fails_in_child():
-        if os.getpid() != parent:
-            raise RuntimeError("child")
-        return "here"
-
-    def slow_in_child():
-        if os.getpid() != parent:
-            import time
-            time.sleep(30)
-        return "here"
-
-    cases = [({}, lambda: 7, 7), ({"SCANREG_NO_FORK": "1"}, lambda: 7, 7), ({}, fails_in_child, "here")]
-    for env, extra, value in cases:
-        for k, val in env.items():
-            monkeypatch.setenv(k, val)
-        _MEMO.clear()
-        b = Beside(v, f, extra=extra, first=extra)  # the first value, before the test: the same ways
-        assert b.first_result() == value
-        assert np.array_equal(b.result(), want) and b.extra_result() == value
-        assert len(_MEMO._entries) == 1 and _MEMO._entries[0].done.is_set()
-        assert np.array_equal(self_intersecting_faces(v, edited), want_edited)
-        assert len(_MEMO._entries) == 2  # the edit went on from the child's outcome (kept in the memo)
-        monkeypatch.delenv("SCANREG_NO_FORK", raising=False)
-    if sys.platform.startswith("linux"):
-        monkeypatch.setattr(Beside, "TIMEOUT_S", 1.0)
-        _MEMO.clear()
-        b = Beside(v, f, extra=slow_in_child)
-        assert np.array_equal(b.result(), want) and b.extra_result() == "here"
-        b = Beside(v, f, first=slow_in_child)  # a child stuck in the first value: stopped, all made here
-        assert b.first_result() == "here" and np.array_equal(b.result(), want)
-
-
-def test_beside_answers_a_later_request_in_a_child_a_thread_and_after_a_failure(monkeypatch):
-    """Beside's then/ask (the repair's output measured against the input audit's search tree): the answer is
-    the same whether the child makes it, a thread does (SCANREG_NO_FORK), or this process after the child
-    failed in its preparation or its answer; a request sent after longer than the time limit (the backend's
-    own time) is still answered by the child, which is not stopped meanwhile; a Beside closed without a
-    request leaves no child behind; the mask and extra value come without waiting for the request."""
-    import os
-    import sys
-    import time
-
-    from scanreg.mesh.intersect import Beside
+def test_mesh_intersections_go_on_from_a_tested_previous_mesh(monkeypatch):
+    """scanreg.mesh.topology.intersections(mesh, previous=other): remembered on ``mesh``; incremental from
+    ``other``'s remembered test when it has one (a repair's input for its output), a full test when it has
+    none; the mask and count are the full test's either way."""
+    from scanreg.geometry import Mesh
+    from scanreg.mesh.topology import intersections, self_intersecting_count
+    from scanreg.mesh.topology import self_intersecting_faces as faces_of
 
     v, f = _two_spheres()
-    want = _fresh(v, f)
-    parent = os.getpid()
-    request = (np.arange(12.0).reshape(4, 3), np.array([[0, 1, 2]], np.int64))
-
-    def prepare():  # a value only the preparation has, and where it was made
-        base = float(v.sum())
-
-        def answer(req):
-            pts, tri = req
-            return base + float(pts.sum()) + tri.sum(), os.getpid() == parent
-        return answer
-
-    def fails_in_child():
-        if os.getpid() != parent:
-            raise RuntimeError("child")
-        return prepare()
-
-    def answer_fails_in_child():
-        a = prepare()
-
-        def answer(req):
-            if os.getpid() != parent:
-                raise RuntimeError("child")
-            return a(req)
-        return answer
-
-    expect = float(v.sum()) + 66.0 + 3
-    cases = [({}, prepare, False), ({"SCANREG_NO_FORK": "1"}, prepare, True), ({}, fails_in_child, True),
-             ({}, answer_fails_in_child, True)]
-    for env, then, here in cases:
-        for k, val in env.items():
-            monkeypatch.setenv(k, val)
-        _MEMO.clear()
-        b = Beside(v, f, extra=lambda: 7, then=then)
-        assert np.array_equal(b.result(), want) and b.extra_result() == 7  # before any request
-        b.ask(*request)
-        value, made_here = b.then_result()
-        assert value == expect and made_here == (here or not sys.platform.startswith("linux")), (env, then)
-        b.close()
-        monkeypatch.delenv("SCANREG_NO_FORK", raising=False)
-    with pytest.raises(ValueError):
-        b.ask(*request)  # once only
-    if sys.platform.startswith("linux"):
-        monkeypatch.setattr(Beside, "TIMEOUT_S", 0.5)
-        monkeypatch.setattr(Beside, "TIMEOUT_S_PER_FACE", 0.0)
-        _MEMO.clear()
-        b = Beside(v, f, then=prepare)
-        time.sleep(1.5)  # longer than the limit: the child waits for the request, not stopped
-        b.ask(*request)
-        assert b.then_result() == (expect, False)
-        made = []
-
-        def counted():
-            made.append(os.getpid())
-            return prepare()
-        _MEMO.clear()
-        b = Beside(v, f, then=counted)
-        pid = b._child[0]
-        b.result()
-        b.close()  # no request: the child leaves, and nothing is prepared here
-        b._thread.join(10)
-        assert not b._thread.is_alive() and parent not in made
-        with pytest.raises(ChildProcessError):
-            os.waitpid(pid, os.WNOHANG)  # reaped
-        _MEMO.clear()  # this side fails on the child's extra value: the child stopped, the value made here
-        b = Beside(v, f, extra=lambda: _LoadsOnlyInAChild(parent), then=prepare)
-        assert b._known.wait(30)  # (it used to wait for the child, which waited for the request)
-        assert np.array_equal(b.result(), want) and isinstance(b.extra_result(), _LoadsOnlyInAChild)
-        b.ask(*request)
-        assert b.then_result() == (expect, True)
-
-
-def _fail_in(pid: int):
-    import os
-
-    if os.getpid() == pid:
-        raise RuntimeError("this value cannot be loaded here")
-    return _LoadsOnlyInAChild(pid)
-
-
-class _LoadsOnlyInAChild:
-    """A value whose unpickling fails in the process ``pid`` (a failure on the receiving side)."""
-
-    def __init__(self, pid: int):
-        self.pid = pid
-
-    def __reduce__(self):
-        return _fail_in, (self.pid,)
+    edited = f[7:]
+    want = _fresh(v, edited)
+    calls = _spy_incremental(monkeypatch)
+    untested = Mesh(v, f)
+    got = intersections(Mesh(v, edited), previous=untested)  # the previous mesh was never tested: full
+    assert calls == [] and np.array_equal(got.mask, want)
+    tested = Mesh(v, f)
+    first = intersections(tested)
+    assert intersections(tested) is first  # remembered
+    out = Mesh(v, edited)
+    assert np.array_equal(faces_of(out, previous=tested), want) and calls == [1]
+    assert self_intersecting_count(out, previous=tested) == int(want.sum()) and calls == [1]  # remembered
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -481,9 +384,8 @@ def test_folded_grids_match_the_reference(seed):
 
 
 def test_regular_vertices_on_a_sphere_and_a_dent():
-    from scanreg.mesh.intersect import regular_vertices
-
     import open3d as o3d
+    from scanreg.mesh.intersect import regular_vertices
 
     s = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=10)
     v, f = np.asarray(s.vertices).copy(), np.asarray(s.triangles)
@@ -587,65 +489,25 @@ def test_regular_vertices_from_their_fans_alone(seed):
 
 @pytest.mark.parametrize("seed", [0, 2, 4, 6])
 def test_incremental_on_folded_grids(seed, monkeypatch):
-    """Faces added to a folded grid, tested right after the grid without them: the new faces fold over old
-    ones around shared vertices whose whole fan (old faces too) turns more than once; the incremental result
-    equals the full test's."""
+    """Faces added to a folded grid, tested from the grid without them (``previous``): the new faces fold over
+    old ones around shared vertices whose whole fan (old faces too) turns more than once; the incremental
+    result equals the full test's."""
     rng = np.random.default_rng(seed)
-    n = 26  # 1250 faces, 1125 without the added ones: above the memo's smallest mesh
+    n = 26  # 1250 faces, 1125 without the added ones: above the incremental test's smallest mesh
     gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
     v = np.stack([gx.ravel(), gy.ravel(), np.zeros(n * n)], axis=1)
     v[:, :2] += rng.uniform(-1.2, 1.2, (n * n, 2)) * (rng.random((n * n, 1)) < 0.3)
     q = np.arange(n * n).reshape(n, n)
     a, b, c, d = q[:-1, :-1].ravel(), q[:-1, 1:].ravel(), q[1:, :-1].ravel(), q[1:, 1:].ravel()
     f = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
-    import scanreg.intersect as intersect
-
-    full = _fresh(v, f)
+    full = self_intersections(v, f)
     added = rng.random(len(f)) < 0.1
-    calls = []
-    incremental = intersect._incremental
-    monkeypatch.setattr(intersect, "_incremental", lambda *a: calls.append(1) or incremental(*a))
-    _MEMO.clear()
-    self_intersecting_faces(v, f[~added])
-    inc = self_intersecting_faces(v, f)
+    calls = _spy_incremental(monkeypatch)
+    prev = self_intersections(v, f[~added])
+    inc = self_intersections(v, f, previous=prev)
     assert calls == [1]  # the second test was incremental
-    assert np.array_equal(inc, full)
-    assert (full & added).any()
-
-
-@pytest.mark.parametrize("last", [False, True, "fails"])
-def test_beside_runs_the_test_last_when_asked(last, tmp_path, monkeypatch):
-    """``test_last`` (a function of the first value) puts the child's self-intersection test after its extra
-    work and then's preparation; the results are the same either way (the messages keep their order); if it
-    fails, the child keeps the usual order (the work stays in the child)."""
-    import os
-
-    import scanreg.intersect as intersect
-    from scanreg.mesh.intersect import Beside
-
-    if not intersect.forking():
-        pytest.skip("no fork here: the order is the thread's")
-    log = tmp_path / "order"
-    v, f = _two_spheres()
-    want = _fresh(v, f)
-    all_pairs = intersect._all_pairs
-
-    def note(what):
-        with open(log, "a") as fh:
-            fh.write(f"{what} {os.getpid()}\n")
-
-    monkeypatch.setattr(intersect, "_all_pairs", lambda *a, **k: note("test") or all_pairs(*a, **k))
-    _MEMO.clear()
-    b = Beside(v, f, first=lambda: "plan", extra=lambda: note("extra") or 7,
-               then=lambda: note("then") or (lambda req: float(req[0].sum())),
-               test_last=lambda first: note(f"asked:{first}") or (1 / 0 if last == "fails" else last))
-    assert b.first_result() == "plan"
-    assert np.array_equal(b.result(), want) and b.extra_result() == 7
-    b.ask(np.ones(3))
-    assert b.then_result() == 3.0
-    order = [line.split()[0] for line in log.read_text().splitlines()]
-    assert all(int(line.split()[1]) != os.getpid() for line in log.read_text().splitlines())  # in the child
-    assert order == ["asked:plan"] + (["extra", "then", "test"] if last is True else ["test", "extra", "then"])
+    assert np.array_equal(inc.mask, full.mask) and _pair_set(inc) == _pair_set(full)
+    assert (full.mask & added).any()
 
 
 @pytest.mark.parametrize("seed", range(6))

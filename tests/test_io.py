@@ -226,7 +226,7 @@ def test_non_convex_polygon_is_ear_clipped_in_ply_and_obj(tmp_path, start):
 
 def test_convex_polygons_keep_the_fan():
     """Convex quads and pentagons stay fans (same triangles as before), mixed sizes in one list."""
-    from scanreg.io import _triangulate
+    from scanreg.io.faces import _triangulate
 
     pts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 1.5, 0]], float)
     tris = _triangulate([np.array([0, 1, 2, 4, 3]), np.array([0, 1, 2])], pts, "t")

@@ -29,6 +29,47 @@ def wheel(tmp_path_factory) -> Path:
     return whl
 
 
+SOURCE_FOLDERS = {"pipeline": "scanreg", "stages": "scanreg.stages", "conf": "scanreg.conf"}
+"""The repository's folders and the packages they are (pyproject.toml's package-dir)."""
+
+
+def _folders() -> dict[str, Path]:
+    """Every package folder of the checkout by its package name: the folders under pipeline/ and stages/ with an
+    __init__.py, and every folder of conf/ (config groups: packages without Python)."""
+    out = {}
+    for top, pkg in SOURCE_FOLDERS.items():
+        for d in [ROOT / top, *sorted(p for p in (ROOT / top).rglob("*") if p.is_dir())]:
+            if "__pycache__" in d.parts:
+                continue
+            if top == "conf" or (d / "__init__.py").is_file():
+                rel = d.relative_to(ROOT / top).parts
+                out[".".join((pkg, *rel))] = d
+    return out
+
+
+def _pyproject() -> dict:
+    import tomllib
+
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())
+
+
+def test_pyproject_lists_every_package_folder():
+    """pyproject.toml's explicit package list: every folder under pipeline/ and stages/ with an __init__.py and
+    every folder of conf/ is listed (a missing one would be absent from the wheel), and nothing else."""
+    setup = _pyproject()["tool"]["setuptools"]
+    assert setup["package-dir"] == {v: k for k, v in SOURCE_FOLDERS.items()}
+    listed = setup["packages"]
+    assert len(listed) == len(set(listed)), "a package listed twice"
+    folders = _folders()
+    assert set(folders) <= set(listed), f"not listed in pyproject.toml: {sorted(set(folders) - set(listed))}"
+    assert set(listed) <= set(folders), f"listed but no such package folder: {sorted(set(listed) - set(folders))}"
+    assert {"scanreg.app.report", "scanreg.runner", "scanreg.stages.icp", "scanreg.conf.tracking"} <= set(listed)
+    # a folder with Python modules but no __init__.py would be skipped silently
+    for top in ("pipeline", "stages"):
+        for py in (ROOT / top).rglob("*.py"):
+            assert (py.parent / "__init__.py").is_file(), f"{py.parent} has modules but no __init__.py"
+
+
 def test_wheel_holds_one_package_and_the_configs(wheel):
     names = zipfile.ZipFile(wheel).namelist()
     assert {n.split("/")[0] for n in names} == {"scanreg", wheel.name.split("-py3")[0] + ".dist-info"}
@@ -36,6 +77,13 @@ def test_wheel_holds_one_package_and_the_configs(wheel):
     yamls = {n.removeprefix("scanreg/conf/") for n in names if n.endswith(".yaml")}
     assert yamls == {str(p.relative_to(ROOT / "conf")) for p in (ROOT / "conf").rglob("*.yaml")}
     assert "scanreg/stages/repair/meshfix.py" in names
+    # every module of the checkout, at its package's place
+    for top, pkg in SOURCE_FOLDERS.items():
+        for py in (ROOT / top).rglob("*.py"):
+            if "__pycache__" in py.parts:
+                continue
+            where = "/".join((*pkg.split("."), *py.relative_to(ROOT / top).parts))
+            assert where in names, f"{py.relative_to(ROOT)} is not in the wheel (as {where})"
 
 
 @pytest.mark.slow

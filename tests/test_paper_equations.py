@@ -13,12 +13,13 @@ from scipy.spatial.transform import Rotation
 from scanreg.geometry import ClosestPoints
 from scanreg.geometry import (Cloud, Mesh, apply_T, barycentric_sample, horn_quaternion, make_T, random_pose,
                               rigid_points_normals)
-from scanreg.stages.registry import COARSE, DESCRIPTOR, ICP, SALIENCE, load_all
+from scanreg.stages.registry import DESCRIPTOR, ICP, SALIENCE, load_all
 from scanreg.stages import descriptor as descriptor_mod
+from scanreg.stages.coarse.ransac import lo_ransac
 from scanreg.stages.salience import non_maximum_suppression
+from scanreg.types import RunContext
 
-from conftest import build
-from conftest import stage_ctx as ctx
+from conftest import build, build_coarse
 
 load_all()
 
@@ -90,7 +91,7 @@ def test_histogram3p_bins_by_hand(monkeypatch):
     ])
     d = Cloud(pts, nrm)
     st = build(DESCRIPTOR, "histogram3p", radius=3.0, frame_radius=3.0, density_radius=0.1, distances="absolute")
-    got = st.compute(d, np.array([0]), ctx())[0]
+    got = st.compute(d, np.array([0]), 1.0)[0]
 
     want = np.zeros(216)
 
@@ -133,7 +134,7 @@ def test_histogram3p_orientation_bins_wrap_around(monkeypatch):
     patch_frames(monkeypatch, np.eye(3))
     c = Cloud(np.zeros((1, 3)), np.array([[-1.0, 1e-300, 0.0]]))  # (x, y) angle atan2(+tiny, -1) = +180
     st = build(DESCRIPTOR, "histogram3p", radius=3.0, frame_radius=3.0, density_radius=0.1, distances="absolute")
-    got = st.compute(c, np.array([0]), ctx())[0]
+    got = st.compute(c, np.array([0]), 1.0)[0]
     want = np.zeros(216)
     want[hist_index(0, 1, 1, 7)] = want[hist_index(0, 1, 1, 0)] = 0.5
     # (y, z): atan2(0, tiny) = 0 -> bins 3, 4; (z, x): atan2(-1, 0) = -90 -> uo = 1.5 -> bins 1, 2
@@ -153,9 +154,9 @@ def test_histogram3p_expresses_neighbours_in_the_frame_rows(monkeypatch):
     F = Rotation.from_rotvec([0.3, -0.8, 0.5]).as_matrix()
     st = build(DESCRIPTOR, "histogram3p", radius=3.0, frame_radius=3.0, density_radius=0.8, distances="absolute")
     patch_frames(monkeypatch, F)
-    got = st.compute(Cloud(pts, nrm), np.array([0]), ctx())[0]
+    got = st.compute(Cloud(pts, nrm), np.array([0]), 1.0)[0]
     patch_frames(monkeypatch, np.eye(3))
-    want = st.compute(Cloud(pts @ F.T, nrm @ F.T), np.array([0]), ctx())[0]
+    want = st.compute(Cloud(pts @ F.T, nrm @ F.T), np.array([0]), 1.0)[0]
     assert np.count_nonzero(want) > 50 and np.abs(got - want).max() < 1e-12
 
 
@@ -197,14 +198,16 @@ def test_uniform_ransac_draws_the_closed_form_count(w):
     that is >= max(N, m)."""
     P0, P1, k = ransac_problem(w)
     N = math.ceil(math.log(0.01) / math.log(1 - (k / len(P0)) ** 3))
-    st = build(COARSE, "lo_ransac", sampling="uniform", batch=1, min_iterations=1, distance_threshold=0.01,
-               distances="absolute", seed=1)
-    T, inl, drawn = st.estimate(P0, P1, None, None, 0.01)
+    st = build_coarse("lo_ransac", sampling="uniform", batch=1, min_iterations=1, distance_threshold=0.01,
+                      distances="absolute", seed=1)
+    r = lo_ransac(P0, P1, None, None, 0.01, st.p, st.p.seed)
+    inl, drawn = r.inliers, r.hypotheses
     assert inl.sum() == k
     assert drawn == N
-    st = build(COARSE, "lo_ransac", sampling="uniform", batch=64, min_iterations=100, distance_threshold=0.01,
-               distances="absolute", seed=1)
-    _, inl, drawn = st.estimate(P0, P1, None, None, 0.01)
+    st = build_coarse("lo_ransac", sampling="uniform", batch=64, min_iterations=100, distance_threshold=0.01,
+                      distances="absolute", seed=1)
+    r = lo_ransac(P0, P1, None, None, 0.01, st.p, st.p.seed)
+    inl, drawn = r.inliers, r.hypotheses
     assert inl.sum() == k
     assert drawn == 64 * math.ceil(max(N, 100) / 64)
 
@@ -252,7 +255,7 @@ def run_horn(target, source, **kw):
     """The paper's Besl-McKay loop: a fixed pair limit (no adaptive schedule), least squares, no acceptance test."""
     st = build(ICP, "horn", **{"max_correspondence_distance": None, "distances": "absolute", "schedule": "fixed",
                                "kernel": "none", "accept": False, **kw})
-    return st.run(target, source, np.eye(4), ctx())
+    return st.refine(target, source, np.eye(4), 1.0, RunContext(seed=0))
 
 
 def test_icp_each_iterate_is_horn_from_the_original_source():
@@ -409,7 +412,7 @@ def test_salience_at_the_64_neighbour_cap(measure, weights):
     pts = rng.normal(size=(600, 3)) * [2.0, 1.0, 0.3]
     st = build(SALIENCE, f"cp_{measure}", radius=1.5, weights=weights, distances="absolute")
     assert st.p.max_neighbors == 64
-    h = st.values(Cloud(pts), ctx())
+    h = st.values(Cloud(pts), 1.0)
     checked = 0
     for i in rng.choice(600, 30, replace=False):
         dist = np.linalg.norm(pts - pts[i], axis=1)

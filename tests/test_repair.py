@@ -1,5 +1,7 @@
 """Repair backends and the repair audit on real defect meshes (../shared/data and meshes packages ship)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -36,8 +38,11 @@ def assert_clean(after, watertight=True):
         assert after["after_volume"] > 0, "outward orientation gives a positive volume"
 
 
-def strip(m, prefix="r_"):
-    return {k[len(prefix):]: v for k, v in m.items()}
+def audited(st, mesh):
+    """The audited repair (:func:`repair_with_audit`): the mesh to go on with and the audit's metrics (unprefixed
+    names)."""
+    res = repair_with_audit(st, mesh, CTX)
+    return res.mesh, res.metrics
 
 
 @pytest.mark.parametrize("backend,mesh", [
@@ -48,8 +53,7 @@ def strip(m, prefix="r_"):
 ])
 def test_closed_models_become_single_watertight_manifolds(backend, mesh):
     m = load(mesh)
-    out, metrics = repair_with_audit(stage(backend), m, CTX, "r_")
-    a = strip(metrics)
+    out, a = audited(stage(backend), m)
     assert_clean(a)
     assert a["guard_ok"] == 1 and a["removed_area_share"] < 0.1 and a["hausdorff_max_rel"] < 0.01
     if "StanfordBunny" in mesh:  # the defects were there, and are reported as gone
@@ -65,14 +69,14 @@ def test_guard_stops_repairs_that_destroy_open_scans(backend, mesh):
     The guard must fail such a run, with the audit, and say which parameter to change."""
     m = load(mesh)
     with pytest.raises(StageError, match=r"removed \d+\.\d% of the surface") as e:
-        repair_with_audit(stage(backend, open_border="cap"), m, CTX, "r_")
+        repair_with_audit(stage(backend, open_border="cap"), m, CTX)
     assert "\n" not in str(e.value) and "repair.open_border=open" in str(e.value)
     assert str(e.value).startswith(f"repair={backend}: {mesh}: ")
-    assert e.value.metrics["r_removed_area_share"] > 0.3 and e.value.metrics["r_guard_ok"] == 0
-    assert e.value.metrics["r_open_border_open"] == 0
+    assert e.value.metrics["removed_area_share"] > 0.3 and e.value.metrics["guard_ok"] == 0
+    assert e.value.metrics["open_border_open"] == 0
     # check_only audits the same repair but hands the unchanged mesh on
-    out, metrics = repair_with_audit(stage(backend, open_border="cap", check_only=True), m, CTX, "r_")
-    assert out is m and metrics["r_guard_ok"] == 0
+    out, metrics = audited(stage(backend, open_border="cap", check_only=True), m)
+    assert out is m and metrics["guard_ok"] == 0
 
 
 @pytest.mark.parametrize("backend,mesh,max_edges", [
@@ -87,8 +91,7 @@ def test_open_scans_with_the_border_kept_open(backend, mesh, max_edges):
     little of the surface removed."""
     m = load(mesh)
     before = mesh_stats(m)
-    _, metrics = repair_with_audit(stage(backend, max_hole_edges=max_edges, max_hausdorff=1.0), m, CTX, "r_")
-    a = strip(metrics)
+    _, a = audited(stage(backend, max_hole_edges=max_edges, max_hausdorff=1.0), m)
     assert_clean(a, watertight=False)
     assert before["boundary_loops"] > 1 and a["after_boundary_loops"] == 1
     assert a["removed_area_share"] < 0.1
@@ -99,8 +102,7 @@ def test_open_scans_with_the_border_kept_open(backend, mesh, max_edges):
 @pytest.mark.slow
 def test_meshlab_on_a_stanford_scan_with_border_open():
     m = load("stanford_bunny/bun000.ply")
-    _, metrics = repair_with_audit(stage("meshlab", max_hole_edges=300, max_hausdorff=1.0), m, CTX, "r_")
-    a = strip(metrics)
+    _, a = audited(stage("meshlab", max_hole_edges=300, max_hausdorff=1.0), m)
     assert_clean(a, watertight=False)
     assert a["after_boundary_loops"] == 1 and a["removed_area_share"] < 0.01
 
@@ -121,14 +123,11 @@ def test_audit_counts_self_intersections_and_nonmanifold_vertices():
 
 
 def test_distances_to_are_exact_point_to_triangle_distances():
-    """distances_to (libigl's AABB tree, which the audit's child builds): the known distances to a unit square
-    of two triangles (above its face, beside an edge, beyond a corner), and Open3D's float32 distances on the
-    bunny to within float32 rounding; built and queried in a forked child, the same bits as here."""
-    import os
-    import pickle
-
+    """distances_to (libigl's AABB tree, the audit's distances from the output's samples to the input): the
+    known distances to a unit square of two triangles (above its face, beside an edge, beyond a corner), and
+    Open3D's float32 distances on the bunny to within float32 rounding."""
     from scanreg.geometry import Mesh, bbox_diagonal
-    from scanreg.mesh.topology import area_samples, distances_to, point_distances, raycasting_scene
+    from scanreg.mesh.distances import area_samples, distances_to, point_distances, raycasting_scene
 
     square = Mesh(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
     q = np.array([[0.3, 0.4, 0.5], [2, 0.5, 0], [2, 2, 0], [-1, -1, 1], [0.5, 0.5, 0]])
@@ -137,20 +136,6 @@ def test_distances_to_are_exact_point_to_triangle_distances():
     pts = area_samples(bunny, 3000, 1) + np.random.default_rng(0).normal(0, 1e-3, (3000, 3))
     d = distances_to(bunny)(pts)
     assert np.abs(d - point_distances(raycasting_scene(bunny), pts)).max() < 1e-6 * bbox_diagonal(bunny.vertices)
-    r, w = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # pragma: no cover - the child
-        try:
-            os.write(w, pickle.dumps(distances_to(bunny)(pts)))
-        finally:
-            os._exit(0)
-    os.close(w)
-    data = b""
-    while chunk := os.read(r, 1 << 20):
-        data += chunk
-    os.close(r)
-    os.waitpid(pid, 0)
-    assert np.array_equal(pickle.loads(data), d)
 
 
 def test_close_as_shell_on_an_open_surface():
@@ -188,12 +173,11 @@ def test_open_scans_become_watertight_shells(backend, mesh):
     """repair.open_border=shell: every hole but the outer border filled, then the scan closed as a thin shell.
     One watertight, edge- and vertex-manifold, oriented component with no self-intersecting face, with almost
     nothing removed; samplers see only the scanned side."""
-    from scanreg.mesh.topology import surface_distances
+    from scanreg.mesh.distances import surface_distances
 
     m = load(mesh)
     small = "meshlab_defects" in mesh
-    out, metrics = repair_with_audit(stage(backend, open_border="shell"), m, CTX, "r_")  # the default guard
-    a = strip(metrics)
+    out, a = audited(stage(backend, open_border="shell"), m)  # the default guard
     assert_clean(a)
     assert a["guard_ok"] == 1 and a["removed_area_share"] < (0.1 if small else 0.01)
     # the small meshes' median edge is 1.3 % (many_small_holes) and 3.8 % (non_manif_hole) of the diagonal: the
@@ -213,8 +197,7 @@ def test_open_scans_become_watertight_shells(backend, mesh):
 
 def test_open_border_open_keeps_only_the_outer_border():
     m = load("meshlab_defects/many_small_holes.ply")
-    _, metrics = repair_with_audit(stage("meshfix", open_border="open", max_hausdorff=0.05), m, CTX, "r_")
-    a = strip(metrics)
+    _, a = audited(stage("meshfix", open_border="open", max_hausdorff=0.05), m)
     assert_clean(a, watertight=False)
     assert a["before_boundary_loops"] == 32 and a["after_boundary_loops"] == 1
 
@@ -242,8 +225,9 @@ def test_meshlab_closes_holes_on_their_neighbourhood_as_on_the_whole_mesh():
     import pymeshlab
 
     from scanreg.geometry import Mesh
-    from scanreg.stages.registry import load_all
     from scanreg.mesh.topology import boundary_loop_sizes
+    from scanreg.stages.registry import load_all
+    from scanreg.stages.repair.meshlab import _FilterChain
 
     load_all()
     m = _wavy_grid_with_hole()
@@ -252,7 +236,7 @@ def test_meshlab_closes_holes_on_their_neighbourhood_as_on_the_whole_mesh():
     stage = cls(make_params(cls.Params, {"max_hole_edges": 100}, "meshlab"))
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(m.vertices, m.faces.astype(np.int32)))
-    stage._close(ms, prevent=True)
+    _FilterChain(stage.p)._close(ms, prevent=True)  # the chain's hole closing with these parameters
     ref = pymeshlab.MeshSet()
     ref.add_mesh(pymeshlab.Mesh(m.vertices, m.faces.astype(np.int32)))
     ref.meshing_close_holes(maxholesize=100, selfintersection=True, refinehole=True)  # edge length 3 % of diag
@@ -271,34 +255,38 @@ def test_meshlab_closes_holes_on_their_neighbourhood_as_on_the_whole_mesh():
     ("meshfix", "meshlab_defects/screwdriver.ply"),
     ("meshlab", "meshlab_defects/non_manif_hole.ply"),  # the output needs its own self-intersection test
 ])
-def test_audit_is_the_same_in_child_processes_and_in_threads(backend, mesh, monkeypatch):
-    """The audited repair gives the same mesh and the same metrics, bit for bit, whether its audits run in
-    forked child processes (the input audit's child also answering the output's request) or in threads
-    (SCANREG_NO_FORK); and no child process is left behind, also when the backend fails while the input
-    audit's child waits for its request."""
-    from pathlib import Path
+def test_audit_is_the_same_with_and_without_forking(backend, mesh, monkeypatch):
+    """The audited repair (the audit in this process, in sequence; MeshFix's sessions in forked children)
+    gives the same mesh and the same metrics, bit for bit, whether the sessions run in children or here
+    (SCANREG_NO_FORK); the audit's count of the output's self-intersecting faces (made incrementally from the
+    input's test, or taken from the backend) is the full exact test's; and no child process is left behind,
+    also when the backend fails."""
+    from scanreg.mesh.intersect import self_intersecting_faces
 
     def run():
-        out, metrics = repair_with_audit(stage(backend), load(mesh), CTX, "r_")
+        out, metrics = audited(stage(backend), load(mesh))
         return out, {k: v for k, v in metrics.items() if not k.endswith("_time_s")}
 
     before = children()
     forked = run()
     monkeypatch.setenv("SCANREG_NO_FORK", "1")
-    threaded = run()
-    assert np.array_equal(forked[0].vertices, threaded[0].vertices)
-    assert np.array_equal(forked[0].faces, threaded[0].faces)
-    assert forked[1] == threaded[1]
+    here = run()
+    assert np.array_equal(forked[0].vertices, here[0].vertices)
+    assert np.array_equal(forked[0].faces, here[0].faces)
+    assert forked[1] == here[1]
+    out, m = forked
+    assert m["after_self_intersecting_faces"] == int(self_intersecting_faces(out.vertices, out.faces).sum())
+    monkeypatch.delenv("SCANREG_NO_FORK")
     if Path("/proc/self/stat").exists():
-        assert settled(before)  # no child process left behind, not even a zombie (MeshFix's: reaped by a thread)
-        monkeypatch.delenv("SCANREG_NO_FORK")
-        def breaks(mesh, ctx):
+        assert settled(before)  # no child process left behind, not even a zombie
+
+        def breaks(mesh, p, ctx):
             raise RuntimeError("the backend broke")
         broken = stage(backend)
         broken.run = breaks
-        with pytest.raises(StageError, match="the backend failed"):  # the child waits for a request in vain
-            repair_with_audit(broken, load(mesh), CTX, "r_")
-        assert settled(before)  # the child sees the request pipe closed and leaves; its reaper thread follows
+        with pytest.raises(StageError, match="the backend failed"):
+            repair_with_audit(broken, load(mesh), CTX)
+        assert settled(before)
 
 
 def test_meshfix_renumbers_the_scattered_bunny_and_gets_the_same_triangles(monkeypatch):
@@ -317,51 +305,50 @@ def test_meshfix_renumbers_the_scattered_bunny_and_gets_the_same_triangles(monke
         return renumbered[-1]
 
     monkeypatch.setattr(mf, "locality_ordered", spy)
-    v1, f1, clean1 = mf._meshfix_session(mesh.vertices, mesh.faces, p, True, lambda: p)
+    v1, f1, clean1 = mf._meshfix_session(mesh.vertices, mesh.faces, p, True)
     assert renumbered[0][1] is not mesh.faces  # renumbered
     monkeypatch.setattr(mf, "locality_ordered", lambda v, f: (v, f))
-    v0, f0, clean0 = mf._meshfix_session(mesh.vertices, mesh.faces, p, True, lambda: p)
+    v0, f0, clean0 = mf._meshfix_session(mesh.vertices, mesh.faces, p, True)
     assert clean0 == clean1 and len(f0) == len(f1) > len(mesh.faces)  # holes filled
     assert np.array_equal(oriented_triangles(v1, f1), oriented_triangles(v0, f0))
     # MeshFix's "clean" (its own intersection test), which the audit takes as the count, agrees with the exact test
-    from scanreg.mesh.intersect import forget_recent, self_intersecting_faces
-    forget_recent()
+    from scanreg.mesh.intersect import self_intersecting_faces
+
     assert clean1 and not self_intersecting_faces(v1, f1).any()
 
 
-def test_meshfix_counts_intersections_between_parts_it_repaired_one_by_one():
+def test_meshfix_counts_intersections_between_parts_it_repaired_one_by_one(monkeypatch):
     """Two interpenetrating copies of the cow (two parts, repaired one by one, each certified by MeshFix): the
     audit's count of self-intersecting faces after the repair comes from the pairs across the parts only
-    (intersect.intersecting_across) and equals the full exact test of the repaired mesh."""
-    import scanreg.stages.repair.audit as audit
+    (intersect.intersecting_across; the output is given no self-intersection test of its own) and equals the
+    full exact test of the repaired mesh."""
+    import scanreg.mesh.topology as topology
     import scanreg.stages.repair.meshfix as mf
     from scanreg.geometry import Mesh
-    from scanreg.mesh.intersect import forget_recent, self_intersecting_faces
+    from scanreg.mesh.intersect import self_intersecting_faces
 
     cow = load("pkg:pymeshlab/tests/sample_meshes/cow.obj")
     shift = 0.3 * (cow.vertices.max(axis=0) - cow.vertices.min(axis=0))
     two = Mesh(np.vstack([cow.vertices, cow.vertices + shift]),
                np.vstack([cow.faces, cow.faces + len(cow.vertices)]), "two cows")
-    calls, tests_of_the_output = [], []
+    calls, tested = [], []
+    across, tests = mf.intersecting_across, topology.self_intersections
 
-    def across(*args):
-        calls.append(mf.intersecting_across.__wrapped__(*args))
+    def spy_across(*args):
+        calls.append(across(*args))
         return calls[-1]
 
-    class Beside(audit.AuditBeside):
-        def __init__(self, mesh, *args, stats=True, **kw):
-            if not stats:  # the output's own full test: not wanted here
-                tests_of_the_output.append(mesh)
-            super().__init__(mesh, *args, stats=stats, **kw)
+    def spy_tests(v, f, previous=None):  # every whole-mesh test the audit and the backend make
+        tested.append(len(f))
+        return tests(v, f, previous)
 
-    across.__wrapped__ = mf.intersecting_across
-    mf.intersecting_across, audit.AuditBeside = across, Beside
-    try:
-        out, m = stage("meshfix", check_only=False).repair(two, CTX, "r_")
-    finally:
-        mf.intersecting_across, audit.AuditBeside = across.__wrapped__, Beside.__bases__[0]
-    assert len(calls) == 1 and not tests_of_the_output  # the count came from the pairs across the parts
-    forget_recent()
+    monkeypatch.setattr(mf, "intersecting_across", spy_across)
+    monkeypatch.setattr(topology, "self_intersections", spy_tests)
+    res = stage("meshfix", check_only=False).repair(two, CTX)
+    out, m = res.mesh, res.metrics
+    assert len(calls) == 1 and int(calls[0].sum()) == m["after_self_intersecting_faces"]
+    assert len(out.faces) not in tested  # the count came from the pairs across the parts
+    assert tested[:1] == [len(two.faces)]  # the input's own test (the audit's before)
     full = int(self_intersecting_faces(out.vertices, out.faces).sum())
-    assert m["r_after_self_intersecting_faces"] == full > 0
-    assert m["r_after_components"] == 2
+    assert m["after_self_intersecting_faces"] == full > 0
+    assert m["after_components"] == 2

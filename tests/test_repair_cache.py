@@ -30,20 +30,25 @@ def write_off(path, mesh: Mesh) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+def _pair(res):
+    """A :class:`~scanreg.types.Repaired` as (mesh, metrics); the metrics are unprefixed."""
+    return res.mesh, res.metrics
+
+
 def test_cache_round_trip_key_and_atomic_write(tmp_path, capsys):
     from scanreg.stages.repair.cache import RepairCache, cache_key, cached_repair
 
     load_all()
     st = build(REPAIR, "meshfix")
     mesh, ctx, cache = holed_cow(), Context(seed=0, run_dir=None), RepairCache(tmp_path / "c")
-    out1, m1 = cached_repair(st, mesh, ctx, "repair_", cache)
-    out2, m2 = cached_repair(st, holed_cow(), ctx, "repair_", cache)  # a new object with the same content
-    assert (m1["repair_cache_hit"], m2["repair_cache_hit"]) == (0.0, 1.0)
+    out1, m1 = _pair(cached_repair(st, mesh, ctx, cache))
+    out2, m2 = _pair(cached_repair(st, holed_cow(), ctx, cache))  # a new object with the same content
+    assert (m1["cache_hit"], m2["cache_hit"]) == (0.0, 1.0)
     assert np.array_equal(out1.vertices, out2.vertices) and np.array_equal(out1.faces, out2.faces)
     assert out2.vertices.dtype == np.float64 and out2.faces.dtype == np.int64
-    assert {k: v for k, v in m1.items() if k != "repair_cache_hit"} == \
-           {k: v for k, v in m2.items() if k != "repair_cache_hit"}
-    assert m1["repair_before_boundary_loops"] == 3 and m1["repair_after_boundary_loops"] == 0
+    assert {k: v for k, v in m1.items() if k != "cache_hit"} == \
+           {k: v for k, v in m2.items() if k != "cache_hit"}
+    assert m1["before_boundary_loops"] == 3 and m1["after_boundary_loops"] == 0
     assert len(list(cache.dir.glob("*.npz"))) == 1 and not list(cache.dir.glob(".*"))  # no temporary left
     # the key follows the content, the parameters and the seed, not the cache's own settings
     k = cache_key(st, mesh, 0)
@@ -54,8 +59,8 @@ def test_cache_round_trip_key_and_atomic_write(tmp_path, capsys):
     assert cache_key(st, moved, 0) != k
     # an unreadable entry is a miss, and is replaced
     cache.path(k).write_bytes(b"not an npz")
-    _, m3 = cached_repair(st, mesh, ctx, "repair_", cache)
-    assert m3["repair_cache_hit"] == 0.0 and cache.load(k, "") is not None
+    m3 = cached_repair(st, mesh, ctx, cache).metrics
+    assert m3["cache_hit"] == 0.0 and cache.load(k, "") is not None
 
 
 def test_a_job_waits_for_the_entry_another_job_is_making(tmp_path):
@@ -67,7 +72,7 @@ def test_a_job_waits_for_the_entry_another_job_is_making(tmp_path):
     st = build(REPAIR, "meshfix")
     mesh, ctx = holed_cow(), Context(seed=0, run_dir=None)
     made = RepairCache(tmp_path / "made")
-    out, _ = cached_repair(st, mesh, ctx, "repair_", made)
+    out = cached_repair(st, mesh, ctx, made).mesh
     key = cache_key(st, mesh, 0)
     cache = RepairCache(tmp_path / "c")
     lock = cache.lock(key)  # "another job" holds the lock and stores its entry a little later
@@ -79,13 +84,15 @@ def test_a_job_waits_for_the_entry_another_job_is_making(tmp_path):
 
     timer = threading.Timer(0.5, other_job)
     timer.start()
-    got, m = cached_repair(st, mesh, ctx, "repair_", cache)
+    got, m = _pair(cached_repair(st, mesh, ctx, cache))
     timer.join()
-    assert m["repair_cache_hit"] == 1.0 and np.array_equal(got.faces, out.faces)
+    assert m["cache_hit"] == 1.0 and np.array_equal(got.faces, out.faces)
     assert not list(cache.dir.glob(".*"))  # no lock or temporary left
 
 
-def test_cache_modes():
+def test_cache_modes(tmp_path):
+    """``auto`` caches in sweeps only (RunContext.in_sweep), ``on`` always, ``off`` never; the stage's own
+    repair decides by its context's ``in_sweep``: a hit logs ``cache_hit`` 1, no cache no ``cache_hit``."""
     from scanreg.errors import ConfigError
     from scanreg.stages.repair.cache import cache_enabled
 
@@ -93,6 +100,21 @@ def test_cache_modes():
     assert cache_enabled("on", False) and not cache_enabled("off", True)
     with pytest.raises(ConfigError, match="cache must be auto, on or off"):
         build(REPAIR, "meshfix", cache="sometimes")
+    load_all()
+    mesh, where = holed_cow(), tmp_path / "c"
+    auto = build(REPAIR, "meshfix", cache="auto", cache_dir=str(where))
+    single = auto.repair(mesh, Context(seed=0, run_dir=None))
+    assert "cache_hit" not in single.metrics and not where.exists()  # not a sweep: no cache
+    first = auto.repair(mesh, Context(seed=0, run_dir=None, in_sweep=True))
+    second = auto.repair(holed_cow(), Context(seed=0, run_dir=None, in_sweep=True))
+    assert (first.metrics["cache_hit"], second.metrics["cache_hit"]) == (0.0, 1.0)
+    assert len(list(where.glob("*.npz"))) == 1
+    assert np.array_equal(second.mesh.faces, single.mesh.faces)
+    assert np.array_equal(second.mesh.vertices, single.mesh.vertices)
+    off = build(REPAIR, "meshfix", cache="off", cache_dir=str(where))
+    assert "cache_hit" not in off.repair(mesh, Context(seed=0, run_dir=None, in_sweep=True)).metrics
+    on = build(REPAIR, "meshfix", cache="on", cache_dir=str(where))
+    assert on.repair(mesh, Context(seed=0, run_dir=None)).metrics["cache_hit"] == 1.0
 
 
 def test_non_manifold_vertices_agree_with_meshlab():
@@ -117,7 +139,7 @@ def _fan_groups_by_graph(mesh: Mesh) -> int:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    import scanreg.topology as topo
+    import scanreg.mesh.topology as topo
 
     def by_graph(nf, vert, c1s, c1e, c2s, c2e):
         a, b = np.concatenate([c1s, c1e]), np.concatenate([c2e, c2s])

@@ -5,7 +5,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from scanreg.app.report.write import ReportParams, canonical, group_labels, summarize, write_report
+from scanreg.app.report.params import ReportParams
+from scanreg.app.report.tables import canonical, group_labels, summarize
+from scanreg.app.report.write import write_report
 
 
 def mlflow_like_runs(key: str, values: list[str], seeds: int = 3) -> pd.DataFrame:
@@ -117,7 +119,7 @@ def test_canonical_labels_are_exact():
 
 # ------------------------------------------------------------------------------------------------ intervals
 def test_wilson_interval_by_hand():
-    from scanreg.app.report.write import wilson_interval
+    from scanreg.app.report.stats import wilson_interval
 
     # z = 1.959964; k = 5, n = 10: centre (0.5 + z^2/20) / (1 + z^2/10) = 0.5, half z sqrt(0.025 + z^2/400) / (1 + z^2/10)
     z = 1.959963984540054
@@ -135,7 +137,7 @@ def test_bootstrap_median_ci_by_hand():
     """Three values 1, 2, 10: a resample's median is 1 when at least two draws are 1 (7 of the 27 equally likely
     resamples), 10 likewise (7/27), else 2 (13/27). The 2.5 % and 97.5 % quantiles are then 1 and 10; the 30 %
     and 70 % quantiles (a 40 % interval) both 2."""
-    from scanreg.app.report.write import bootstrap_median_ci
+    from scanreg.app.report.stats import bootstrap_median_ci
 
     assert bootstrap_median_ci([1, 2, 10]) == (1.0, 10.0)
     assert bootstrap_median_ci([1, 2, 10], level=0.4) == (2.0, 2.0)
@@ -150,7 +152,7 @@ def test_bootstrap_median_ci_by_hand():
 
 
 def test_iqr_by_hand():
-    from scanreg.app.report.write import iqr_interval
+    from scanreg.app.report.stats import iqr_interval
 
     assert iqr_interval([1, 2, 3, 4, 5]) == (2.0, 4.0)
     assert iqr_interval([1, 2, 3, 4]) == (1.75, 3.25)  # linear interpolation: positions 0.75 and 2.25
@@ -183,7 +185,7 @@ def test_report_cells_have_intervals_and_bins(tmp_path, figures):
     res = write_report(df, p, tmp_path)
     t = res["table"].set_index("_label")
     assert t.loc["a", "successes"] == 12 and t.loc["b", "successes"] == 8 and t.loc["b", "runs"] == 12
-    from scanreg.app.report.write import bootstrap_median_ci, wilson_interval
+    from scanreg.app.report.stats import bootstrap_median_ci, wilson_interval
 
     assert (t.loc["b", "success_lo"], t.loc["b", "success_hi"]) == wilson_interval(8, 12)
     assert (t.loc["a", "rotation_error_deg_lo"], t.loc["a", "rotation_error_deg_hi"]) == \

@@ -8,7 +8,8 @@ from scanreg.types import RunContext as Context
 from scanreg.geometry import Mesh, make_T
 from scanreg.io import write_ply
 from scanreg.stages.registry import REPAIR, load_all, make_params
-from scanreg.mesh.topology import collapse_slivers, mesh_stats, min_angles_deg
+from scanreg.mesh.slivers import collapse_slivers
+from scanreg.mesh.topology import mesh_stats, min_angles_deg
 
 
 def sliver_sphere() -> tuple[Mesh, Mesh]:
@@ -51,12 +52,12 @@ def test_both_backends_remove_slivers_within_the_guard(backend, tmp_path):
     _, sl = sliver_sphere()
     cls = REPAIR.get(backend)
     stage = cls(make_params(cls.Params, {}, backend))
-    out, m = stage.repair(sl, Context(seed=0, run_dir=tmp_path), "repair_")
-    assert m["repair_before_sliver_faces"] >= 16 and m["repair_after_sliver_faces"] == 0, m
-    assert m["repair_guard_ok"] == 1
+    m = stage.repair(sl, Context(seed=0, run_dir=tmp_path)).metrics  # unprefixed names
+    assert m["before_sliver_faces"] >= 16 and m["after_sliver_faces"] == 0, m
+    assert m["guard_ok"] == 1
     stage_off = cls(make_params(cls.Params, {"remove_slivers": False}, backend))
-    _, m_off = stage_off.repair(sl, Context(seed=0, run_dir=tmp_path), "repair_")
-    assert m_off["repair_after_sliver_faces"] > 0  # the backends alone leave them: the step is what removes them
+    m_off = stage_off.repair(sl, Context(seed=0, run_dir=tmp_path)).metrics
+    assert m_off["after_sliver_faces"] > 0  # the backends alone leave them: the step is what removes them
 
 
 @pytest.mark.slow
@@ -83,7 +84,8 @@ def test_collapse_tracks_the_faces_it_changed():
     """collapse_slivers records which faces it changed (the faces with a moved or joined corner), for collapse_folds:
     the same faces as comparing the two meshes' coordinates finds on the sliver sphere, and collapse_folds gives
     the same counts either way."""
-    from scanreg.mesh.topology import _changed_faces, collapse_folds, known
+    from scanreg.mesh.slivers import _changed_faces, collapse_folds
+    from scanreg.mesh.topology import known
 
     _, sl = sliver_sphere()
     out = collapse_slivers(sl)
@@ -102,7 +104,8 @@ def test_audit_shortcuts_give_the_plain_computations_answers():
     (the points ``barycentric_sample`` draws), and the smallest angles ``collapse_slivers`` copies for the faces
     it kept."""
     from scanreg.geometry import barycentric_sample
-    from scanreg.mesh.topology import _area_sample, _edge_table, _min_angles_deg, non_manifold_vertices
+    from scanreg.mesh.distances import _area_sample
+    from scanreg.mesh.topology import _edge_table, _min_angles_deg, non_manifold_vertices
 
     _, sl = sliver_sphere()
     # a non-manifold edge (three faces on 0-1), a pinched vertex (two fans at 5) and a zero-area face

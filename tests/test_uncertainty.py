@@ -5,7 +5,6 @@ import json
 import shutil
 import subprocess
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -81,15 +80,16 @@ def cylinder(n=4000, seed=0, noise=0.01):
 
 
 def test_sliding_cylinder_warns_naming_the_axis(capsys):
-    """A cylinder registered to itself: sliding along and turning about its axis (z) change nothing."""
-    from scanreg.runner import pose_uncertainty
+    """A cylinder registered to itself: sliding along and turning about its axis (z) change nothing. The pose
+    covariance from the pairs the fine stage keeps at the final pose (every point paired with its noise-free
+    twin on the cylinder, no rejection), as the runner computes it."""
+    from scanreg.runner.steps import pose_from_pairs
+    from scanreg.types import Correspondences
 
     moved, q, nrm = cylinder()
-    icp = SimpleNamespace(p=SimpleNamespace(max_correspondence_distance=None, distances="absolute",
-                                            max_normal_angle_deg=None, trim=1.0, target="auto"))
-    m = {}
-    on = (q, np.linalg.norm(moved - q, axis=1), nrm)
-    pc = pose_uncertainty(icp, Cloud(moved, nrm), np.eye(4), moved, on, on, False, 0.1, EvalParams(), m)
+    pairs = Correspondences(source=moved, target=q, normals=nrm, distances=np.linalg.norm(moved - q, axis=1))
+    pc = pose_from_pairs(pairs, EvalParams())
+    m = pc.metrics()
     assert m["pose_condition"] < 1e-6
     line = capsys.readouterr().out.strip()
     assert line.count("\n") == 0 and line.startswith("warning: pose poorly constrained")
@@ -145,10 +145,9 @@ def arch_view(tmp_path: Path) -> Path:
     part = labels[np.minimum((th - 0.1 * np.pi) / (0.8 * np.pi) * 14, 13).astype(int)]
 
     class CP(ClosestPoints):
-        def __call__(self, q, max_distance=None):
-            out = super().__call__(q, max_distance)
-            self.last_primitive_ids = self._ids
-            return out
+        def query(self, q, max_distance=None):
+            closest, d, n, _ = super().query(q, max_distance)
+            return closest, d, n, self._ids  # the "face" (here: labelled point) of each closest point
 
     cp = CP(target)
     cp._ids = np.arange(len(tgt))  # the source point i lies over target point i

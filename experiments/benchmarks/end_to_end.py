@@ -145,14 +145,14 @@ def worker_open3d(case: dict) -> dict:
     from omegaconf import OmegaConf
 
     import scanreg
-    from scanreg.types import RunContext as Context
     from scanreg.geometry import bbox_diagonal, points_of
+    from scanreg.types import RunContext
 
     cfg = scanreg.compose([*case_overrides(case), "tracking=none"])
     OmegaConf.resolve(cfg)
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter_ns()
-        inputs = load_inputs(cfg, Context(seed=0, run_dir=Path(d)))
+        inputs = load_inputs(cfg, RunContext(seed=0, run_dir=Path(d)))
         out = {"time_load_s": (time.perf_counter_ns() - t0) / 1e9, "time_repair_s": 0.0}
     tgt_pts, src_pts = points_of(inputs.target), points_of(inputs.source)
     diagonal = bbox_diagonal(tgt_pts)
@@ -168,12 +168,12 @@ def gt_of(case: dict):
     from omegaconf import OmegaConf
 
     import scanreg
-    from scanreg.types import RunContext as Context
+    from scanreg.types import RunContext
 
     cfg = scanreg.compose([*case_overrides(case), "tracking=none"])
     OmegaConf.resolve(cfg)
     with tempfile.TemporaryDirectory() as d:
-        return load_inputs(cfg, Context(seed=0, run_dir=Path(d))).T_gt
+        return load_inputs(cfg, RunContext(seed=0, run_dir=Path(d))).T_gt
 
 
 def maxrss_mb() -> float:
@@ -186,17 +186,16 @@ def worker_memory(method: str, stage: str, n: int) -> dict:
     from omegaconf import OmegaConf
 
     import scanreg
-    from scanreg.types import RunContext as Context
     from scanreg.geometry import estimate_spacing
     from scanreg.runner import build_stages
+    from scanreg.types import RunContext
 
     cfg = scanreg.compose(["data=stanford", "repair=none", "tracking=none", f"sampler.n_points={n}"])
     OmegaConf.resolve(cfg)
     run_dir = Path(tempfile.mkdtemp())
-    st = build_stages(cfg)
-    ctx = Context(seed=0, run_dir=run_dir)
-    ctx.stages = {k: st[k] for k in ("salience", "descriptor", "matcher") if k in st}
-    inputs = st["data"].load(ctx)
+    st = build_stages(cfg)  # the coarse stage holds its salience, descriptor and matcher
+    ctx = RunContext(seed=0, run_dir=run_dir)
+    inputs = st.data.load(ctx)
     stages = ["sample", "coarse", "fine"]
     out = {}
     if method == "scanreg":
@@ -204,16 +203,14 @@ def worker_memory(method: str, stage: str, n: int) -> dict:
 
         def run(s):
             if s == "sample":
-                state["tgt"] = st["sampler"].run(inputs.target, ctx)
-                state["src"] = st["sampler"].run(inputs.source, ctx)
-                ctx.spacing = max(estimate_spacing(state["tgt"].points, ctx.rng(1)),
-                                  estimate_spacing(state["src"].points, ctx.rng(2)))
-                ctx.diagonal = float(np.linalg.norm(np.ptp(state["tgt"].points, axis=0)))
-                ctx.target_mesh = inputs.target
+                state["tgt"] = st.sampler.sample(inputs.target, ctx)
+                state["src"] = st.sampler.sample(inputs.source, ctx)
+                state["spacing"] = max(estimate_spacing(state["tgt"].points, ctx.rng(1)),
+                                       estimate_spacing(state["src"].points, ctx.rng(2)))
             elif s == "coarse":
-                state["T0"] = st["coarse"].run(state["tgt"], state["src"], ctx)[0]
+                state["T0"] = st.coarse.align(state["tgt"], state["src"], state["spacing"], ctx).T_target_source
             else:
-                st["icp"].run(state["tgt"], state["src"], state["T0"], ctx)
+                st.icp.refine(state["tgt"], state["src"], state["T0"], state["spacing"], ctx, inputs.target)
     else:
         reg = o3d.pipelines.registration
         o3d.utility.random.seed(0)
@@ -265,9 +262,9 @@ def worker_descriptors(pairs: list[str]) -> list[dict]:
     from omegaconf import OmegaConf
 
     import scanreg
-    from scanreg.types import RunContext as Context
     from scanreg.geometry import estimate_spacing
     from scanreg.runner import build_stages
+    from scanreg.types import RunContext
 
     sys.path.insert(0, str(ROOT / "tests"))
     from test_fast_paths import reference_histogram3p
@@ -280,25 +277,25 @@ def worker_descriptors(pairs: list[str]) -> list[dict]:
                                    "salience=uniform", f"descriptor={desc}"])
             OmegaConf.resolve(cfg)
             st = build_stages(cfg)
-            ctx = Context(seed=0, run_dir=Path(tempfile.gettempdir()))
-            ctx.stages = {k: st[k] for k in ("salience", "descriptor", "matcher")}
-            d = st["descriptor"]
-            compute = (lambda cloud, kp, c, d=d: reference_histogram3p(d.p, cloud, kp, c.spacing)) \
+            ctx = RunContext(seed=0, run_dir=Path(tempfile.gettempdir()))
+            d = st.helpers["descriptor"]  # the instance the coarse stage holds
+            compute = (lambda cloud, kp, spacing, d=d: reference_histogram3p(d.p, cloud, kp, spacing)) \
                 if variant == "histogram3p_before" else d.compute
             spent = []
 
-            def timed(cloud, kp, c, compute=compute, spent=spent):
+            def timed(cloud, kp, spacing, compute=compute, spent=spent):
                 t = time.perf_counter_ns()
-                out = compute(cloud, kp, c)
+                out = compute(cloud, kp, spacing)
                 spent.append(time.perf_counter_ns() - t)
                 return out
 
             d.compute = timed
-            inputs = st["data"].load(ctx)
-            tgt, src = st["sampler"].run(inputs.target, ctx), st["sampler"].run(inputs.source, ctx)
-            ctx.spacing = max(estimate_spacing(tgt.points, ctx.rng(1)), estimate_spacing(src.points, ctx.rng(2)))
+            inputs = st.data.load(ctx)
+            tgt, src = st.sampler.sample(inputs.target, ctx), st.sampler.sample(inputs.source, ctx)
+            spacing = max(estimate_spacing(tgt.points, ctx.rng(1)), estimate_spacing(src.points, ctx.rng(2)))
             t0 = time.perf_counter_ns()
-            T, m = st["coarse"].run(tgt, src, ctx)
+            coarse = st.coarse.align(tgt, src, spacing, ctx)
+            T, m = coarse.T_target_source, coarse.metrics
             if i == 0:
                 continue  # the warm-up round
             rot, _ = transform_errors(T, inputs.T_gt)
@@ -483,8 +480,8 @@ def overhead_table(jobs: int) -> list[str]:
             f"| `scanreg --help` (whole wall time) | {med_iqr(helps)} |",
             f"| one CLI run, tracking=mlflow (default): wall − time_total_s | {med_iqr(runs['mlflow'])} |",
             f"| one CLI run, tracking=none: wall − time_total_s | {med_iqr(runs['none'])} |",
-            f"| the same runs' whole wall time, tracking=mlflow / none (MLflow's helper process also slows the "
-            f"pipeline on 2 cores: its time_total_s {med_iqr(totals_['mlflow'])} / {med_iqr(totals_['none'])}) "
+            f"| the same runs' whole wall time, tracking=mlflow / none (MLflow's worker process, importing MLflow "
+            f"while the run works, also slows the pipeline on 2 cores: its time_total_s {med_iqr(totals_['mlflow'])} / {med_iqr(totals_['none'])}) "
             f"| {med_iqr(walls['mlflow'])} / {med_iqr(walls['none'])} |",
             f"| the first run in a new directory (creates the MLflow store): wall − time_total_s | {first:.2f} |",
             f"| {jobs}-job `-m` sweep, launch=serial, tracking=mlflow: (wall − Σ time_total_s) / {jobs} per job "

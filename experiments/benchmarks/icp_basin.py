@@ -7,6 +7,10 @@ Case: pymeshlab's closed bunny.obj sampled twice independently (N points each, d
 the first sampling moved 10 degrees about a random axis through its centre plus 2 % of the diagonal; ICP starts
 at the identity with each variant's defaults (plus the overrides, Python keyword syntax). Prints the rotation
 error, the translation error as a share of the diagonal, iterations, time and the ICP metrics.
+
+Each variant's defaults are its Params dataclass's, which since #32 are also the CLI's: point_to_plane now
+iterates on a quarter of the points first (``initial_share`` 0.25; this script ran it at 1 before); pass
+``"initial_share=1"`` for the earlier point_to_plane row (the same numbers, bit for bit).
 """
 
 import sys
@@ -15,11 +19,11 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanreg.types import RunContext as Context
-from scanreg.geometry import Cloud, apply_T, barycentric_sample, bbox_diagonal, make_T, transform_errors
+from scanreg.geometry import (Cloud, apply_T, barycentric_sample, bbox_diagonal, estimate_spacing, make_T,
+                              transform_errors)
 from scanreg.io import read_mesh
-from scanreg.geometry import estimate_spacing
 from scanreg.stages.registry import ICP, load_all, make_params
+from scanreg.types import RunContext
 
 
 def main():
@@ -38,15 +42,15 @@ def main():
     c0 = a.points.mean(0)
     T = make_T(R, c0 + t - R @ c0)
     tgt = Cloud(apply_T(T, a.points), a.normals @ T[:3, :3].T)
-    ctx = Context(seed=0, run_dir=None)
-    ctx.spacing = estimate_spacing(tgt.points, np.random.default_rng(0))
+    ctx = RunContext(seed=0, run_dir=None)
+    spacing = estimate_spacing(tgt.points, np.random.default_rng(0))
     rot0, tr0 = transform_errors(np.eye(4), T)
-    print(f"N {n}: start {rot0:.2f} deg, {tr0 / diag * 100:.2f} % of the diagonal; spacing {ctx.spacing:.4g}")
+    print(f"N {n}: start {rot0:.2f} deg, {tr0 / diag * 100:.2f} % of the diagonal; spacing {spacing:.4g}")
     for v in variants:
         cls = ICP.get(v)
         stage = cls(make_params(cls.Params, kw, f"icp={v}"))
         t0 = time.perf_counter()
-        r = stage.run(tgt, b, np.eye(4), ctx)
+        r = stage.refine(tgt, b, np.eye(4), spacing, ctx)
         dt = time.perf_counter() - t0
         rot, tr = transform_errors(r.T_target_source, T)
         print(f"{v:15s} rotation {rot:.4f} deg  translation {tr / diag * 100:.4f} % diag  iterations {r.iterations}"

@@ -9,7 +9,8 @@ anchor, Open3D, so that a slow spell of the machine hits all of them); the table
 with the min-max range. Per iteration: in one subprocess, 1 iteration then 30 with the same pair limit, after a
 warm-up; per iteration = (t30 - t1) / 29, and its ratio to Open3D point-to-point is taken within each round.
 Both on all cores (Open3D's OpenMP, pykdtree's OpenMP). "To convergence" runs each method with its own stopping
-rule and its ``conf/icp`` defaults (point_to_plane: coarse-to-fine from a quarter of the points).
+rule and its defaults (its Params dataclass, which conf/icp/<name>.yaml takes its defaults from since #32;
+point_to_plane: coarse-to-fine from a quarter of the points).
 Peak memory is the subprocess's maximum resident set size minus that of a process that only loaded the data
 (first round).
 """
@@ -31,11 +32,10 @@ MAXD = 10.0  # pair limit in sampling spacings (10 degrees moves the far side by
 
 
 def make_case(n: int):
-    from scanreg.geometry import Cloud, apply_T, make_T, transform_errors  # noqa: F401
-    from scanreg.io import read_mesh
-    from scanreg.geometry import estimate_spacing
     from scipy.spatial.transform import Rotation
-    from scanreg.geometry import barycentric_sample
+
+    from scanreg.geometry import Cloud, apply_T, barycentric_sample, estimate_spacing, make_T
+    from scanreg.io import read_mesh
 
     m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
     a, an, _ = barycentric_sample(m, n, np.random.default_rng(1))
@@ -56,8 +56,8 @@ def make_case(n: int):
 
 def run_case(method: str, n: int, iters: int | None, case=None) -> dict:
     """One measurement in this process. iters=None: to convergence."""
-    from scanreg.types import RunContext as Context
     from scanreg.geometry import transform_errors
+    from scanreg.types import RunContext
 
     import open3d  # noqa: F401  (imports and registries outside the measured region, for every method)
 
@@ -83,17 +83,12 @@ def run_case(method: str, n: int, iters: int | None, case=None) -> dict:
     else:
         from scanreg.stages.registry import ICP, make_params
 
-        from omegaconf import OmegaConf
-
         cls = ICP.get(method)
-        kw = {k: v for k, v in OmegaConf.to_container(OmegaConf.load(
-            Path(__file__).resolve().parents[2] / "conf" / "icp" / f"{method}.yaml")).items() if k != "name"}
-        kw["max_correspondence_distance"] = MAXD  # each variant with its conf/icp defaults, one pair limit
+        # each variant with its defaults (its Params dataclass: the same as conf/icp's since #32), one pair limit
+        kw = {"max_correspondence_distance": MAXD}
         if iters:
             kw.update(tau=0.0, max_iterations=iters)
-        ctx = Context(seed=0, run_dir=None)
-        ctx.spacing = spacing
-        res = cls(make_params(cls.Params, kw, method)).run(tgt, src, np.eye(4), ctx)
+        res = cls(make_params(cls.Params, kw, method)).refine(tgt, src, np.eye(4), spacing, RunContext(seed=0))
         T, its = res.T_target_source, res.iterations
     secs = (time.perf_counter_ns() - t0) / 1e9
     rot, trans = transform_errors(T, T_gt)

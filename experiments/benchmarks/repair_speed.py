@@ -25,17 +25,18 @@ pymeshfix gets slower with each use in one process (it leaks about 13 MB per rep
 mesh's many small blocks land scattered in a heap that other work has used: 1.09, 1.43, 1.64, 1.87, 1.84, 1.95 s
 for six repairs in a row), so the anchor's row from this long process drifts over the rounds (the row "first
 and last round" shows by how much). ``repair=meshfix`` runs MeshFix in a child process per session, in a thread
-of its own there (:func:`scanreg.isolate.run_isolated`: a fresh malloc arena, the memory given back at exit),
+of its own there (:func:`scanreg.process.run_isolated`: a fresh malloc arena, the memory given back at exit),
 and keeps its speed. The fresh-process rows are the ones a single run sees.
 
 Every repair gets its own copy of the input mesh, as a run reads it: the audit remembers its measurements of a
 mesh (edge table, components, self-intersections) on the mesh object, and a mesh repaired again would reuse the
-input's; the self-intersection test's memo of recent meshes is emptied before each repair for the same reason.
-The input's audit (its self-intersection test, statistics and samples) runs in a forked child process beside the
-backend (itself in another child), so the CPU time of ``repair=meshfix`` (which counts the children's) includes
-work that the wall time overlaps (a child's CPU time counts once it is reaped: the MeshFix child's by a
-thread within milliseconds of its exit, well before the repair's audit ends). The anchor and
-``repair=meshfix`` on the bunny swap places every other round.
+input's. (There is no process-wide memo of recent meshes any more, #32: nothing else to empty between repairs.)
+Since #32 the input's audit (its self-intersection test, statistics and samples) runs in this process before the
+backend (the output's after it), no longer in a forked child beside it: the wall time of ``repair=meshfix`` is now
+the backend's plus the audit's, and its CPU time (which counts the MeshFix children's, each reaped when its session
+ends) no longer includes work that the wall time overlaps. Every row of the table before #32 still measures
+something the code does, so none is dropped; the audit's share of the backend's time is now the audit's
+sequential cost. The anchor and ``repair=meshfix`` on the bunny swap places every other round.
 
 Every repair runs in this process after one warm-up (imports of open3d, pymeshlab and pymeshfix excluded: a run
 of the pipeline pays them once, for every stage). ``backend`` is the backend itself (with the sliver collapse),
@@ -59,12 +60,10 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.types import RunContext as Context
-from scanreg.io import shared_data_dir
 from scanreg.geometry import Mesh
-from scanreg.mesh.intersect import forget_recent
-from scanreg.io import read_mesh
+from scanreg.io import read_mesh, shared_data_dir
 from scanreg.stages.registry import REPAIR, load_all, make_params
+from scanreg.types import RunContext
 
 
 def spread(values, fmt: str) -> str:
@@ -78,8 +77,8 @@ def stage(name: str, **kw):
 
 
 def cpu_s() -> float:
-    """This process's CPU time so far (user + system, s), with its finished child processes' (the repair's
-    input audit runs in a forked child beside the backend)."""
+    """This process's CPU time so far (user + system, s), with its finished child processes' (MeshFix's sessions
+    run in forked children, :func:`scanreg.process.run_isolated`)."""
     r, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return r.ru_utime + r.ru_stime + c.ru_utime + c.ru_stime
 
@@ -98,10 +97,7 @@ def timed(key: str, fn):
 
 
 def fresh(mesh: Mesh) -> Mesh:
-    """A copy of ``mesh`` with new arrays: nothing the audit remembered about ``mesh`` applies to it; and the
-    exact self-intersection test's memo of recent meshes emptied (it would reuse the previous round's outcome
-    for the same faces, which a run, one repair per process, never can)."""
-    forget_recent()
+    """A copy of ``mesh`` with new arrays: nothing the audit remembered about ``mesh`` applies to it."""
     return Mesh(mesh.vertices.copy(), mesh.faces.copy(), mesh.source)
 
 
@@ -111,7 +107,7 @@ def timed_repair(st, mesh, ctx, key: str = "warm-up") -> tuple[float, dict]:
 
     def run():
         with contextlib.redirect_stdout(io.StringIO()):
-            return st.repair(mesh, ctx, "r_")[1]
+            return st.repair(mesh, ctx).metrics
     return timed(key, run)
 
 
@@ -119,7 +115,7 @@ FRESH = """
 import contextlib, io, resource, sys, time
 import numpy as np
 import pymeshfix
-from scanreg.types import RunContext as Context
+from scanreg.types import RunContext
 from scanreg.geometry import locality_ordered
 from scanreg.io import read_mesh
 from scanreg.stages.registry import REPAIR, load_all, make_params
@@ -130,10 +126,10 @@ load_all()
 cls = REPAIR.get("meshfix")
 extra = {"remove_slivers": False} if sys.argv[2] == "noslivers" else {}
 st = cls(make_params(cls.Params, {"cache": "off", **extra}, "meshfix"))
-ctx = Context(seed=0, run_dir=None)
+ctx = RunContext(seed=0, run_dir=None)
 mesh = read_mesh(sys.argv[1])
 with contextlib.redirect_stdout(io.StringIO()):
-    st.repair(read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj"), ctx, "r_")  # warm-up: imports
+    st.repair(read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj"), ctx)  # warm-up: imports
     c0, t0 = cpu(), time.perf_counter_ns()
     if sys.argv[2] in ("anchor", "ordered"):
         v, f = mesh.vertices.copy(), mesh.faces
@@ -143,7 +139,7 @@ with contextlib.redirect_stdout(io.StringIO()):
         fix.repair()
         fix.points, fix.faces
     else:
-        st.repair(mesh, ctx, "r_")
+        st.repair(mesh, ctx)
     t = (time.perf_counter_ns() - t0) / 1e9
 print(t, cpu() - c0)
 """
@@ -170,7 +166,7 @@ def main() -> None:
     import pymeshfix
 
     load_all()
-    ctx = Context(seed=0, run_dir=None)
+    ctx = RunContext(seed=0, run_dir=None)
     bunny = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
     bun000_path = shared_data_dir() / "stanford_bunny" / "bun000.ply"
     bun000 = read_mesh(str(bun000_path)) if bun000_path.exists() else None
@@ -198,8 +194,8 @@ def main() -> None:
         def scanreg():
             s, m = timed_repair(meshfix, bunny, ctx, "bunny_meshfix")
             t["bunny_meshfix"].append(s)
-            parts["bunny_backend"].append(m["r_backend_time_s"])
-            parts["bunny_audit"].append(m["r_audit_time_s"])
+            parts["bunny_backend"].append(m["backend_time_s"])
+            parts["bunny_audit"].append(m["audit_time_s"])
 
         for run in ((anchor, scanreg) if r % 2 == 0 else (scanreg, anchor)):
             run()
@@ -207,11 +203,11 @@ def main() -> None:
         if bun000 is not None:
             s, m = timed_repair(meshfix, bun000, ctx, "bun000_meshfix")
             t["bun000_meshfix"].append(s)
-            parts["bun000_backend"].append(m["r_backend_time_s"])
-            parts["bun000_audit"].append(m["r_audit_time_s"])
+            parts["bun000_backend"].append(m["backend_time_s"])
+            parts["bun000_audit"].append(m["audit_time_s"])
             t["bun000_meshlab"].append(timed_repair(meshlab, bun000, ctx, "bun000_meshlab")[0])
             s, m = timed_repair(cached, bun000, ctx, "hit")
-            assert m["r_cache_hit"] == 1.0
+            assert m["cache_hit"] == 1.0
             t["hit"].append(s)
             wall, c = fresh_repair(bun000_path)
             t["fresh"].append(wall)

@@ -29,12 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.types import RunContext as Context
-from scanreg.io import shared_data_dir
 from scanreg.errors import StageError
-from scanreg.mesh.intersect import forget_recent
-from scanreg.io import read_mesh
+from scanreg.io import read_mesh, shared_data_dir
 from scanreg.stages.registry import REPAIR, SAMPLER, make_params
+from scanreg.types import RunContext
 
 
 def timed(fn) -> float:
@@ -55,7 +53,7 @@ def bench_sampling(n: int, repeat: int) -> list[str]:
     mesh = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
     om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
                                    o3d.utility.Vector3iVector(mesh.faces.astype(np.int32)))
-    ctx = Context(seed=0, run_dir=None)
+    ctx = RunContext(seed=0, run_dir=None)
     methods = {}
     for name in ("barycentric", "open3d_uniform", "poisson_disk"):
         if name == "poisson_disk" and n > 200_000:
@@ -66,7 +64,7 @@ def bench_sampling(n: int, repeat: int) -> list[str]:
     for _ in range(repeat):  # interleaved: the anchor, then every method, in each round
         anchor.append(timed(lambda: om.sample_points_uniformly(n)))
         for name, s in methods.items():
-            times[name].append(timed(lambda: s.run(mesh, ctx)))
+            times[name].append(timed(lambda: s.sample_mesh(mesh, ctx)))
     rows = [f"| Open3D sample_points_uniformly (anchor) | {spread(anchor, '.3f')} | 1.00 |"]
     for name, t in times.items():
         rows.append(f"| scanreg {name} | {spread(t, '.3f')} | {spread([x / y for x, y in zip(t, anchor)], '.2f')} |")
@@ -87,7 +85,7 @@ def bench_repair(repeat: int) -> list[str]:
         if (shared / rel).exists():
             meshes[rel] = str(shared / rel)
     rows = []
-    ctx = Context(seed=0, run_dir=None)
+    ctx = RunContext(seed=0, run_dir=None)
     for label, path in meshes.items():
         m = read_mesh(path)
         m.source = label
@@ -104,18 +102,16 @@ def bench_repair(repeat: int) -> list[str]:
             for i, (name, kw) in enumerate(configs):
                 cls = REPAIR.get(name)
                 st = cls(make_params(cls.Params, {**kw, "check_only": True}, name))
-                forget_recent()  # as a run: no earlier repair's self-intersection outcome to reuse
                 t0 = time.perf_counter_ns()
                 with contextlib.redirect_stdout(io.StringIO()):
                     try:
-                        _, mm = repair_with_audit(st, m, ctx, "r_")
-                    except StageError as e:
+                        mm = repair_with_audit(st, m, ctx).metrics
+                    except StageError as e:  # the guard's failure carries the audit (unprefixed names)
                         mm = e.metrics
                 times[i].append((time.perf_counter_ns() - t0) / 1e9)
                 audits[i] = audits[i] or mm
         rows.append(f"| {label} | pymeshfix MeshFix.repair() (anchor) | {spread(anchor, '.2f')} | 1.00 | - |")
-        for (name, kw), t, mm in zip(configs, times, audits):
-            a = {k[2:]: v for k, v in mm.items()}
+        for (name, kw), t, a in zip(configs, times, audits):
             verdict = (f"{'ok' if a['guard_ok'] else 'GUARD'}{', watertight' if a['after_watertight'] else ''}: "
                        f"loops {a['before_boundary_loops']}->"
                        f"{a['after_boundary_loops']}, self-int {a['before_self_intersecting_faces']}->"
@@ -136,7 +132,7 @@ def bench_stanford(borders: list[str]) -> list[str]:
     folder = shared_data_dir() / "stanford_bunny"
     names = ["bun000", "bun045", "bun090", "bun180", "bun270", "bun315", "chin", "ear_back", "top2", "top3"]
     rows = []
-    ctx = Context(seed=0, run_dir=None)
+    ctx = RunContext(seed=0, run_dir=None)
     import open3d  # noqa: F401  (its import, 2 s, is not the repair's)
 
     for border in borders:
@@ -145,12 +141,10 @@ def bench_stanford(borders: list[str]) -> list[str]:
             m.source = name
             cls = REPAIR.get("meshfix")
             st = cls(make_params(cls.Params, {"open_border": border, "check_only": True}, "meshfix"))
-            forget_recent()  # as a run: no earlier repair's self-intersection outcome to reuse
             t0 = time.perf_counter_ns()
             with contextlib.redirect_stdout(io.StringIO()):
-                _, mm = repair_with_audit(st, m, ctx, "r_")
+                a = repair_with_audit(st, m, ctx).metrics
             t = (time.perf_counter_ns() - t0) / 1e9
-            a = {k[2:]: v for k, v in mm.items()}
             rows.append(f"| {name} | {border} | {t:.2f} | {a['backend_time_s']:.2f} | {a['audit_time_s']:.2f} | "
                         f"{'ok' if a['guard_ok'] else 'GUARD'} | {a['open_border_open']:.0f} | "
                         f"{a['before_boundary_loops']}->{a['after_boundary_loops']} | "

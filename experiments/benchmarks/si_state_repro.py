@@ -12,9 +12,12 @@ shifted by 5 or divided by 1000 gave 39, 56 and 26 faces (cnr-isti-vclab/meshlab
 any of these frames. Suspected mechanism (not confirmed): vcg's ``TestFaceFaceIntersection`` reads the segment
 parameters ``a, b`` of ``IntersectionSegmentTriangle`` on a path that may leave them unset (stack contents).
 
-This script repairs the posed scan four times in one process (fresh copies, memory allocated in between, the
-exact test's reuse memo cleared each round so that every round tests afresh) and prints, per round, MeshLab's
-count on the same input (it may change) and the exact count and the repaired mesh's hash (they must not).
+This script repairs the posed scan four times in one process (fresh copies, memory allocated in between) and
+prints, per round, MeshLab's count on the same input (it may change) and the exact count and the repaired mesh's
+hash (they must not). Every round tests afresh: since #32 the exact test keeps no process-wide memo of recent
+meshes (it reuses an earlier outcome only when given one, ``previous``), so there is nothing to clear between
+rounds (this script called ``forget_recent()`` before), and MeshFix's sessions run in forked children
+(:func:`scanreg.process.run_isolated`) while the audit runs in this process.
 
 Run: ``.venv/bin/python experiments/benchmarks/si_state_repro.py`` (about 1 min; needs ../shared/data). Exit 0
 when the repair is the same every round.
@@ -35,11 +38,10 @@ def main() -> int:
     from scipy.spatial.transform import Rotation
 
     from scanreg.api import build_stage
-    from scanreg.types import RunContext as Context
-from scanreg.io import shared_data_dir
     from scanreg.geometry import transform_geometry
-    from scanreg.mesh.intersect import forget_recent, self_intersecting_faces
-    from scanreg.io import read_mesh
+    from scanreg.io import read_mesh, shared_data_dir
+    from scanreg.mesh.intersect import self_intersecting_faces
+    from scanreg.types import RunContext
 
     path = shared_data_dir() / "stanford_bunny" / "top3.ply"
     if not path.exists():
@@ -58,11 +60,9 @@ from scanreg.io import shared_data_dir
         ms.add_mesh(pymeshlab.Mesh(v, f))
         ms.compute_selection_by_self_intersections_per_face()
         counts.append(int(ms.current_mesh().selected_face_number()))
-        forget_recent()
         exact.append(int(self_intersecting_faces(v, f).sum()))
-        forget_recent()
-        out, _ = stage.repair(transform_geometry(T, copy.deepcopy(m0)),
-                              Context(seed=0, run_dir=pathlib.Path(".")), "repair_")
+        ctx = RunContext(seed=0, run_dir=pathlib.Path("."))
+        out = stage.repair(transform_geometry(T, copy.deepcopy(m0)), ctx).mesh
         hashes.append(hashlib.sha1(out.vertices.tobytes() + out.faces.tobytes()).hexdigest()[:10])
         print(f"round {k}: the same input's self-intersecting faces: MeshLab {counts[-1]}, exact {exact[-1]}; "
               f"repaired mesh {len(out.faces)} faces, {hashes[-1]}", flush=True)

@@ -23,7 +23,9 @@ def main() -> None:
     except SystemExit as e:
         code = e.code
     startup.drop_tracking_worker()  # a run that did not log (untracked, or stopped early) leaves no worker behind
-    if startup.is_multirun(argv):
+    from scanreg.app.tracking import _sweep_outcome
+
+    if startup.is_multirun(argv) or _sweep_outcome.get("started"):  # (a sweep may be set by a config file)
         raise SystemExit(code)
     startup.exit_now(code)
 

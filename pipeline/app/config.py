@@ -10,7 +10,8 @@ from scanreg.errors import ConfigError
 from scanreg.io.paths import PROJECT_ROOT
 from scanreg.stages.registry import CONF_PACKAGE, REGISTRIES, conf_dir, load_all, make_params, type_error
 
-STAGE_GROUPS = ("data", "repair", "sampler", "salience", "descriptor", "matcher", "coarse", "icp", "tracking")
+STAGE_GROUPS = ("data", "repair", "sampler", "salience", "descriptor", "matcher", "coarse", "icp", "graph", "surface",
+                "tracking")
 """The config groups that pick one implementation each."""
 PRESET_GROUPS = ("method", "experiment", "launch")
 """Groups of ``# @package _global_`` files that set several groups (or the sweep launcher) at once."""
@@ -80,10 +81,12 @@ def register_schemas() -> None:
     import scanreg.app.tracking  # noqa: F401  (registers the tracking backends)
     from scanreg.app.report.params import ReportParams
     from scanreg.eval.metrics import EvalParams
+    from scanreg.runner.settings import MultiviewParams
 
     load_all()
     ConfigStore.instance().store(name="_evaluate", node=EvalParams)
     ConfigStore.instance().store(name="_report", node=ReportParams)
+    ConfigStore.instance().store(name="_multiview", node=MultiviewParams)
     if not OmegaConf.has_resolver("scanreg_conf_dir"):
         OmegaConf.register_new_resolver("scanreg_conf_dir", lambda: str(conf_dir()))
         OmegaConf.register_new_resolver("scanreg_groups", help_groups)
@@ -97,14 +100,15 @@ def config_error_line(e: BaseException) -> str:
     from hydra.errors import MissingConfigException, OverrideParseException
 
     text = " ".join(str(e).split())
-    cause = e.__cause__
+    cause = e.__cause__ or e.__context__  # (Hydra chains some of OmegaConf's errors as the context)
     if isinstance(e, OverrideParseException):
         return f"bad override: {str(e).splitlines()[0]}"
     if isinstance(e, MissingConfigException):
-        m = re.search(r"Could not find '([^'/]+)/([^']+)'", text)
+        m = re.search(r"Could not find '([^']+)/([^'/]+)'", text)
         if m:
             group, choice = m.groups()
-            return f"unknown {group} '{choice}'; valid {group} choices: {', '.join(group_choices(group))}"
+            valid = group_choices(group) or re.findall(r"\t(\w+)", str(e))
+            return f"unknown {group} '{choice}'; valid {group} choices: {', '.join(v for v in valid if v[:1] != '_')}"
         return text[:500]
     stage = getattr(getattr(cause, "object_type", None), "__scanreg_stage__", None)
     key = str(getattr(cause, "full_key", "") or "")
@@ -113,23 +117,35 @@ def config_error_line(e: BaseException) -> str:
     param = key.split(".", 1)[1] if "." in key else key
     if stage is not None and param:
         family, name = stage
-        params_cls = REGISTRIES[family].get(name).Params
+        params_cls = _registry(family).get(name).Params
         where = f"{family}={name}"
     elif key.split(".")[0] in ("evaluate", "report"):
         params_cls, where = _block_params(key.split(".")[0]), key.split(".")[0]
     else:
         params_cls = where = None
     if params_cls is not None:
-        if "Could not override" in text:  # an unknown parameter: the registry's message
+        unknown = "Could not override" in text or "not in" in str(cause or "")
+        if unknown:  # an unknown parameter: the registry's message
             try:
                 make_params(params_cls, {param.split(".")[0]: None}, where)
             except ConfigError as ce:
+                if "Could not override" not in text:  # set by a config file (an experiment), not the command line
+                    return f"{ce} (set by a config file: an experiment or preset written for another choice?)"
                 return str(ce)
-        value = re.search(r"Value '([^']*)'", str(cause or ""))
+        value = re.search(r"[Vv]alue '([^']*)'", str(cause or ""))
         return type_error(params_cls, param, value.group(1) if value else None, where)
     if "Could not override" in text and key:
         return f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)"
     return (text + (f" ({' '.join(str(cause).split())})" if cause else ""))[:500]
+
+
+def _registry(family: str):
+    """The registry of a config group's implementations (the stages', or the tracking backends')."""
+    if family == "tracking":
+        from scanreg.app.tracking import TRACKING
+
+        return TRACKING
+    return REGISTRIES[family]
 
 
 def _block_params(block: str) -> type:

@@ -23,11 +23,16 @@ from scanreg.app.config import PRESET_GROUPS, STAGE_GROUPS, config_error_line, g
 from scanreg.errors import ConfigError, ScanregError
 from scanreg.stages.registry import CONF_PACKAGE
 
-EXIT_FAILED, EXIT_USAGE, EXIT_INTERNAL, EXIT_INTERRUPTED = 1, 2, 3, 130
-"""The exit codes (README, Errors): 0 done; 1 the input or a stage failed (the MLflow run ends FAILED), or a
-job of a sweep failed; 2 a usage or config error (unknown stage or parameter, wrong type, a required setting
-missing), found before any MLflow run is created; 3 an internal error (a bug: verbose=true for the traceback);
-130 interrupted."""
+# The exit codes (documentation: Getting started, Errors and exit codes); 0: done.
+EXIT_FAILED = 1
+"""The input or a stage failed (the MLflow run ends FAILED), or a job of a sweep failed."""
+EXIT_USAGE = 2
+"""A usage or config error (unknown stage or parameter, wrong type, a required setting missing), found before any
+MLflow run is created."""
+EXIT_INTERNAL = 3
+"""An internal error (a bug: ``verbose=true`` for the traceback)."""
+EXIT_INTERRUPTED = 130
+"""Interrupted (Ctrl-C, SIGTERM)."""
 
 
 def _err(msg: str) -> None:

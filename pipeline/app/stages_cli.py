@@ -158,3 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. piped into head
         sys.stdout = None
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

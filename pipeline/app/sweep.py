@@ -23,6 +23,7 @@ class SweepCallback(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         _sweep_outcome.clear()
+        _sweep_outcome["started"] = True  # (the command exits normally after a sweep: scanreg.app.cli)
         os.environ.pop(SWEEP_ENV, None)
         try:
             from scanreg.app.tracking import TRACKING as T

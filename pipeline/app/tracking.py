@@ -60,9 +60,6 @@ def sweep_info() -> dict | None:
         pass
     return None
 
-_sweep_outcome: dict[str, Any] = {}
-"""Set by SweepCallback.on_multirun_end in the launching process: ``{"failed": n, "total": n}``."""
-
 
 _sweep_outcome: dict[str, Any] = {}
 """Set by SweepCallback.on_multirun_end in the launching process: ``{"failed": n, "total": n}``."""

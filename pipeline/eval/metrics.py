@@ -89,7 +89,7 @@ class EvalParams:
     """Absolute translation threshold of ``registration_recall`` (input units, e.g. 0.3 for metric indoor data
     as in 3DMatch); null: ``recall_translation`` times the diagonal."""
     write_keypoints: bool = True
-    """Write ``keypoints_target.ply``, ``keypoints_source.ply`` and ``matches.ply`` (coloured; see the README's
+    """Write ``keypoints_target.ply``, ``keypoints_source.ply`` and ``matches.ply`` (coloured; see the documentation's
     Metrics section) when the coarse stage exposes keypoints and matches. Cheap: a few thousand points."""
 
     def check(self):

@@ -104,3 +104,24 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
                       legend=dict(x=0, y=1), margin=dict(l=0, r=0, t=40, b=0))
     path.write_text(fig.to_html(include_plotlyjs=True, full_html=True), encoding="utf-8")
     return path
+
+
+def write_set_view(path: Path, merged, names: list[str], colours: np.ndarray, max_points: int = 200000,
+                   seed: int = 0) -> Path:
+    """The merged points of a scan set in one self-contained view, a colour and a legend entry per scan (click
+    an entry to hide that scan); a seeded subsample of at most ``max_points`` points, named in the title."""
+    import plotly.graph_objects as go
+
+    rng = np.random.default_rng([seed, 78])
+    j = _subsample(merged.n_points, max_points, rng)
+    pts, scan = merged.points[j], merged.extra["scan"][j]
+    fig = go.Figure()
+    for k in np.unique(scan):
+        c = colours[int(k) % len(colours)]
+        fig.add_trace(_scatter(go, pts[scan == k], names[int(k)], color=f"rgb({c[0]},{c[1]},{c[2]})"))
+    shown = f"{len(j)} of {merged.n_points} points" if len(j) < merged.n_points else f"{merged.n_points} points"
+    fig.update_layout(title=dict(text=f"the registered scans, merged ({shown}), coloured by scan", font=dict(size=13)),
+                      height=800, scene=dict(aspectmode="data", xaxis_title="x", yaxis_title="y", zaxis_title="z"),
+                      legend=dict(x=0, y=1), margin=dict(l=0, r=0, t=40, b=0))
+    path.write_text(fig.to_html(include_plotlyjs=True, full_html=True), encoding="utf-8")
+    return path

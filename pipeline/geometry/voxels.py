@@ -61,7 +61,7 @@ def voxel_cells(points: np.ndarray, voxel: float, margin: int = 0) -> tuple[np.n
     """The cell of each point on a grid of edge ``voxel`` (input units) anchored at the points' minimum corner,
     with ``margin`` empty cells on every side: ``(flat, keys, span)``, ``keys`` the (N, 3) integer cells,
     ``span`` the grid's size in cells, and ``flat`` one int64 per cell ordered as the (x, y, z) rows are
-    lexicographically (the same groups in the same order as ``np.unique(keys, axis=0)``, about 50x faster on a
+    lexicographically (the same groups in the same order as ``np.unique(keys, axis=0)``, without its row sort on a
     million points), or None when the grid has too many cells for a 62-bit index."""
     if len(points) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.ones(3, np.int64)
@@ -135,7 +135,7 @@ def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float, near: floa
         if len(ask):
             from scipy.spatial import cKDTree
 
-            tree = cKDTree(points, leafsize=32, balanced_tree=False, compact_nodes=False)  # builds 2x faster
+            tree = cKDTree(points, leafsize=32, balanced_tree=False, compact_nodes=False)  # an unbalanced tree: quicker to build
             d = tree.query(points[ask], k=2, distance_upper_bound=near)[0][:, 1]  # inf beyond near
             keep[ask[d > near]] = False
     return keep

@@ -34,9 +34,8 @@ def surface_distances(a: Mesh, b: Mesh, n: int, seed: int) -> np.ndarray:
 
 def distances_to(mesh: Mesh):
     """The function of points (n, 3) that gives their exact distances to the surface of ``mesh`` (the nearest
-    point on any face, in double precision; libigl's AABB tree, built here once). Unlike Open3D's raycasting
-    scene it uses no thread pool that outlives a call, so it may be built and queried in a forked child
-    process (:class:`AuditBeside`)."""
+    point on any face, in double precision; libigl's AABB tree, built here once). Open3D's raycasting scene
+    (:func:`raycasting_scene`) computes in single precision."""
     import igl
 
     v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)

@@ -77,7 +77,7 @@ instead of mapped afresh."""
 
 def _per_face(mesh: Mesh, fn, n_out: int) -> list[np.ndarray]:
     """``n_out`` values per face, computed block by block by ``fn(c)`` from the corner columns ``c[i][k]``
-    (coordinate k of corner i, each a contiguous 1-D array: arithmetic on these is several times faster than on
+    (coordinate k of corner i, each a contiguous 1-D array: arithmetic on these is quicker than on
     (n, 3) rows). Element by element, so the values do not depend on the blocks."""
     v, f = mesh.vertices, mesh.faces
     cols = [np.ascontiguousarray(v[:, k]) for k in range(3)]
@@ -277,7 +277,7 @@ def _edge_table_sorted(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     keys = lo.astype(np.int64) * n + hi.astype(np.int64)  # _edge_keys of the sorted pairs
     bits = max(len(keys) - 1, 1).bit_length()
     if (n * n - 1).bit_length() + bits <= 63:
-        # each key with its row in the low bits, sorted as plain integers (3x faster than an argsort): the rows
+        # each key with its row in the low bits, sorted as plain integers (no argsort): the rows
         # in key order, those of one key ascending (the edges' ids do not depend on the order of equal keys)
         packed = np.sort((keys << bits) | np.arange(len(keys), dtype=np.int64))
         order, sk = packed & ((1 << bits) - 1), packed >> bits
@@ -295,7 +295,7 @@ def _edge_table_sorted(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 def _edge_keys(e: np.ndarray) -> np.ndarray:
     """One int64 per vertex pair (a, b), ordered as the pairs are lexicographically (a 1-D ``np.unique`` is
-    several times faster than ``np.unique(axis=0)`` on the pairs)."""
+    quicker than ``np.unique(axis=0)`` on the pairs)."""
     e = np.asarray(e, dtype=np.int64)
     n = int(e.max()) + 1 if e.size else 1
     return e[:, 0] * n + e[:, 1]

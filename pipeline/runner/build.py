@@ -8,7 +8,8 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from scanreg.eval.metrics import EvalParams
-from scanreg.stages.registry import COARSE, DATA, ICP, REGISTRIES, REPAIR, SAMPLER, load_all, make_params
+from scanreg.runner.settings import MultiviewParams
+from scanreg.stages.registry import COARSE, DATA, GRAPH, ICP, REGISTRIES, REPAIR, SAMPLER, SURFACE, load_all, make_params
 
 HELPER_FAMILIES = ("salience", "descriptor", "matcher")
 """Families whose stages a coarse stage may use (its ``uses``); built and validated whatever the coarse stage."""
@@ -27,6 +28,12 @@ class Stages:
     evaluate: EvalParams
     helpers: dict[str, Any] = field(default_factory=dict)
     """The built salience, descriptor and matcher stages (the coarse stage holds those it uses)."""
+    graph: Any = None
+    """A scan set's pose graph."""
+    surface: Any = None
+    """A scan set's surface reconstruction."""
+    multiview: MultiviewParams = field(default_factory=MultiviewParams)
+    """How a scan set is registered and merged."""
 
 
 def build_stages(cfg: DictConfig) -> Stages:
@@ -38,4 +45,6 @@ def build_stages(cfg: DictConfig) -> Stages:
     coarse = cls(params, **{fam: helpers[fam] for fam in cls.uses})
     icp = ICP.build(cfg.icp)
     evaluate = make_params(EvalParams, OmegaConf.to_container(cfg.evaluate, resolve=True), "evaluate")
-    return Stages(data, repair, sampler, coarse, icp, evaluate, helpers)
+    multiview = make_params(MultiviewParams, OmegaConf.to_container(cfg.multiview, resolve=True), "multiview")
+    return Stages(data, repair, sampler, coarse, icp, evaluate, helpers, GRAPH.build(cfg.graph),
+                  SURFACE.build(cfg.surface), multiview)

@@ -14,7 +14,7 @@ from scanreg.geometry import transform_geometry
 from scanreg.runner.build import Stages, build_stages
 from scanreg.runner.outputs import write_outputs
 from scanreg.runner.steps import evaluate_pair, load_problem, prepare_scan, register_pair
-from scanreg.types import PreparedScan, Result, RunContext
+from scanreg.types import PreparedScan, Result, RunContext, ScanSet
 
 REPAIR_PREFIX = {"source": "repair_", "target": "target_repair_"}
 """Prefix of each scan's repair audit in a run's metrics."""
@@ -37,6 +37,10 @@ def run_stages(stages: Stages, ctx: RunContext, t_start: int | None = None) -> R
     t0 = time.perf_counter_ns()
     problem = load_problem(stages, ctx)
     m["time_load_s"] = (time.perf_counter_ns() - t0) / 1e9
+    if isinstance(problem, ScanSet):  # many scans of one object
+        from scanreg.runner.scanset_run import run_scanset
+
+        return run_scanset(problem, stages, ctx, m, t_start)
     m.update({k: float(v) for k, v in problem.info.items() if isinstance(v, (int, float))})
     scans: dict[str, PreparedScan] = {}
     for role, salt in (("source", 2), ("target", 1)):

@@ -19,14 +19,14 @@ from typing import Optional
 import numpy as np
 
 from scanreg.errors import InputError
-from scanreg.eval.checks import check_inputs
+from scanreg.eval.checks import check_geometry, check_inputs
 from scanreg.eval.metrics import (EvalParams, alignment_metrics, field_metrics, gt_metrics, surface_deviation)
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
                                       relative_motion)
 from scanreg.geometry import ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, transform_geometry
 from scanreg.runner.build import Stages
 from scanreg.runner.outputs import write_keypoints
-from scanreg.types import Correspondences, PairResult, PreparedScan, Problem, RunContext
+from scanreg.types import Correspondences, PairResult, PreparedScan, Problem, RunContext, ScanSet
 
 MIN_POINTS = 10
 """Fewest points a cloud may have after sampling (the coarse and fine stages need neighbourhoods)."""
@@ -36,20 +36,26 @@ def _seconds_since(t0: int) -> float:
     return (time.perf_counter_ns() - t0) / 1e9
 
 
-def load_problem(stages: Stages, ctx: RunContext) -> Problem:
-    """The data provider's problem; too few points, coincident, collinear or planar inputs stop here."""
+def load_problem(stages: Stages, ctx: RunContext) -> Problem | ScanSet:
+    """The data provider's problem (a pair, or a scan set); too few points, coincident, collinear or planar
+    inputs stop here."""
     problem = stages.data.load(ctx)
-    check_inputs(problem, MIN_POINTS)
+    if isinstance(problem, ScanSet):
+        for g, name in zip(problem.scans, problem.names):
+            check_geometry(g, name, MIN_POINTS)
+    else:
+        check_inputs(problem, MIN_POINTS)
     return problem
 
 
-def prepare_scan(geometry: Geometry, stages: Stages, ctx: RunContext, name: str, salt: int) -> PreparedScan:
-    """One scan ready to register: a mesh repaired (when the repair applies to ``name``, the scan's role) and
-    then its scanned side sampled; a cloud sampled (thinned) as the sampler says; the sampling spacing estimated
-    with ``ctx.rng(salt)``."""
+def prepare_scan(geometry: Geometry, stages: Stages, ctx: RunContext, name: str, salt: int,
+                 role: str | None = None) -> PreparedScan:
+    """One scan ready to register: a mesh repaired (when the repair applies to its ``role``: ``source``,
+    ``target``, or ``scan`` for a scan of a set; ``name`` by default) and then its scanned side sampled; a cloud
+    sampled (thinned) as the sampler says; the sampling spacing estimated with ``ctx.rng(salt)``."""
     t0 = time.perf_counter_ns()
     surface, audit = geometry, {}
-    if isinstance(geometry, Mesh) and stages.repair.applies_to(name):
+    if isinstance(geometry, Mesh) and stages.repair.applies_to(role or name):
         repaired = stages.repair.repair(geometry, ctx)
         surface, audit = repaired.mesh, repaired.metrics
     # a scan closed as a shell by the repair (repair.open_border=shell) is sampled and compared on its scanned side

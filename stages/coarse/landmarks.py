@@ -9,17 +9,16 @@ import numpy as np
 
 from scanreg.errors import ConfigError, StageError
 from scanreg.geometry import Cloud, apply_T, horn_quaternion
+from scanreg.stages.coarse.base import CoarseBase
 from scanreg.stages.registry import COARSE
 from scanreg.types import CoarseResult, Distances, RunContext, to_abs
 
 
 @COARSE.register("landmarks")
-class Landmarks:
+class Landmarks(CoarseBase):
     """User-picked landmark pairs (``data.landmarks``, at least 3) solved in closed form (Horn). It reports each
     landmark's residual and its leave-one-out error (the residual when the transform is fitted without it), so
     that a bad pick stands out: the paper's rough registration."""
-
-    uses: tuple[str, ...] = ()
 
     @dataclass
     class Params:
@@ -28,8 +27,6 @@ class Landmarks:
         distances: Distances = Distances.absolute
         """Unit of ``max_residual``: input units (default) or multiples of the sampling spacing."""
 
-    def __init__(self, params: Params):
-        self.p = params
 
     def align(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext,
               landmarks: Optional[tuple[np.ndarray, np.ndarray]] = None) -> CoarseResult:

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional
 
+import numpy as np
+
 from scanreg.errors import StageError
-from scanreg.geometry import Cloud
+from scanreg.geometry import Cloud, estimate_spacing, sparse_voxel_mask, voxel_representatives
 from scanreg.process import blas_single_thread
+from scanreg.stages.coarse.base import CoarseBase, Described
 from scanreg.stages.coarse.ransac import lo_ransac
 from scanreg.stages.coarse.thinning import downsampled, without_isolated
 from scanreg.stages.registry import COARSE, SALIENCE
@@ -15,7 +18,7 @@ from scanreg.types import CoarseResult, CoarseTrace, Distances, RunContext, to_a
 
 
 @COARSE.register("lo_ransac")
-class LoRansac:
+class LoRansac(CoarseBase):
     """The paper's feature pipeline: keypoints (``salience``), descriptors (``descriptor``), correspondences
     (``matcher``), then locally optimised RANSAC (Chum et al. 2003; :mod:`scanreg.stages.coarse.ransac`). It
     draws minimal samples of 3 correspondences (in seeded, vectorised batches), counts inliers within
@@ -86,7 +89,7 @@ class LoRansac:
         shrinks by sqrt(points / min_points) while it has fewer (up to 3 times), and a cloud that has fewer than
         this to begin with is not thinned at all. Sparse inputs (a few thousand points, a source 4-8x sparser
         than its target) then keep enough keypoints: with the 4-spacing voxel alone, 3 000 sampled points
-        became 900 and a demo pose failed (README, findings). null: no lower bound."""
+        became 900 and a demo pose failed (docs: Registration, findings). null: no lower bound."""
 
         isolated_ratio: Optional[float] = 0.25
         """With ``voxel``: before thinning, drop isolated points (outliers). On the grid of the initial voxel
@@ -99,7 +102,7 @@ class LoRansac:
         surface fills its cells alike, outliers scattered through the volume sit one to a cell; thinning keeps
         one point per occupied cell, so without this at 30 % outliers most of the thinned source was outliers,
         the keypoints and FPFH neighbourhoods with it, and every detector failed where on every point each
-        succeeded (README, findings). A clean bunny scan loses 0.2-0.7 % of its points. Logged as ``coarse_isolated_target`` / ``_source`` (points
+        succeeded (docs: Registration, findings). A clean bunny scan loses 0.2-0.7 % of its points. Logged as ``coarse_isolated_target`` / ``_source`` (points
         dropped). null: keep every point."""
 
         def check(self):
@@ -169,21 +172,84 @@ class LoRansac:
             raise StageError(f"coarse=lo_ransac: too few keypoints (target {len(kt)}, source {len(ks)}); "
                              "lower the salience radii or use more points")
         dt, ds = self.descriptor.compute(target, kt, spacing), self.descriptor.compute(source, ks, spacing)
-        pairs = self.matcher.match(dt, ds)
-        metrics = {"coarse_keypoints_target": len(kt), "coarse_keypoints_source": len(ks),
+        return self._matched(Described(target, spacing, kt, dt), Described(source, spacing, ks, ds), self.p)
+
+    def _matched(self, t: Described, s: Described, p: Params) -> CoarseResult:
+        """Descriptor matches and RANSAC between two described clouds (one spacing), with the parameters ``p``."""
+        pairs = self.matcher.match(t.descriptors, s.descriptors)
+        metrics = {"coarse_keypoints_target": len(t.keypoints), "coarse_keypoints_source": len(s.keypoints),
                    "coarse_correspondences": len(pairs)}
         if len(pairs) < 3:
             raise StageError(f"coarse=lo_ransac: only {len(pairs)} descriptor matches; need at least 3")
+        kt, ks, target, source = t.keypoints, s.keypoints, t.cloud, s.cloud
         P0, P1 = target.points[kt[pairs[:, 0]]], source.points[ks[pairs[:, 1]]]
         N0 = None if target.normals is None else target.normals[kt[pairs[:, 0]]]
         N1 = None if source.normals is None else source.normals[ks[pairs[:, 1]]]
-        thr = to_abs(self.p.distance_threshold, self.p.distances, spacing)
-        r = lo_ransac(P0, P1, N0, N1, thr, self.p, self.p.seed)
+        thr = to_abs(p.distance_threshold, p.distances, t.spacing)
+        r = lo_ransac(P0, P1, N0, N1, thr, p, p.seed)
         inl = r.inliers
         metrics.update({"coarse_ransac_iterations": r.hypotheses, "coarse_inliers": int(inl.sum()),
                         "coarse_inlier_ratio": float(inl.mean())})
-        if inl.sum() < self.p.min_inliers:
+        if inl.sum() < p.min_inliers:
             raise StageError(f"coarse=lo_ransac: best model has {int(inl.sum())} inliers of {len(pairs)} matches "
-                             f"(min_inliers {self.p.min_inliers}); the scans may not overlap or the descriptors not match")
-        trace = CoarseTrace(target.points[kt], source.points[ks], P0, P1, inl, spacing)
+                             f"(min_inliers {p.min_inliers}); the scans may not overlap or the descriptors not match")
+        trace = CoarseTrace(target.points[kt], source.points[ks], P0, P1, inl, t.spacing)
         return CoarseResult(r.T_target_source, metrics, trace)
+
+    def describe_set(self, clouds: list[Cloud], spacing: float, ctx: RunContext) -> list[Described]:
+        """Every scan of a set thinned on one voxel grid (``voxel`` spacings of ``spacing``, grown or shrunk once
+        for the whole set as ``max_points`` and ``min_points`` say, isolated points dropped first), then its
+        keypoints and descriptors at the thinned clouds' spacing (the largest of them): each scan once, whatever
+        the pairs it takes part in."""
+        p = self.p
+        with blas_single_thread():
+            if p.voxel is None:
+                thinned, ts = list(clouds), spacing
+            else:
+                voxel = p.voxel * spacing
+                if p.isolated_ratio is not None:
+                    clouds = [c.subset(sparse_voxel_mask(c.points, voxel, p.isolated_ratio, 3 * spacing))
+                              for c in clouds]
+                for _ in range(4):
+                    counts = [len(voxel_representatives(c.points, voxel)) for c in clouds]
+                    if p.max_points is not None and max(counts) > p.max_points:
+                        voxel *= float(np.sqrt(max(counts) / p.max_points))
+                    elif p.min_points is not None and min(counts) < p.min_points:
+                        voxel *= float(np.sqrt(min(counts) / p.min_points))
+                    else:
+                        break
+                thinned = [c.subset(voxel_representatives(c.points, voxel)) for c in clouds]
+                ts = max(estimate_spacing(c.points, ctx.rng(1)) for c in thinned)
+            out = []
+            for c in thinned:
+                kp = self.salience.keypoints(c, ts)
+                out.append(Described(c, ts, kp, self.descriptor.compute(c, kp, ts) if len(kp) >= 3 else None))
+        return out
+
+    def align_described(self, target: Described, source: Described, ctx: RunContext,
+                        budget: int | None = None) -> CoarseResult:
+        """Matches and RANSAC between two described scans of a set (at most ``budget`` hypotheses), with the
+        fallback to uniform keypoints as :meth:`align` has it."""
+        p = self.p if budget is None else replace(self.p, max_iterations=min(self.p.max_iterations, budget))
+        with blas_single_thread():
+            try:
+                if target.descriptors is None or source.descriptors is None:
+                    raise StageError(f"coarse=lo_ransac: too few keypoints (target {len(target.keypoints)}, source "
+                                     f"{len(source.keypoints)})")
+                res = self._matched(target, source, p)
+                res.metrics["coarse_fallback"] = 0
+                return res
+            except StageError:
+                if p.fallback_voxel is None or getattr(self.salience, "name", "") == "uniform":
+                    raise
+            res = self._matched(self._uniformly(target), self._uniformly(source), p)
+            res.metrics["coarse_fallback"] = 1
+            return res
+
+    def _uniformly(self, d: Described) -> Described:
+        """``d``'s cloud described with uniform keypoints (``fallback_voxel``), once."""
+        if d.fallback is None:
+            uniform = SALIENCE.build({"name": "uniform", "voxel": self.p.fallback_voxel, "distances": "spacing"})
+            kp = uniform.keypoints(d.cloud, d.spacing)
+            d.fallback = Described(d.cloud, d.spacing, kp, self.descriptor.compute(d.cloud, kp, d.spacing))
+        return d.fallback

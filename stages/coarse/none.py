@@ -7,22 +7,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from scanreg.geometry import Cloud
+from scanreg.stages.coarse.base import CoarseBase
 from scanreg.stages.registry import COARSE
 from scanreg.types import CoarseResult, RunContext
 
 
 @COARSE.register("none")
-class NoCoarse:
+class NoCoarse(CoarseBase):
     """Start fine registration from the identity (the inputs are assumed roughly aligned)."""
-
-    uses: tuple[str, ...] = ()
 
     @dataclass
     class Params:
         pass
 
-    def __init__(self, params: Params):
-        self.p = params
 
     def align(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext,
               landmarks=None) -> CoarseResult:

@@ -9,6 +9,7 @@ import numpy as np
 
 from scanreg.errors import StageError
 from scanreg.geometry import Cloud, to_o3d
+from scanreg.stages.coarse.base import CoarseBase
 from scanreg.stages.registry import COARSE
 from scanreg.types import CoarseResult, CoarseTrace, Distances, RunContext, to_abs
 
@@ -30,11 +31,9 @@ class Open3dFeatureParams:
 
 
 @COARSE.register("open3d_fpfh_ransac")
-class Open3dFpfhRansac:
+class Open3dFpfhRansac(CoarseBase):
     """Open3D's global registration recipe, the comparator: voxel downsampling, normals, FPFH features, and
     RANSAC on nearest-feature matches with edge-length and distance checks."""
-
-    uses: tuple[str, ...] = ()
 
     @dataclass
     class Params(Open3dFeatureParams):
@@ -49,8 +48,6 @@ class Open3dFpfhRansac:
         confidence: float = 0.999
         """RANSAC stops early when the best model holds with this probability."""
 
-    def __init__(self, params: Params):
-        self.p = params
 
     def _prepare(self, cloud: Cloud, spacing: float):
         import open3d as o3d

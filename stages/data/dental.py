@@ -96,7 +96,7 @@ def merge(meshes: list[Mesh], labels: list[int]) -> tuple[Mesh, np.ndarray]:
 @DATA.register("dental")
 class Dental(Provider):
     """A cast scan of one dental arch (crowns, gum, noise, holes, self-intersections) against the CT surface of
-    the same teeth, with ground truth and picked cusp-tip landmarks. See :mod:`scanreg.stages.dental`."""
+    the same teeth, with ground truth and picked cusp-tip landmarks. See :mod:`scanreg.stages.data.dental`."""
 
     @dataclass
     class Params(PerturbParams):

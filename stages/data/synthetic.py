@@ -34,8 +34,8 @@ class Synthetic(Provider):
         spacing sqrt(area / n_points)."""
         outliers: float = 0.0
         """Share of outlier points added uniformly in the target's bounding box."""
-        seed: int = 1
-        """Seed of the target's sampling, cropping, noise and outliers."""
+        seed: int = 0
+        """Seed of the target's sampling, cropping, noise and outliers (the YAML links it to the run's seed)."""
 
         def check(self):
             super().check()

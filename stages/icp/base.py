@@ -377,5 +377,5 @@ def _rms(d: np.ndarray, ok: np.ndarray) -> float:
 
 
 def _compress(mask: np.ndarray, *arrays: np.ndarray) -> list[np.ndarray]:
-    """The rows of each array where ``mask`` holds (``np.compress``: 10x faster than boolean indexing of rows)."""
+    """The rows of each array where ``mask`` holds (``np.compress``, quicker than boolean indexing of rows)."""
     return [np.compress(mask, a, axis=0) for a in arrays]

@@ -25,7 +25,7 @@ class PointToPlane(IcpBase):
         kernel: str = "geman_mcclure"
         """Robust kernel (IRLS weights in the 6x6 solve): ``none``, ``huber``, ``tukey``, ``geman_mcclure`` or
         ``cauchy``. Geman-McClure at 1 spacing: on 5 Stanford pairs from 5 and 10 degrees off, median rotation
-        error 0.06 deg against 0.11 deg with least squares (README)."""
+        error 0.06 deg against 0.11 deg with least squares (docs: Registration)."""
         initial_share: float = 0.25
         """Coarse-to-fine: iterate first on this share of the source points (every k-th along a Morton curve, so
         spread evenly) until the stopping rule holds, then on every point until it holds again (see

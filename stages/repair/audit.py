@@ -89,7 +89,7 @@ class GuardParams:
     the sampled Hausdorff maximum misses a displaced region of area share a with probability (1 - a)^n, 5 % for
     a = 1.5e-4 of the kept surface with 20000. Distances themselves are exact point-to-triangle distances:
     from the input to the output Open3D's (float32 coordinates, exact up to about 1e-7 of their magnitude; its
-    raycasting scene, about 30 ms per 100k faces, serves the samples and the parts' vertices in one query),
+    raycasting scene serves the samples and the parts' vertices in one query),
     from the output to the input libigl's in double precision (:func:`~scanreg.mesh.distances.distances_to`)."""
     open_border: str = "auto"
     """What becomes of an open scan's outer border. ``auto``: a mesh with an outer border (a boundary loop at
@@ -196,7 +196,7 @@ def _run_backend(stage, mesh: Mesh, p: GuardParams, ctx: RunContext) -> Mesh:
 
 
 def _input_side(p: GuardParams, mesh: Mesh, seed: int) -> dict:
-    """What the audit's distances need of the input alone (computed beside the backend): the parts, which of
+    """What the audit's distances need of the input alone (measured before the backend runs): the parts, which of
     them are to be kept, the kept parts' diagonal and median edge, the vertices that probe each part, and the
     samples on the kept surface."""
     lab, ca = component_areas(mesh)

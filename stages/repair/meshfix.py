@@ -141,7 +141,7 @@ def _clean_keeping_borders(v: np.ndarray, f: np.ndarray, p: MeshFix.Params, quie
 
 def _keeps_borders(p: MeshFix.Params) -> bool:
     """Whether MeshFix's cleaning is replaced by the loop that keeps borders over the hole limit open
-    (:meth:`MeshFix._clean_keeping_borders`)."""
+    (:func:`_clean_keeping_borders`)."""
     return p.clean_iterations > 0 and p.fill_holes and p.max_hole_edges > 0
 
 

@@ -46,7 +46,7 @@ class MeshLab(AuditedRepair):
         open scan's outer border)."""
         refine_holes: bool = True
         """Refine the patches that close holes to the surrounding edge length. Better patches, fewer rounds,
-        but MeshLab's refinement costs about 9 s per pass on a 100k-face mesh (false: 0.1 s)."""
+        but MeshLab's refinement visits every face of the mesh it is given, which is slow on large meshes."""
         max_rounds: int = 6
         """Most rounds of intersection removal and hole closing."""
 
@@ -88,7 +88,7 @@ class _FilterChain:
     def _close(self, ms, prevent: bool) -> None:
         """Close the holes within ``max_hole_edges`` (MeshLab's hole closing, ``selfintersection=prevent``), on
         the neighbourhood of those holes only: MeshLab's refinement visits every face of the mesh it is given
-        (about 9 s per call on a 100k-face mesh whatever the holes), so the holes are closed in the submesh of
+        (whatever the holes: seconds on a 100k-face mesh), so the holes are closed in the submesh of
         the faces whose bounding boxes overlap a hole's (grown by its size and three of its faces' longest
         edges: every face a patch can touch, which the intersection check needs), with only the holes' own
         faces selected (so that the submesh's cut is not closed), the refinement's edge length taken from the

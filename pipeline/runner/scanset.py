@@ -1,0 +1,239 @@
+"""Many scans of one object into one model, on the steps of a pair run:
+
+1. every scan prepared once (:func:`~scanreg.runner.steps.prepare_scan`: repair, sampling, spacing) and
+   described once by the coarse stage (its keypoints and descriptors);
+2. candidate pairs (every pair of a small set; neighbours in the given order, or by a cheap global shape
+   descriptor, in a large one), each registered from any pose by the coarse and the fine stage and verified:
+   the share of points that overlap, their RMS distance in spacings, and whether their normals agree;
+3. the poses from the verified edges (``graph``: a robust pose graph), then every scan refined against the
+   others at once (:func:`~scanreg.geometry.multiview.refine_jointly`);
+4. the scans merged into one cloud, and a surface made from it (``surface``) and repaired (``repair``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Optional
+
+import numpy as np
+
+from scanreg.errors import InputError, ScanregError
+from scanreg.eval.uncertainty import pose_covariance
+from scanreg.geometry import (ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, invert_T, transform_geometry,
+                              voxel_representatives)
+from scanreg.geometry.multiview import refine_jointly, spread_subset
+from scanreg.geometry.posegraph import Edge, components
+from scanreg.runner.steps import prepare_scan
+from scanreg.runner.settings import MultiviewParams
+from scanreg.types import PreparedScan, RunContext, ScanSet, ViewEdge
+
+if TYPE_CHECKING:
+    from scanreg.runner.build import Stages
+
+
+@dataclass
+class SetRegistration:
+    """What a scan set's registration produced."""
+
+    names: list[str]
+    poses: list[Optional[np.ndarray]]
+    """``T_world_scan`` of every scan of the main group (the world: its first scan's frame); None elsewhere."""
+    groups: list[list[int]]
+    """The scans connected by accepted edges, the main group first."""
+    group_poses: list[dict[int, np.ndarray]]
+    """For every further group, its scans' poses in its own first scan's frame."""
+    edges: list[ViewEdge]
+    scans: list[PreparedScan]
+    spacing: float
+    merged: Optional[Cloud] = None
+    """The main group's points in the world frame, voxel-merged, with normals and ``extra['scan']``."""
+    surface: Optional[Mesh] = None
+    metrics: dict[str, float] = field(default_factory=dict)
+
+    def unplaced(self) -> dict[str, str]:
+        """The scans outside the main group, each with why."""
+        out = {}
+        for k, name in enumerate(self.names):
+            if self.poses[k] is None:
+                mine = [e for e in self.edges if k in (e.i, e.j)]
+                other = next((g for g in self.groups[1:] if k in g), None)
+                if other is not None and len(other) > 1:
+                    out[name] = f"in another group of {len(other)} scans, with no verified pair to the main one"
+                elif not any(e.accepted for e in mine):
+                    out[name] = "overlaps no other scan (no verified pair: " + (mine[0].reason if mine else
+                                                                                   "no pair registered") + ")"
+                else:
+                    out[name] = "not connected to the main group"
+        return out
+
+
+def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, ctx: RunContext,
+                     timings: dict[str, float]) -> SetRegistration:
+    """Prepare, pair, register, verify, solve the graph, refine, merge and make the surface (the module's steps);
+    ``timings`` gets each step's seconds."""
+    t0 = time.perf_counter_ns()
+    scans = [prepare_scan(g, stages, ctx, name, salt=1, role="scan") for g, name in zip(problem.scans, problem.names)]
+    spacing = max(s.spacing for s in scans)
+    if not spacing > 0:
+        raise InputError("scan set: all points coincide; cannot estimate a sampling spacing")
+    diagonal = max(bbox_diagonal(s.cloud.points) for s in scans)
+    t1 = time.perf_counter_ns()
+    described = stages.coarse.describe_set([s.cloud for s in scans], spacing, ctx)
+    search = [ClosestPoints(s.cloud) for s in scans]
+    edges = [register_edge(i, j, scans, described, search, stages, spacing, params, ctx)
+             for i, j in candidate_pairs(scans, problem.order, params)]
+    t2 = time.perf_counter_ns()
+    groups = [g for g in components(len(scans), [Edge(e.i, e.j, e.T_i_j, e.information) for e in edges if e.accepted])]
+    anchor = groups[0][0]
+    poses, graph_metrics = stages.graph.solve(len(scans), edges, spacing, diagonal, anchor, ctx)
+    res = SetRegistration(problem.names, poses, _groups(poses, edges, len(scans)), [], edges, scans, spacing)
+    res.group_poses = [_group_poses(g, edges) for g in res.groups[1:]]
+    t3 = time.perf_counter_ns()
+    links = [(e.i, e.j) for e in edges if e.accepted and poses[e.i] is not None and poses[e.j] is not None]
+    refine_metrics = {}
+    if links and params.refine_distances:
+        placed = [k for k, T in enumerate(poses) if T is not None]
+        refined, refine_metrics = refine_jointly(
+            [s.cloud for s in scans], [T if T is not None else np.eye(4) for T in poses], links,
+            [d * spacing for d in params.refine_distances], spacing, anchor, params.refine_samples,
+            params.refine_iterations)
+        res.poses = [refined[k] if k in placed else None for k in range(len(scans))]
+    t4 = time.perf_counter_ns()
+    res.merged = merge(scans, res.poses, params.merge_voxel * spacing)
+    from_meshes = all(isinstance(g, Mesh) for g in problem.scans)
+    res.surface = stages.surface.reconstruct(res.merged, from_meshes, spacing, ctx)
+    if res.surface is not None:
+        res.surface = stages.repair.repair(res.surface, ctx).mesh
+    t5 = time.perf_counter_ns()
+    timings.update({"prepare": (t1 - t0) / 1e9, "pairs": (t2 - t1) / 1e9, "graph": (t3 - t2) / 1e9,
+                    "refine": (t4 - t3) / 1e9, "surface": (t5 - t4) / 1e9})
+    res.metrics = {**graph_metrics, **refine_metrics, "spacing": spacing}
+    return res
+
+
+def _groups(poses: list[Optional[np.ndarray]], edges: list[ViewEdge], n: int) -> list[list[int]]:
+    """The main group (the placed scans), then the other connected groups of accepted edges."""
+    main = [k for k in range(n) if poses[k] is not None]
+    rest = components(n, [Edge(e.i, e.j, e.T_i_j, e.information) for e in edges if e.accepted and
+                          poses[e.i] is None and poses[e.j] is None])
+    return [main] + [g for g in rest if not set(g) & set(main)]
+
+
+def _group_poses(group: list[int], edges: list[ViewEdge]) -> dict[int, np.ndarray]:
+    """A further group's poses in its first scan's frame, chained along its accepted edges."""
+    from scanreg.geometry.posegraph import spanning_tree_poses
+
+    live = [e for e in edges if e.accepted and e.i in group and e.j in group]
+    index = {k: m for m, k in enumerate(group)}
+    sub = [Edge(index[e.i], index[e.j], e.T_i_j, e.information, e.centre) for e in live]
+    poses, _ = spanning_tree_poses(len(group), sub, np.array([e.fitness for e in live]), 0)
+    return {k: poses[index[k]] for k in group if poses[index[k]] is not None}
+
+
+def candidate_pairs(scans: list[PreparedScan], order: str, p: MultiviewParams) -> list[tuple[int, int]]:
+    """The pairs ``(i, j)``, ``i < j``, to register: every pair of a set of at most ``all_pairs`` scans; else the
+    next ``window`` scans in the given order (``turntable``: around), or each scan's ``neighbours`` most
+    similar scans by shape (``unordered``)."""
+    n = len(scans)
+    if n <= p.all_pairs:
+        return list(itertools.combinations(range(n), 2))
+    if order in ("sequential", "turntable"):
+        pairs = {(k, k + d) for k in range(n) for d in range(1, p.window + 1) if k + d < n}
+        if order == "turntable":
+            pairs |= {tuple(sorted((k, (k + d) % n))) for k in range(n) for d in range(1, p.window + 1)}
+        return sorted(pairs)
+    hist = np.array([shape_histogram(s.cloud.points) for s in scans])
+    dist = np.abs(hist[:, None, :] - hist[None, :, :]).sum(axis=2)
+    np.fill_diagonal(dist, np.inf)
+    near = np.argsort(dist, axis=1, kind="stable")[:, :p.neighbours]
+    return sorted({(min(k, int(m)), max(k, int(m))) for k in range(n) for m in near[k]})
+
+
+def shape_histogram(points: np.ndarray, bins: int = 32, samples: int = 2000, seed: int = 0) -> np.ndarray:
+    """A pose-free global descriptor: the histogram of distances between random point pairs (Osada's D2),
+    the distances scaled by their median (so that a scan's extent matters less than its shape)."""
+    rng = np.random.default_rng(seed)
+    a, b = rng.integers(0, len(points), (2, samples))
+    d = np.linalg.norm(points[a] - points[b], axis=1)
+    d = d / max(float(np.median(d)), 1e-300)
+    return np.histogram(d, bins=bins, range=(0.0, 3.0))[0] / samples
+
+
+def register_edge(i: int, j: int, scans: list[PreparedScan], described: list, search: list[ClosestPoints],
+                  stages: Stages, spacing: float, p: MultiviewParams, ctx: RunContext) -> ViewEdge:
+    """Scan ``j`` registered to scan ``i`` (coarse from their descriptions, then fine, on the points: the joint
+    refinement pairs with every scan later) and verified; ``search``: each scan's closest-point search. A coarse
+    pose that leaves under half ``min_fitness`` of the points in the overlap is rejected before the fine stage."""
+    target, source = scans[i], scans[j]
+    distance = p.inlier_distance * spacing
+    try:
+        coarse = stages.coarse.align_described(described[i], described[j], ctx, p.coarse_budget)
+        T0 = coarse.T_target_source
+        if overlap_share(search[i], source.cloud, T0, distance) < p.min_fitness / 2:
+            return _rejected(i, j, f"the coarse pose leaves under {p.min_fitness / 2:g} of the points in the overlap",
+                             coarse.metrics)
+        icp = stages.icp.refine(target.cloud, source.cloud, T0, spacing, ctx, None)
+    except ScanregError as e:
+        return _rejected(i, j, str(e).splitlines()[0])
+    T = icp.T_target_source
+    fitness, rms, agree = verify_overlap(search[i], search[j], target.cloud, source.cloud, T, distance)
+    pairs = icp.final_pairs
+    if pairs is not None and pairs.normals is not None and len(pairs.source) >= 7:
+        pc = pose_covariance(pairs.source, pairs.target, pairs.normals)
+        information, centre = np.linalg.pinv(pc.cov, rcond=1e-12, hermitian=True), pc.centre
+    else:
+        information, centre = np.eye(6), np.zeros(3)
+    edge = ViewEdge(i, j, T, information, centre, fitness, rms / spacing, agree,
+                    metrics={**coarse.metrics, "icp_iterations": icp.iterations, **icp.metrics})
+    problems = []
+    if fitness < p.min_fitness:
+        problems.append(f"overlap {fitness:.2f} < multiview.min_fitness {p.min_fitness:g}")
+    if rms / spacing > p.max_inlier_rms:
+        problems.append(f"inlier RMS {rms / spacing:.2f} spacings > multiview.max_inlier_rms {p.max_inlier_rms:g}")
+    if agree < p.min_normal_agreement:
+        problems.append(f"normals agree on {agree:.2f} < multiview.min_normal_agreement {p.min_normal_agreement:g}")
+    edge.accepted, edge.reason = not problems, "; ".join(problems)
+    return edge
+
+
+def _rejected(i: int, j: int, reason: str, metrics: dict | None = None) -> ViewEdge:
+    return ViewEdge(i, j, np.eye(4), np.zeros((6, 6)), np.zeros(3), 0.0, np.inf, 0.0, False, reason,
+                    dict(metrics or {}))
+
+
+def overlap_share(search: ClosestPoints, source: Cloud, T: np.ndarray, distance: float, k: int = 2000) -> float:
+    """The share of (at most ``k``, spread) source points within ``distance`` of the target at ``T``."""
+    pts = spread_subset(source, k).points
+    return float((search(apply_T(T, pts), distance)[1] <= distance).mean())
+
+
+def verify_overlap(search_t: ClosestPoints, search_s: ClosestPoints, target: Cloud, source: Cloud, T: np.ndarray,
+                   distance: float) -> tuple[float, float, float]:
+    """How well two clouds overlap at ``T`` (target <- source): the smaller share of each cloud's points within
+    ``distance`` of the other, the RMS distance of the source's points that are, and the share of those whose
+    normals agree with the target's (cosine above 0.5; 1 without normals)."""
+    q, d, qn = search_t(apply_T(T, source.points), distance)
+    near = d <= distance
+    back = search_s(apply_T(invert_T(T), target.points), distance)[1] <= distance
+    fitness = min(float(near.mean()), float(back.mean()))
+    if not near.any():
+        return fitness, float("inf"), 0.0
+    rms = float(np.sqrt(np.mean(d[near] ** 2)))
+    if qn is None or source.normals is None:
+        return fitness, rms, 1.0
+    cos = np.einsum("ij,ij->i", source.normals[near] @ T[:3, :3].T, qn[near])
+    return fitness, rms, float((cos > 0.5).mean())
+
+
+def merge(scans: list[PreparedScan], poses: list[Optional[np.ndarray]], voxel: float) -> Cloud:
+    """The placed scans' points in the world frame, one point per voxel (``voxel`` 0: all), with normals and each
+    point's scan index (``extra['scan']``)."""
+    clouds = [transform_geometry(T, s.cloud) for s, T in zip(scans, poses) if T is not None]
+    index = np.concatenate([np.full(s.cloud.n_points, k) for k, (s, T) in enumerate(zip(scans, poses))
+                            if T is not None])
+    pts = np.vstack([c.points for c in clouds])
+    nrm = np.vstack([c.normals for c in clouds]) if all(c.normals is not None for c in clouds) else None
+    cloud = Cloud(pts, nrm, "merged", {"scan": index})
+    return cloud.subset(voxel_representatives(pts, voxel)) if voxel > 0 else cloud

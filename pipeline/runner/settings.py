@@ -1,0 +1,55 @@
+"""The run-level settings that are no stage's: how a scan set is registered and merged (the ``multiview`` block of
+the config; the ``evaluate`` block is :class:`scanreg.eval.metrics.EvalParams`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class MultiviewParams:
+    """How a scan set is registered and merged (the ``multiview`` block of the config)."""
+
+    all_pairs: int = 20
+    """Sets of at most this many scans register every pair; larger ones the pairs ``order`` or the global
+    descriptor suggest."""
+    window: int = 2
+    """``order: sequential`` or ``turntable`` (larger sets): each scan is paired with the next this many."""
+    neighbours: int = 5
+    """``order: unordered`` (larger sets): each scan is paired with this many scans of the most similar shape
+    (a histogram of the distances between its points, scaled by their spread)."""
+    coarse_budget: int = 5000
+    """At most this many hypotheses per pair for a coarse stage that draws them: pairs that do not overlap
+    would otherwise draw the stage's full ``max_iterations``."""
+    inlier_distance: float = 3.0
+    """A pair's point is in the overlap when its closest point on the other scan lies within this many sampling
+    spacings (at the registered pose)."""
+    min_fitness: float = 0.1
+    """An edge is kept only when this share (0..1) of each scan's points is in the overlap ..."""
+    max_inlier_rms: float = 1.6
+    """... their RMS distance is at most this many spacings (a wrong pose leaves its overlap's points spread over
+    the whole inlier distance: about 1.8 spacings; a right one near the sampling noise: 1.2-1.5) ..."""
+    min_normal_agreement: float = 0.8
+    """... and this share of them has normals that agree with the other scan's (cosine above 0.5)."""
+    refine_distances: list[float] = field(default_factory=lambda: [3.0, 1.5])
+    """Multi-view refinement: its pair limits, in sampling spacings, one after the other; []: no refinement."""
+    refine_iterations: int = 10
+    """Multi-view refinement: most Gauss-Newton steps per pair limit."""
+    refine_samples: int = 5000
+    """Multi-view refinement: points of each scan paired with the others (spread over it)."""
+    merge_voxel: float = 1.0
+    """The merged cloud keeps one point per voxel of this edge, in sampling spacings (0: every point)."""
+    success_rotation_deg: float = 0.5
+    """With ground truth, a scan is within tolerance when its rotation error is below this (degrees) ..."""
+    success_translation: float = 0.0025
+    """... and its translation error below this share of the model's bounding-box diagonal."""
+    false_edge_rotation_deg: float = 2.0
+    """With ground truth, an accepted edge is false when its transform is off by more than this (degrees) ..."""
+    false_edge_translation: float = 0.01
+    """... or by more than this share of the diagonal."""
+
+    def check(self):
+        if self.all_pairs < 2 or self.window < 1 or self.neighbours < 1:
+            raise ValueError("all_pairs must be >= 2, window and neighbours >= 1")
+        if not 0 <= self.min_fitness <= 1 or not 0 <= self.min_normal_agreement <= 1:
+            raise ValueError("min_fitness and min_normal_agreement must be in [0, 1]")

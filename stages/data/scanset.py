@@ -1,0 +1,139 @@
+"""``data=scanset``: many scans of one object (a folder, a glob or a list of files), to register into one model."""
+
+from __future__ import annotations
+
+import glob as globbing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from scanreg.errors import ConfigError, InputError
+from scanreg.geometry import bbox_diagonal, invert_T, points_of, transform_geometry
+from scanreg.io import CLOUD_EXTS, MESH_EXTS, expand_path, read_geometry, read_input, read_stanford_conf, read_transform
+from scanreg.stages.data.base import Provider
+from scanreg.stages.data.perturb import PoseParams
+from scanreg.stages.registry import DATA
+from scanreg.types import RunContext, ScanSet
+
+SCAN_EXTS = MESH_EXTS | CLOUD_EXTS
+ORDERS = ("unordered", "sequential", "turntable")
+
+
+@DATA.register("scanset")
+class ScanSetProvider(Provider):
+    """Many scans of one object, meshes or clouds as scanned, to register into one model: ``data.scans`` is a
+    folder (every scan file in it), a glob, or a list of files. Optional ground truth (``data.poses``) and a
+    reference surface (``data.reference``) for the evaluation; each scan may be moved by a seeded random pose
+    (``max_angle_deg``, ``max_translation``), the ground truth following it."""
+
+    @dataclass
+    class Params(PoseParams):
+        max_angle_deg: float = 0.0
+        """Largest rotation of a random pose given to every scan, degrees (0 with ``max_translation`` 0: the
+        scans as read; >= 180: any rotation); the ground truth follows."""
+        max_translation: float = 0.0
+        """Largest translation of those poses, as a share of the bounding-box diagonal of all scans together."""
+        scans: Any = None
+        """The scans: a folder (its files of the most common scan format there: .ply .stl .obj .off .pcd .xyz
+        .txt .pts .csv .asc .npy), a glob (``scans/*.ply``), or a list of paths; ``shared:`` and ``pkg:`` names
+        allowed. Sorted by file name; the first is the world frame of the result."""
+        poses: Optional[str] = None
+        """Ground truth (optional): a Stanford ``.conf`` file (``bmesh NAME tx ty tz qx qy qz qw`` lines), or a
+        folder or glob of 4x4 files (text or .npy), one per scan, matched by file stem; each maps the scan into
+        one common world frame (``T_world_scan``, input units)."""
+        order: str = "unordered"
+        """What the order of the scans says: ``sequential`` (neighbours in sorted order overlap), ``turntable`` (and
+        the last overlaps the first), or ``unordered``: which pairs are registered (``multiview.pairs``)."""
+        reference: Optional[str] = None
+        """A reference surface (a mesh in the world frame of ``poses``) that the reconstruction is measured
+        against (optional)."""
+        columns: Optional[str] = None
+        """The columns of text and .npy clouds (as ``data=files``' ``columns``)."""
+
+        def check(self):
+            super().check()
+            if self.order not in ORDERS:
+                raise ValueError(f"order must be one of {', '.join(ORDERS)}, got '{self.order}'")
+
+    def require(self) -> None:
+        if not self.p.scans:
+            raise ConfigError("data=scanset: data.scans is not set; give a folder, a glob or a list of scans, e.g. "
+                              "'scanreg data=scanset data.scans=scans/'")
+
+    def load(self, ctx: RunContext) -> ScanSet:
+        self.require()
+        paths = scan_paths(self.p.scans)
+        scans, info = [], {}
+        for k, path in enumerate(paths):
+            g, bad = read_input(str(path), f"scan {path.name}", self.p.columns)
+            g.source = path.name
+            scans.append(g)
+            info["n_invalid_points"] = info.get("n_invalid_points", 0) + bad
+        names = [p.name for p in paths]
+        poses = read_poses(self.p.poses, names) if self.p.poses else None
+        if self.p.max_angle_deg > 0 or self.p.max_translation > 0:
+            diagonal = bbox_diagonal(np.vstack([points_of(g) for g in scans]))
+            for k, g in enumerate(scans):
+                P = self.p.pose(900 + k, points_of(g), diagonal)
+                scans[k] = transform_geometry(P, g)
+                scans[k].source = g.source
+                if poses is not None:
+                    poses[k] = poses[k] @ invert_T(P)
+        reference = read_geometry(expand_path(self.p.reference), "reference") if self.p.reference else None
+        info["n_scans"] = len(scans)
+        return ScanSet(scans, names, poses, self.p.order, info, reference)
+
+
+def scan_paths(spec: Any) -> list[Path]:
+    """The scan files ``spec`` names (a folder, a glob, a list), sorted by name; one :class:`InputError` line
+    for a path that is missing or names no scan."""
+    items = list(spec) if isinstance(spec, (list, tuple)) or hasattr(spec, "__iter__") and not isinstance(spec, str) \
+        else [spec]
+    out: list[Path] = []
+    for item in items:
+        s = expand_path(str(item))
+        p = Path(s).expanduser()
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in SCAN_EXTS)
+            if not found:
+                raise InputError(f"data.scans {item}: no scan files in this folder (expected {' '.join(sorted(SCAN_EXTS))})")
+            # the scans are the files of the folder's most common scan format (a README.txt beside .ply scans
+            # is no scan)
+            exts = [q.suffix.lower() for q in found]
+            ext = max(sorted(set(exts)), key=exts.count)
+            out += [q for q in found if q.suffix.lower() == ext]
+        elif any(c in s for c in "*?["):
+            found = sorted(Path(q) for q in globbing.glob(str(p)) if Path(q).is_file())
+            if not found:
+                raise InputError(f"data.scans {item}: the pattern matches no file")
+            out += found
+        elif s.startswith("pkg:") or p.is_file():
+            out.append(Path(s) if s.startswith("pkg:") else p)
+        else:
+            raise InputError(f"data.scans {item}: no such file or folder ({p.absolute()})")
+    out = sorted(dict.fromkeys(out), key=lambda q: q.name)
+    if len(out) < 2:
+        raise InputError(f"data.scans: {len(out)} scan(s); a scan set needs at least 2")
+    return out
+
+
+def read_poses(spec: str, names: list[str]) -> list[np.ndarray]:
+    """Each scan's ``T_world_scan`` from a Stanford ``.conf`` or from one 4x4 file per scan (by file stem)."""
+    s = expand_path(spec)
+    if s.endswith(".conf"):
+        conf = read_stanford_conf(s)
+        by_stem = {Path(k).stem: v for k, v in conf.items()}
+        missing = [n for n in names if n not in conf and Path(n).stem not in by_stem]
+        if missing:
+            raise InputError(f"data.poses {spec}: no pose for {', '.join(missing)}")
+        return [conf.get(n, by_stem.get(Path(n).stem)) for n in names]
+    p = Path(s).expanduser()
+    files = sorted(p.iterdir()) if p.is_dir() else [Path(q) for q in sorted(globbing.glob(str(p)))]
+    by_stem = {f.stem: f for f in files if f.is_file()}
+    missing = [n for n in names if Path(n).stem not in by_stem]
+    if missing:
+        raise InputError(f"data.poses {spec}: no pose file for {', '.join(missing)} (one 4x4 file per scan, named "
+                         "by the scan's stem)")
+    return [read_transform(by_stem[Path(n).stem], f"pose of {n}") for n in names]
