@@ -21,8 +21,14 @@ class Poisson:
 
     @dataclass
     class Params:
-        depth: int = 8
-        """Octree depth: the reconstruction's resolution is the bounding box over 2^depth (8: 1/256 of it)."""
+        resolution: float = 3.0
+        """The finest octree cell, in sampling spacings: the octree's depth is the one whose cells come nearest
+        this (within a factor of 1.41), measured over the points' largest extent along their principal axes (so
+        the same in any pose; between ``min_depth`` and ``max_depth``). Finer cells add faces, not shape."""
+        min_depth: int = 5
+        """The shallowest octree (2^depth cells across the reconstruction's cube)."""
+        max_depth: int = 10
+        """The deepest octree: bounds the time and memory of a large model scanned finely."""
         trim_quantile: float = 0.0
         """Remove the vertices whose point density is below this quantile of all vertices' (0..1): surface
         extrapolated far from any scan. The holes this opens are closed by the repair; 0: no trimming."""
@@ -36,26 +42,43 @@ class Poisson:
                 raise ValueError(f"when must be meshes or always, got '{self.when}'")
             if not 0 <= self.trim_quantile < 1:
                 raise ValueError(f"trim_quantile must be in [0, 1), got {self.trim_quantile}")
-            if not 1 <= self.depth <= 14:
-                raise ValueError(f"depth must be in 1..14, got {self.depth}")
+            if not 1 <= self.min_depth <= self.max_depth <= 14:
+                raise ValueError(f"need 1 <= min_depth <= max_depth <= 14, got {self.min_depth}, {self.max_depth}")
+            if not self.resolution > 0 or not self.scale >= 1:
+                raise ValueError(f"resolution must be > 0 and scale >= 1, got {self.resolution}, {self.scale}")
 
     def __init__(self, params: Params):
         self.p = params
 
+    def depth(self, points: np.ndarray, spacing: float) -> int:
+        """The octree depth for ``points`` sampled ``spacing`` apart (see ``resolution``)."""
+        centred = points - points.mean(axis=0)
+        axes = np.linalg.eigh(centred.T @ centred)[1]
+        extent = self.p.scale * float(np.ptp(centred @ axes, axis=0).max())
+        cells = extent / (self.p.resolution * spacing) if spacing > 0 else 2.0 ** self.p.max_depth
+        return int(np.clip(np.round(np.log2(max(cells, 1.0))), self.p.min_depth, self.p.max_depth))
+
     def reconstruct(self, points: Cloud, from_meshes: bool, spacing: float, ctx: RunContext) -> Optional[Mesh]:
+        """The Poisson surface of ``points`` (None without normals, or for clouds with ``when: meshes``): its
+        largest connected part (the solver leaves small closed bubbles where the points are sparse)."""
         import open3d as o3d
 
         if self.p.when == "meshes" and not from_meshes:
             return None
-        if points.normals is None:
+        if points.normals is None or points.n_points < 10:
             return None
         pc = to_o3d(points.points, points.normals)
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-                pc, depth=self.p.depth, scale=self.p.scale, linear_fit=False, n_threads=1)
+                pc, depth=self.depth(points.points, spacing), scale=self.p.scale, linear_fit=False, n_threads=1)
         if self.p.trim_quantile > 0:
             density = np.asarray(density)
             mesh.remove_vertices_by_mask(density < np.quantile(density, self.p.trim_quantile))
+        if not len(mesh.triangles):
+            return None
+        part, sizes, _ = mesh.cluster_connected_triangles()
+        mesh.remove_triangles_by_mask(np.asarray(part) != int(np.argmax(np.asarray(sizes))))
+        mesh.remove_unreferenced_vertices()
         return Mesh(np.asarray(mesh.vertices, dtype=np.float64).copy(), np.asarray(mesh.triangles, dtype=np.int64).copy(),
                     "reconstruction")
 

@@ -103,8 +103,10 @@ def run_job(cfg: DictConfig) -> dict | float | None:
         raise
     except BaseException as e:  # noqa: BLE001: every failure ends the run FAILED with its reason
         return _failed(e, cfg, tracker, record, run_dir, multirun)
+    children = [RunRecord(run_name=name, params={}, tags={"scanreg.part": "pair"}, start_time=record.start_time)
+                .ended("FINISHED", None, metrics) for name, metrics in res.children]
     run_id = _log(tracker, record.ended("FINISHED", None, res.metrics, res.histories,
-                                        [run_dir / "config.yaml", *res.artifacts]), multirun)
+                                        [run_dir / "config.yaml", *res.artifacts]), multirun, children)
     where = f"results: {run_dir}" + (f"  (MLflow run {run_id})" if run_id else "")
     if multirun:  # one line per job on the console; the full table in the job's folder
         (run_dir / "summary.txt").write_text("\n".join([*summary_lines(res), "", where]) + "\n")
@@ -129,10 +131,11 @@ def _tags(hc, run_dir: Path) -> dict[str, str]:
             "scanreg.git_commit": git_revision()}
 
 
-def _log(tracker, record, multirun: bool) -> str | None:
-    """Log the run; a failure of the store itself is one error line (the job fails, its results stay)."""
+def _log(tracker, record, multirun: bool, children=()) -> str | None:
+    """Log the run (and its ``children``); a failure of the store itself is one error line (the job fails, its
+    results stay)."""
     try:
-        return tracker.log_run(record)
+        return tracker.log_run(record, children)
     except Exception as e:  # noqa: BLE001: a bad store
         msg = (str(e) if isinstance(e, ScanregError) else f"tracking: {type(e).__name__}: {e}").splitlines()[0]
         _err(msg)

@@ -162,7 +162,7 @@ class NoTracking:
     def __init__(self, params: Params):
         self.p = params
 
-    def log_run(self, record: RunRecord) -> None:
+    def log_run(self, record: RunRecord, children: list[RunRecord] = ()) -> None:
         return None
 
 
@@ -208,15 +208,15 @@ class MlflowTracking:
                 raise
             return client, exp.experiment_id
 
-    def log_run(self, record: RunRecord) -> str:
-        """Log a finished run; its run id. Through the worker process when the command started one (and MLflow
-        is not imported here), else here."""
+    def log_run(self, record: RunRecord, children: list[RunRecord] = ()) -> str:
+        """Log a finished run (and ``children``, runs nested in it: a scan set's pairs); its run id. Through the
+        worker process when the command started one (and MLflow is not imported here), else here."""
         import sys
 
         from scanreg.app import startup
 
         request = {"uri": self.p.uri, "resolved_uri": self.uri, "experiment": self.p.experiment,
-                   "sweep": sweep_info(), "record": asdict(record)}
+                   "sweep": sweep_info(), "record": asdict(record), "children": [asdict(c) for c in children]}
         worker = None if "mlflow" in sys.modules else startup.take_tracking_worker()
         if worker is not None:
             return worker.log(request)
@@ -238,6 +238,15 @@ def _log_request(request: dict) -> str:
         tags["mlflow.parentRunId"] = sweep["parent_run_id"]
     else:
         client, eid = tr.prepare()
+    run_id = _log_record(client, eid, rec, tags)
+    for child in request.get("children", ()):
+        c = RunRecord(**child)
+        _log_record(client, eid, c, {**c.tags, "mlflow.parentRunId": run_id})
+    return run_id
+
+
+def _log_record(client, eid: str, rec: RunRecord, tags: dict[str, str]) -> str:
+    """One run created with ``tags``, its params, metrics and artifacts logged and its status set."""
     run = client.create_run(eid, run_name=rec.run_name, tags=tags, start_time=rec.start_time)
     log = RunLog(client, run.info.run_id)
     log.log_params(rec.params)

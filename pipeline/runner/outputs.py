@@ -67,6 +67,9 @@ def write_keypoints(run_dir: Path, trace: CoarseTrace, masks: dict | None, T_fra
 
 
 def summary_lines(res: Result) -> list[str]:
+    """The table a run prints: its stage times and its main numbers (a scan set's: per scan)."""
+    if res.scanset is not None:
+        return set_summary_lines(res)
     m = res.metrics
     rows = [(s, f"{m[f'time_{s}_s']:.3f}") for s in ("load", "repair", "sample", "coarse", "icp", "evaluate", "total")
             if f"time_{s}_s" in m]
@@ -96,4 +99,27 @@ def repair_table(m: dict, prefix: str = "repair_", role: str = "source") -> list
     extra = ["hausdorff_max", "hausdorff_max_rel", "hausdorff_mean_rel", "hausdorff_added_max_rel",
              "removed_area_share", "guard_ok"]
     lines += [f"{k:<32} {m[prefix + k]:>25.6g}" for k in extra if prefix + k in m]
+    return lines
+
+
+SET_STEPS = ("load", "prepare", "pairs", "graph", "refine", "surface", "evaluate", "total")
+SET_KEYS = ("scans", "scans_placed", "edges_registered", "edges_accepted", "edges_false", "graph_edges_pruned",
+            "spacing", "model_diagonal", "multiview_rms", "scan_rotation_error_max_deg", "scan_translation_error_max_rel",
+            "scans_within_tolerance", "success", "surface_faces", "surface_closed_manifold",
+            "surface_self_intersecting_faces", "surface_reference_rms")
+
+
+def set_summary_lines(res: Result) -> list[str]:
+    """A scan set's table: step times, the set's numbers, and one row per scan (its errors with ground truth, its
+    residual to the scans it overlaps)."""
+    m, reg = res.metrics, res.scanset
+    lines = ["step      time [s]"] + [f"{s:<9} {m[f'time_{s}_s']:>8.3f}" for s in SET_STEPS if f"time_{s}_s" in m]
+    lines += [""] + [f"{k:<32} {m[k]:.6g}" for k in SET_KEYS if k in m]
+    cols = [c for c in ("rotation_error_deg", "translation_error_rel", "residual_rms", "residual_overlap")
+            if f"scan_{c}" in res.histories]
+    width = max(len(n) for n in reg.names)
+    lines += ["", f"{'scan':<{width}}  placed  " + "  ".join(f"{c:>22}" for c in cols)]
+    for k, name in enumerate(reg.names):
+        vals = "  ".join(f"{res.histories[f'scan_{c}'][k]:>22.4g}" for c in cols)
+        lines.append(f"{name:<{width}}  {'yes' if reg.poses[k] is not None else 'no':>6}  {vals}")
     return lines

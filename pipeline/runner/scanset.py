@@ -74,7 +74,8 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
     """Prepare, pair, register, verify, solve the graph, refine, merge and make the surface (the module's steps);
     ``timings`` gets each step's seconds."""
     t0 = time.perf_counter_ns()
-    scans = [prepare_scan(g, stages, ctx, name, salt=1, role="scan") for g, name in zip(problem.scans, problem.names)]
+    scans = [prepare_scan(g, stages, ctx, name, salt=1, role="scan", repair=params.repair_scans)
+             for g, name in zip(problem.scans, problem.names)]
     spacing = max(s.spacing for s in scans)
     if not spacing > 0:
         raise InputError("scan set: all points coincide; cannot estimate a sampling spacing")
@@ -82,8 +83,8 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
     t1 = time.perf_counter_ns()
     described = stages.coarse.describe_set([s.cloud for s in scans], spacing, ctx)
     search = [ClosestPoints(s.cloud) for s in scans]
-    edges = [register_edge(i, j, scans, described, search, stages, spacing, params, ctx)
-             for i, j in candidate_pairs(scans, problem.order, params)]
+    edges = register_pairs(candidate_pairs(scans, problem.order, params), scans, described, search, stages, spacing,
+                           params, ctx)
     t2 = time.perf_counter_ns()
     groups = [g for g in components(len(scans), [Edge(e.i, e.j, e.T_i_j, e.information) for e in edges if e.accepted])]
     anchor = groups[0][0]
@@ -161,20 +162,73 @@ def shape_histogram(points: np.ndarray, bins: int = 32, samples: int = 2000, see
     return np.histogram(d, bins=bins, range=(0.0, 3.0))[0] / samples
 
 
+def register_pairs(candidates: list[tuple[int, int]], scans: list[PreparedScan], described: list,
+                   search: list[ClosestPoints], stages: Stages, spacing: float, p: MultiviewParams,
+                   ctx: RunContext) -> list[ViewEdge]:
+    """Every candidate pair registered and verified, in order. Once accepted pairs connect two scans, their
+    relative pose is predicted along them: the pair is skipped when the prediction leaves under half
+    ``min_fitness`` of the points in the overlap, else the fine stage starts from it (and the coarse stage runs
+    only when that fails); the coarse stage runs from any pose only between scans not yet connected."""
+    chains = _Chains(len(scans))
+    edges = []
+    for i, j in candidates:
+        start = chains.relative(i, j)
+        if start is not None and overlap_share(search[i], scans[j].cloud, start, p.inlier_distance * spacing) < \
+                p.min_fitness / 2:
+            edges.append(_rejected(i, j, "predicted by the accepted pairs not to overlap"))
+            continue
+        edge = register_edge(i, j, scans, described, search, stages, spacing, p, ctx, start)
+        if start is not None and not edge.accepted:  # the prediction may be wrong: from any pose
+            edge = register_edge(i, j, scans, described, search, stages, spacing, p, ctx)
+        if edge.accepted:
+            chains.join(i, j, edge.T_i_j)
+        edges.append(edge)
+    return edges
+
+
+class _Chains:
+    """Groups of scans joined by accepted pairs, each scan's pose relative to its group's first (union-find)."""
+
+    def __init__(self, n: int):
+        self.root = list(range(n))
+        self.pose = [np.eye(4) for _ in range(n)]  # T_root_scan
+
+    def relative(self, i: int, j: int) -> Optional[np.ndarray]:
+        """``T_i_j`` along accepted pairs, or None when the scans are not connected."""
+        if self.root[i] != self.root[j]:
+            return None
+        return invert_T(self.pose[i]) @ self.pose[j]
+
+    def join(self, i: int, j: int, T_i_j: np.ndarray) -> None:
+        ri, rj = self.root[i], self.root[j]
+        if ri == rj:
+            return
+        T_ri_rj = self.pose[i] @ T_i_j @ invert_T(self.pose[j])  # root j's frame into root i's
+        for k in range(len(self.root)):
+            if self.root[k] == rj:
+                self.root[k], self.pose[k] = ri, T_ri_rj @ self.pose[k]
+
+
 def register_edge(i: int, j: int, scans: list[PreparedScan], described: list, search: list[ClosestPoints],
-                  stages: Stages, spacing: float, p: MultiviewParams, ctx: RunContext) -> ViewEdge:
-    """Scan ``j`` registered to scan ``i`` (coarse from their descriptions, then fine, on the points: the joint
-    refinement pairs with every scan later) and verified; ``search``: each scan's closest-point search. A coarse
-    pose that leaves under half ``min_fitness`` of the points in the overlap is rejected before the fine stage."""
+                  stages: Stages, spacing: float, p: MultiviewParams, ctx: RunContext,
+                  start: Optional[np.ndarray] = None) -> ViewEdge:
+    """Scan ``j`` registered to scan ``i`` (coarse from their descriptions, or from ``start``; then fine, on the
+    points: the joint refinement pairs with every scan later) and verified; ``search``: each scan's closest-point
+    search. A coarse pose that leaves under half ``min_fitness`` of the points in the overlap is rejected before
+    the fine stage."""
     target, source = scans[i], scans[j]
     distance = p.inlier_distance * spacing
     try:
-        coarse = stages.coarse.align_described(described[i], described[j], ctx, p.coarse_budget)
-        T0 = coarse.T_target_source
-        if overlap_share(search[i], source.cloud, T0, distance) < p.min_fitness / 2:
-            return _rejected(i, j, f"the coarse pose leaves under {p.min_fitness / 2:g} of the points in the overlap",
-                             coarse.metrics)
-        icp = stages.icp.refine(target.cloud, source.cloud, T0, spacing, ctx, None)
+        if start is None:
+            coarse = stages.coarse.align_described(described[i], described[j], ctx, p.coarse_budget)
+            T0, coarse_metrics = coarse.T_target_source, coarse.metrics
+            if overlap_share(search[i], source.cloud, T0, distance) < p.min_fitness / 2:
+                return _rejected(i, j, f"the coarse pose leaves under {p.min_fitness / 2:g} of the points in the "
+                                 "overlap", coarse_metrics)
+        else:
+            T0, coarse_metrics = start, {"coarse_predicted": 1.0}
+        moving = spread_subset(source.cloud, p.pair_samples) if p.pair_samples > 0 else source.cloud
+        icp = stages.icp.refine(target.cloud, moving, T0, spacing, ctx, None)
     except ScanregError as e:
         return _rejected(i, j, str(e).splitlines()[0])
     T = icp.T_target_source
@@ -186,7 +240,7 @@ def register_edge(i: int, j: int, scans: list[PreparedScan], described: list, se
     else:
         information, centre = np.eye(6), np.zeros(3)
     edge = ViewEdge(i, j, T, information, centre, fitness, rms / spacing, agree,
-                    metrics={**coarse.metrics, "icp_iterations": icp.iterations, **icp.metrics})
+                    metrics={**coarse_metrics, "icp_iterations": icp.iterations, **icp.metrics})
     problems = []
     if fitness < p.min_fitness:
         problems.append(f"overlap {fitness:.2f} < multiview.min_fitness {p.min_fitness:g}")

@@ -18,9 +18,15 @@ class MultiviewParams:
     neighbours: int = 5
     """``order: unordered`` (larger sets): each scan is paired with this many scans of the most similar shape
     (a histogram of the distances between its points, scaled by their spread)."""
-    coarse_budget: int = 5000
+    repair_scans: bool = False
+    """Repair every scan with the configured backend before sampling it. Off: the scans are sampled as scanned
+    (their holes and ragged borders do not hinder registration) and the model made from them is repaired once."""
+    coarse_budget: int = 1024
     """At most this many hypotheses per pair for a coarse stage that draws them: pairs that do not overlap
     would otherwise draw the stage's full ``max_iterations``."""
+    pair_samples: int = 5000
+    """Points of a pair's source scan that the fine stage pairs with the target (spread over it; 0: all): a
+    pair's pose is a start that the multi-view refinement finishes, and needs no more."""
     inlier_distance: float = 3.0
     """A pair's point is in the overlap when its closest point on the other scan lies within this many sampling
     spacings (at the registered pose)."""

@@ -49,13 +49,14 @@ def load_problem(stages: Stages, ctx: RunContext) -> Problem | ScanSet:
 
 
 def prepare_scan(geometry: Geometry, stages: Stages, ctx: RunContext, name: str, salt: int,
-                 role: str | None = None) -> PreparedScan:
-    """One scan ready to register: a mesh repaired (when the repair applies to its ``role``: ``source``,
-    ``target``, or ``scan`` for a scan of a set; ``name`` by default) and then its scanned side sampled; a cloud
-    sampled (thinned) as the sampler says; the sampling spacing estimated with ``ctx.rng(salt)``."""
+                 role: str | None = None, repair: bool = True) -> PreparedScan:
+    """One scan ready to register: a mesh repaired (``repair``, and when the repair applies to its ``role``:
+    ``source``, ``target``, or ``scan`` for a scan of a set; ``name`` by default) and then its scanned side
+    sampled; a cloud sampled (thinned) as the sampler says; the sampling spacing estimated with
+    ``ctx.rng(salt)``."""
     t0 = time.perf_counter_ns()
     surface, audit = geometry, {}
-    if isinstance(geometry, Mesh) and stages.repair.applies_to(role or name):
+    if repair and isinstance(geometry, Mesh) and stages.repair.applies_to(role or name):
         repaired = stages.repair.repair(geometry, ctx)
         surface, audit = repaired.mesh, repaired.metrics
     # a scan closed as a shell by the repair (repair.open_border=shell) is sampled and compared on its scanned side
