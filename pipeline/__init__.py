@@ -5,6 +5,8 @@ The Python API (see :mod:`scanreg.api`)::
     import scanreg
     res = scanreg.register(source, target)        # paths, (N, 3)/(N, 6) arrays or Open3D geometries
     res.T_target_source, res.metrics, res.histories, res.artifacts
+    rec = scanreg.reconstruct("scans/")           # many scans of one object into one model
+    rec.poses, rec.merged, rec.mesh, rec.metrics
     cfg = scanreg.compose(["icp=gicp"])           # a run config with overrides
     stage = scanreg.build_stage("icp", "horn", tau=1e-6)
 
@@ -18,7 +20,7 @@ The layers, each importing only itself and the layers below (``tests/test_layers
   geometry core; ``scanreg.types``, ``scanreg.errors``, ``scanreg.process`` beneath them all.
 """
 
-__all__ = ["Result", "build_stage", "compose", "register", "run_config"]
+__all__ = ["Reconstruction", "Result", "build_stage", "compose", "reconstruct", "register", "run_config"]
 
 
 def __getattr__(name: str):

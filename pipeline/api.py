@@ -5,6 +5,9 @@
     res = scanreg.register(src_xyz, tgt_xyz, overrides=["icp=gicp"])  # (N, 3) or (N, 6) NumPy arrays
     res.T_target_source, res.metrics["rms"], res.histories["icp_rms"]
 
+    rec = scanreg.reconstruct("scans/")                           # many scans of one object into one model
+    rec.poses["bun045.ply"], rec.mesh, rec.merged, rec.unplaced
+
     cfg = scanreg.compose(["icp=horn", "icp.tau=1e-6"])            # the run config, as scanreg composes it
     icp = scanreg.build_stage("icp", "horn", tau=1e-6)            # one stage, from the registry by name
 
@@ -24,9 +27,9 @@ import numpy as np
 
 from scanreg.app.config import compose
 from scanreg.errors import ConfigError, InputError, ScanregError
-from scanreg.types import Result
+from scanreg.types import Reconstruction, Result
 
-__all__ = ["Result", "build_stage", "compose", "register", "run_config"]
+__all__ = ["Reconstruction", "Result", "build_stage", "compose", "reconstruct", "register", "run_config"]
 
 
 def build_stage(family: str, name: str, **params: Any):
@@ -135,6 +138,49 @@ def register(source: Any, target: Any, *, gt: Any = None, landmarks: Any = None,
     # data=files unless the caller chose otherwise; the inputs go last so that they win
     cfg = compose(["data=files", *user, *ovs], config_dirs=config_dirs)
     return run_config(cfg, run_dir, tracking, user)
+
+
+def reconstruct(scans: Any, *, poses: Any = None, overrides: Sequence[str] = (), tracking: bool = False,
+                run_dir: str | Path | None = None, config_dirs: Sequence[str] = ()) -> Reconstruction:
+    """Register many scans of one object into one model, as ``scanreg data=scanset data.scans=...`` does, and
+    return the :class:`Reconstruction` (each scan's ``T_world_scan``, the world its first scan's frame in sorted
+    order; the merged points; the surface; the metrics).
+
+    - ``scans``: a folder, a glob, or a list whose items are paths, (N, 3)/(N, 6) NumPy arrays or Open3D
+      geometries (in-memory scans are named ``scan000`` ... in their order);
+    - ``poses``: ground truth for the evaluation: a Stanford ``.conf``, a folder of 4x4 files, or a list of 4x4
+      arrays (one per scan, ``T_world_scan`` in any common frame);
+    - ``overrides``, ``tracking``, ``run_dir``, ``config_dirs``: as for :func:`register`.
+    """
+    run_dir = Path(run_dir) if run_dir is not None else Path(tempfile.mkdtemp(prefix="scanreg-"))
+    run_dir.mkdir(parents=True, exist_ok=True)
+    folder = run_dir / "inputs"
+    items = [scans] if isinstance(scans, (str, Path)) else list(scans)
+    paths = [_as_input(obj, f"scan{k:03d}", folder) for k, obj in enumerate(items)]
+    ovs = ["data=scanset", "data.scans=[" + ",".join(_quote(p) for p in paths) + "]"]
+    if poses is not None:
+        if isinstance(poses, (str, Path)):
+            ovs.append(f"data.poses={_quote(str(poses))}")
+        else:
+            Ts = [np.asarray(T, dtype=np.float64) for T in poses]
+            if len(Ts) != len(paths) or any(T.shape != (4, 4) for T in Ts):
+                raise InputError(f"poses: expected one 4x4 transform per scan ({len(paths)}), got "
+                                 f"{[T.shape for T in Ts]}")
+            (folder / "poses").mkdir(parents=True, exist_ok=True)
+            for path, T in zip(paths, Ts):
+                np.savetxt(folder / "poses" / f"{Path(path).stem}.txt", T)
+            ovs.append(f"data.poses={_quote(str(folder / 'poses'))}")
+    user = list(overrides)
+    if not tracking and not any(o.split("=")[0].lstrip("+") == "tracking" for o in user):
+        user.append("tracking=none")
+    cfg = compose([*user, *ovs], config_dirs=config_dirs)
+    res = run_config(cfg, run_dir, tracking, user)
+    reg = res.scanset
+    if reg is None:
+        raise InputError("reconstruct: the run registered no scan set")
+    return Reconstruction({n: T for n, T in zip(reg.names, reg.poses) if T is not None}, reg.merged, reg.surface,
+                          res.metrics, reg.unplaced(), [[reg.names[k] for k in g] for g in reg.groups if g],
+                          run_dir, res.artifacts, res.run_id)
 
 
 def run_config(cfg, run_dir: str | Path, tracking: bool = False, overrides: Sequence[str] = ()) -> Result:

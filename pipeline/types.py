@@ -238,6 +238,29 @@ class Result:
 
 
 @dataclass
+class Reconstruction:
+    """What a scan set's run produced (:func:`scanreg.reconstruct`)."""
+
+    poses: dict[str, np.ndarray]
+    """Each placed scan's name -> its 4x4 ``T_world_scan`` (the world: the first scan's frame, in sorted order)."""
+    merged: Optional[Any]
+    """The placed scans' points in the world frame, voxel-merged (a ``Cloud`` with normals and
+    ``extra['scan']``, each point's scan index)."""
+    mesh: Optional[Any]
+    """The surface reconstructed from them and repaired (a ``Mesh``), or None (``surface=none``, clouds)."""
+    metrics: dict[str, float] = field(default_factory=dict)
+    """The set's metrics, as ``result.json`` and MLflow hold them."""
+    unplaced: dict[str, str] = field(default_factory=dict)
+    """The scans left out of the model, each with why."""
+    groups: list[list[str]] = field(default_factory=list)
+    """The scans connected by verified pairs, the model's group first."""
+    run_dir: Optional[Path] = None
+    artifacts: list[Path] = field(default_factory=list)
+    """``poses.json``, ``merged.ply``, ``reconstruction.ply``, ``view3d.html``, ``result.json``, ..."""
+    run_id: Optional[str] = None
+
+
+@dataclass
 class ScanSet:
     """Many scans of one object, to register into one model (what a scan-set data provider loads)."""
 

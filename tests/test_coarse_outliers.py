@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import build, build_coarse
-from scanreg.geometry import Cloud, apply_T, bbox_diagonal, sparse_voxel_mask, transform_errors, voxel_occupancy
+from scanreg.geometry import Cloud, bbox_diagonal, sparse_voxel_mask, transform_errors, voxel_occupancy
 from scanreg.stages.registry import SALIENCE, load_all
 from scanreg.types import RunContext
 

@@ -7,7 +7,7 @@ import enum
 import pytest
 from omegaconf import OmegaConf
 
-from scanreg.app.config import PRESET_GROUPS, STAGE_GROUPS, compose, group_choices
+from scanreg.app.config import STAGE_GROUPS, compose, group_choices
 from scanreg.app.tracking import TRACKING
 from scanreg.errors import ConfigError
 from scanreg.runner import build_stages
@@ -117,7 +117,7 @@ def test_composition_error_lines():
     choice with the valid ones, an unknown or mistyped parameter as the stage's registry says it, an unknown
     key with how to add it; overrides that compose raise nothing (a sweep's values are Hydra's to expand)."""
     assert _compose_error(["repair=foo"]) == "unknown repair 'foo'; valid repair choices: meshfix, meshlab, none"
-    assert _compose_error(["method=nope"]) == "unknown method 'nope'; valid method choices: open3d, scanreg"
+    assert _compose_error(["method=nope"]) == "unknown method 'nope'; valid method choices: open3d, open3d_multiway, scanreg"
     assert _compose_error(["icp.bogus=1"]).startswith(
         "icp=point_to_plane: unknown parameter 'bogus'; valid parameters:")
     assert _compose_error(["icp=horn", "icp.max_iterations=abc"]) == \

@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 from conftest import ROOT, run_cli, shared, runs
 from scanreg.app.config import compose
 from scanreg.types import RunContext as Context
-from scanreg.geometry import Cloud, Mesh, apply_T, invert_T, transform_errors, vertex_normals
+from scanreg.geometry import Cloud, Mesh, apply_T, invert_T, vertex_normals
 from scanreg.stages.registry import DATA, conf_dir, load_all
 
 CONF_DIR = conf_dir()
@@ -187,7 +187,6 @@ def test_dental_pick_error_and_determinism():
 
 def test_deviation_of_a_known_offset(tmp_path):
     """A surface moved 50 um along its normals deviates by +50 um; per-part statistics split by label."""
-    import pymeshlab
 
     from scanreg.eval.deviation import evaluate_deviation
     from scanreg.io import resolve_path, read_mesh
@@ -237,7 +236,7 @@ def test_dental_experiment_end_to_end(tmp_path):
 
 def test_files_with_a_further_pose(tmp_path):
     """data=files can move the source by a seeded pose too; the ground truth and landmarks follow it."""
-    from scanreg.geometry import make_T, random_pose
+    from scanreg.geometry import random_pose
 
     rng = np.random.default_rng(0)
     tgt = rng.normal(size=(200, 3))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from scanreg.geometry import Cloud, barycentric_sample, make_T, random_pose, transform_errors
+from scanreg.geometry import Cloud, barycentric_sample, random_pose, transform_errors
 from scanreg.io import read_mesh, write_ply, write_transform
 from scanreg.stages.data.files import check_pair
 

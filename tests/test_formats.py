@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from scanreg.errors import InputError
-from scanreg.geometry import Cloud, Mesh, apply_T
+from scanreg.geometry import Cloud, apply_T
 from scanreg.io import detect_columns, read_geometry, read_input, read_mesh, write_ply
 
 TRI_V = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
@@ -319,7 +319,7 @@ def test_flat_mesh_stops_before_the_coarse_stage_through_the_cli(tmp_path):
                  "tracking=none", f"hydra.run.dir={tmp_path / 'out'}"], tmp_path)
     assert r.returncode != 0 and "Traceback" not in r.stderr + r.stdout
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert lines == [f"error: source polygon.off: is planar: rigid registration is not determined"
+    assert lines == ["error: source polygon.off: is planar: rigid registration is not determined"
                      + lines[0].split("not determined", 1)[1]], r.stderr
     assert "internal error" not in r.stderr
 

@@ -1,7 +1,6 @@
 """Scale-out and reliability: parallel sweeps into one store, interrupts, determinism, malformed inputs."""
 
 import hashlib
-import json
 import os
 import signal
 import subprocess
@@ -12,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import ROOT, run_cli, runs
+from conftest import run_cli, runs
 
 
 

@@ -46,7 +46,6 @@ import json
 import os
 import resource
 import shutil
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -91,7 +90,6 @@ def worker_scanreg(case: dict, extra: list[str]) -> dict:
     from omegaconf import OmegaConf
 
     import scanreg
-    from scanreg.geometry import transform_errors
     from scanreg.runner import run_pipeline
 
     cfg = scanreg.compose([*case_overrides(case), "tracking=none", *extra])
@@ -531,7 +529,7 @@ def main() -> None:
     rows = run_cases(cases, extra)
     from scanreg.app.config import git_revision
 
-    md = [f"# End to end: scanreg's default pipeline against Open3D's standard pipeline",
+    md = ["# End to end: scanreg's default pipeline against Open3D's standard pipeline",
           "",
           f"`{' '.join(['experiments/benchmarks/end_to_end.py', *sys.argv[1:]])}`, commit {git_revision()}, "
           f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores shared with other jobs"

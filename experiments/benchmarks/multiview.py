@@ -1,15 +1,18 @@
 """Many scans into one model: scanreg's scan-set registration beside Open3D's multiway registration, on the same
 files, in the same run (interleaved), with the same error measure.
 
-    python experiments/benchmarks/multiview.py                  # the 10 Stanford bunny scans, seeds 0 1 2
-    python experiments/benchmarks/multiview.py --seeds 0 --views 0   # one seed, no synthetic view set
-    python experiments/benchmarks/multiview.py --views 30           # also 30 rendered views of a closed model
+    python experiments/benchmarks/multiview.py                  # bunny scans + 20 and 30 rendered views, seeds 0 1 2
+    python experiments/benchmarks/multiview.py --seeds 0 --views    # one seed, the bunny scans only
+    python experiments/benchmarks/multiview.py --no-bunny --views 15 --seeds 0   # 15 rendered views only
 
-For every seed each scan is moved by a random pose (any rotation, up to half the diagonal) and written as a PLY
-mesh with its true pose beside it; then
+For every seed each of the 10 Stanford bunny scans is moved by a random pose (any rotation, up to half the
+diagonal) and written as a PLY mesh with its true pose beside it; likewise each set of views rendered from
+pymeshlab's closed bunny (``data=views``: range scans from cameras spread over a sphere, each in its camera's
+frame, the seed turning the cameras). Then, on the same files,
 
-- scanreg: ``scanreg data=scanset data.scans=DIR data.poses=POSES`` and nothing else (a new user's command),
-  timed from outside the process (wall clock, start-up included) and by its own ``time_total_s``;
+- scanreg: ``scanreg data=scanset data.scans=DIR data.poses=POSES`` and nothing else (a new user's command,
+  MLflow tracking into a new store in the run's folder included), timed from outside the process (wall clock,
+  start-up and logging included) and by its own ``time_total_s``;
 - Open3D: the multiway registration of Open3D's tutorials, as a new user builds it from them: every scan read as
   a point cloud, voxel-downsampled to 1 % of the diagonal, normals, FPFH; for every pair, RANSAC on the FPFH
   matches (mutual filter, edge-length and distance checkers, 100 000 iterations, confidence 0.999) and
@@ -102,6 +105,22 @@ def moved_set(folder: Path, seed: int) -> tuple[list[Path], list[np.ndarray], li
     return paths, truth, centres
 
 
+def rendered_set(folder: Path, seed: int, n_views: int) -> tuple[list[Path], list[np.ndarray], list[np.ndarray]]:
+    """``n_views`` range scans rendered from pymeshlab's closed bunny (``data=views``, seeded), each in its camera's
+    frame, written into ``folder`` with its camera's pose under ``folder/poses``."""
+    from scanreg.io import read_mesh, write_ply, write_transform
+    from scanreg.stages.data.views import Views, render_views
+
+    scans, poses = render_views(read_mesh(Views.Params.mesh), Views.Params(n_views=n_views, seed=seed))
+    (folder / "poses").mkdir(parents=True)
+    paths = []
+    for k, (scan, T) in enumerate(zip(scans, poses)):
+        paths.append(folder / f"view{k:02d}.ply")
+        write_ply(paths[-1], scan)
+        write_transform(folder / "poses" / f"view{k:02d}.txt", T)
+    return paths, poses, [s.vertices.mean(axis=0) for s in scans]
+
+
 def score(poses: list[np.ndarray | None], truth: list[np.ndarray], centres: list[np.ndarray],
           diagonal: float) -> dict[str, float]:
     from scanreg.eval.scanset import pose_errors
@@ -117,13 +136,13 @@ def run_scanreg(folder: Path, work: Path) -> tuple[list[np.ndarray | None], floa
     out = work / "scanreg"
     t0 = time.perf_counter()
     r = subprocess.run([sys.executable, "-m", "scanreg.app", "data=scanset", f"data.scans={folder}",
-                        f"data.poses={folder / 'poses'}", "tracking=none", f"hydra.run.dir={out}"],
+                        f"data.poses={folder / 'poses'}", f"hydra.run.dir={out}"],
                        cwd=work, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if r.returncode != 0:
         raise SystemExit(f"scanreg failed: {r.stderr.strip().splitlines()[-1]}")
     poses = json.loads((out / "poses.json").read_text())
-    names = sorted(p.name for p in folder.glob("*.ply"))
+    names = sorted(p.name for p in folder.glob("*.ply"))  # the files' order, as both methods read them
     res = json.loads((out / "result.json").read_text())
     return [np.array(poses["poses"][n]) if n in poses["poses"] else None for n in names], wall, res["time_total_s"]
 
@@ -142,28 +161,36 @@ def run_open3d(paths: list[Path]) -> tuple[list[np.ndarray], float, float]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--views", type=int, nargs="*", default=[20, 30],
+                    help="also sets of this many views rendered from a closed bunny (data=views), per seed")
+    ap.add_argument("--no-bunny", action="store_true", help="only the rendered sets")
     ap.add_argument("--out", type=Path, default=None, help="write the table (Markdown) here")
     a = ap.parse_args()
-    if not (SHARED / "stanford_bunny").is_dir():
-        print(f"skipped: {SHARED / 'stanford_bunny'} is absent")
-        return 0
+    sets = [] if a.no_bunny else ["bunny"]
+    if sets and not (SHARED / "stanford_bunny").is_dir():
+        print(f"the 10 bunny scans are skipped: {SHARED / 'stanford_bunny'} is absent")
+        sets = []
+    sets += [f"views{n}" for n in a.views]
     from scanreg.geometry import apply_T, bbox_diagonal, points_of
     from scanreg.io import read_geometry
 
-    rows = ["| seed | method | scans within 0.5° and 0.25 % | placed | worst rotation [°] | worst shift [% diag] | "
-            "wall [s] | own time [s] |", "|---|---|---|---|---|---|---|---|"]
-    for seed in a.seeds:
-        with tempfile.TemporaryDirectory(prefix="scanreg-mv-") as tmp:
-            folder = Path(tmp) / "scans"
-            paths, truth, centres = moved_set(folder, seed)
-            # the model's diagonal: every scan at its true pose
-            diagonal = bbox_diagonal(np.vstack([apply_T(T, points_of(read_geometry(p))) for p, T in zip(paths, truth)]))
-            for method in ("open3d", "scanreg") if seed % 2 else ("scanreg", "open3d"):  # interleaved
-                poses, wall, own = run_open3d(paths) if method == "open3d" else run_scanreg(folder, Path(tmp))
-                s = score(poses, truth, centres, diagonal)
-                rows.append(f"| {seed} | {method} | {s['within']}/{len(paths)} | {s['placed']} | {s['rot_max']:.3f} | "
-                            f"{100 * s['trans_max']:.3f} | {wall:.1f} | {own:.1f} |")
-                print(rows[-1], flush=True)
+    rows = ["| set | seed | method | scans within 0.5° and 0.25 % | placed | worst rotation [°] | worst shift [% diag] "
+            "| wall [s] | own time [s] |", "|---|---|---|---|---|---|---|---|---|"]
+    for name in sets:
+        for seed in a.seeds:
+            with tempfile.TemporaryDirectory(prefix="scanreg-mv-") as tmp:
+                folder = Path(tmp) / "scans"
+                paths, truth, centres = moved_set(folder, seed) if name == "bunny" else \
+                    rendered_set(folder, seed, int(name[len("views"):]))
+                # the model's diagonal: every scan at its true pose
+                diagonal = bbox_diagonal(np.vstack([apply_T(T, points_of(read_geometry(p)))
+                                                    for p, T in zip(paths, truth)]))
+                for method in ("open3d", "scanreg") if seed % 2 else ("scanreg", "open3d"):  # interleaved
+                    poses, wall, own = run_open3d(paths) if method == "open3d" else run_scanreg(folder, Path(tmp))
+                    s = score(poses, truth, centres, diagonal)
+                    rows.append(f"| {name} | {seed} | {method} | {s['within']}/{len(paths)} | {s['placed']} | "
+                                f"{s['rot_max']:.3f} | {100 * s['trans_max']:.3f} | {wall:.1f} | {own:.1f} |")
+                    print(rows[-1], flush=True)
     table = "\n".join(rows)
     print("\n" + table)
     if a.out:

@@ -50,7 +50,9 @@ def set_metrics(poses: list[Optional[np.ndarray]], edges: list[ViewEdge], anchor
     accepted = np.array([e.accepted for e in edges], bool)
     m = {"scans": float(len(poses)), "scans_placed": float(placed.sum()), "scans_unplaced": float((~placed).sum()),
          "edges_registered": float(len(edges)), "edges_accepted": float(accepted.sum()),
-         "edges_rejected": float((~accepted).sum()), "model_diagonal": diagonal}
+         "edges_rejected": float((~accepted).sum()), "model_diagonal": diagonal,
+         **{f"edges_{k}": float(sum(e.metrics.get(f"pair_{k}", 0.0) for e in edges))
+            for k in ("predicted", "skipped", "retried")}}
     per_scan: dict[str, list] = {}
     if poses_gt is None:
         return m, per_scan

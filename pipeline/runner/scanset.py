@@ -145,11 +145,16 @@ def candidate_pairs(scans: list[PreparedScan], order: str, p: MultiviewParams) -
         if order == "turntable":
             pairs |= {tuple(sorted((k, (k + d) % n))) for k in range(n) for d in range(1, p.window + 1)}
         return sorted(pairs)
+    near = np.argsort(shape_distances(scans), axis=1, kind="stable")[:, :p.neighbours]
+    return sorted({(min(k, int(m)), max(k, int(m))) for k in range(n) for m in near[k]})
+
+
+def shape_distances(scans: list[PreparedScan]) -> np.ndarray:
+    """The L1 distances between the scans' shape histograms (:func:`shape_histogram`); inf on the diagonal."""
     hist = np.array([shape_histogram(s.cloud.points) for s in scans])
     dist = np.abs(hist[:, None, :] - hist[None, :, :]).sum(axis=2)
     np.fill_diagonal(dist, np.inf)
-    near = np.argsort(dist, axis=1, kind="stable")[:, :p.neighbours]
-    return sorted({(min(k, int(m)), max(k, int(m))) for k in range(n) for m in near[k]})
+    return dist
 
 
 def shape_histogram(points: np.ndarray, bins: int = 32, samples: int = 2000, seed: int = 0) -> np.ndarray:
@@ -168,22 +173,51 @@ def register_pairs(candidates: list[tuple[int, int]], scans: list[PreparedScan],
     """Every candidate pair registered and verified, in order. Once accepted pairs connect two scans, their
     relative pose is predicted along them: the pair is skipped when the prediction leaves under half
     ``min_fitness`` of the points in the overlap, else the fine stage starts from it (and the coarse stage runs
-    only when that fails); the coarse stage runs from any pose only between scans not yet connected."""
+    only when that fails); the coarse stage runs from any pose only between scans not yet connected
+    (``predict`` off: for every pair). In a set larger than ``all_pairs``, a scan the candidates leave outside
+    the largest joined group then gets up to ``rescue_pairs`` pairs more (:func:`rescue_pairs`)."""
     chains = _Chains(len(scans))
-    edges = []
+    edges: list[ViewEdge] = []
+    _register_in_turn(candidates, chains, edges, scans, described, search, stages, spacing, p, ctx)
+    if len(scans) > p.all_pairs and p.rescue_pairs > 0:
+        tried = {(e.i, e.j) for e in edges}
+        _register_in_turn(rescue_pairs(chains, shape_distances(scans), tried, p.rescue_pairs), chains, edges, scans,
+                          described, search, stages, spacing, p, ctx)
+    return edges
+
+
+def rescue_pairs(chains: _Chains, dist: np.ndarray, tried: set[tuple[int, int]], budget: int) -> list[tuple[int, int]]:
+    """For every scan outside the largest group the accepted pairs have joined, up to ``budget`` more pairs with
+    that group's scans (the most similar shapes by ``dist`` first, none already ``tried``)."""
+    groups: dict[int, list[int]] = {}
+    for k, r in enumerate(chains.root):
+        groups.setdefault(r, []).append(k)
+    main = max(groups.values(), key=len)
+    out = []
+    for k in range(len(chains.root)):
+        if chains.root[k] == chains.root[main[0]]:
+            continue
+        near = sorted(main, key=lambda m: (dist[k, m], m))
+        out += [p for p in (tuple(sorted((k, m))) for m in near) if p not in tried][:budget]
+    return out
+
+
+def _register_in_turn(candidates, chains: _Chains, edges: list[ViewEdge], scans, described, search, stages, spacing,
+                      p: MultiviewParams, ctx: RunContext) -> None:
+    """:func:`register_pairs`' loop: ``candidates`` registered in turn into ``edges``, joining ``chains``."""
     for i, j in candidates:
-        start = chains.relative(i, j)
+        start = chains.relative(i, j) if p.predict else None
         if start is not None and overlap_share(search[i], scans[j].cloud, start, p.inlier_distance * spacing) < \
                 p.min_fitness / 2:
-            edges.append(_rejected(i, j, "predicted by the accepted pairs not to overlap"))
+            edges.append(_rejected(i, j, "predicted by the accepted pairs not to overlap", {"pair_skipped": 1.0}))
             continue
         edge = register_edge(i, j, scans, described, search, stages, spacing, p, ctx, start)
         if start is not None and not edge.accepted:  # the prediction may be wrong: from any pose
             edge = register_edge(i, j, scans, described, search, stages, spacing, p, ctx)
-        if edge.accepted:
+            edge.metrics["pair_retried"] = 1.0
+        if edge.accepted and edge.fitness >= p.predict_min_fitness:  # a weak pair may be false: it predicts nothing
             chains.join(i, j, edge.T_i_j)
         edges.append(edge)
-    return edges
 
 
 class _Chains:
@@ -226,7 +260,7 @@ def register_edge(i: int, j: int, scans: list[PreparedScan], described: list, se
                 return _rejected(i, j, f"the coarse pose leaves under {p.min_fitness / 2:g} of the points in the "
                                  "overlap", coarse_metrics)
         else:
-            T0, coarse_metrics = start, {"coarse_predicted": 1.0}
+            T0, coarse_metrics = start, {"pair_predicted": 1.0}
         moving = spread_subset(source.cloud, p.pair_samples) if p.pair_samples > 0 else source.cloud
         icp = stages.icp.refine(target.cloud, moving, T0, spacing, ctx, None)
     except ScanregError as e:

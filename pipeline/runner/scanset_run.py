@@ -1,5 +1,5 @@
 """One scan-set run: :func:`~scanreg.runner.scanset.register_scanset`, its evaluation and its outputs
-(``poses.json``, ``merged.ply``, ``reconstruction.ply``, ``view3d.html``, ``result.json``)."""
+(``poses.json``, ``merged.ply``, ``reconstruction.ply`` and its picture, ``view3d.html``, ``result.json``)."""
 
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def edge_metrics(e) -> dict[str, float]:
 
 def _say_groups(reg: SetRegistration) -> None:
     """One line each for scans left out and for groups that share no verified pair."""
-    groups = [g for g in reg.groups if g]
+    groups = [g for g in reg.groups if len(g) > 1 or g is reg.groups[0]]  # a lone scan is unplaced, not a group
     if len(groups) > 1:
         names = "; ".join("{" + ", ".join(reg.names[k] for k in g) + "}" for g in groups)
         warn(f"the scans fall into {len(groups)} groups that share no verified pair: {names}; the model holds the "
@@ -80,7 +80,7 @@ def _say_groups(reg: SetRegistration) -> None:
 def write_set_outputs(run_dir: Path, reg: SetRegistration, res: Result, per_scan: dict) -> list[Path]:
     """``poses.json`` (every placed scan's ``T_world_scan``, the world its first scan's frame; the other groups;
     the unplaced scans and why), ``merged.ply`` (points with normals, the scan index as a scalar, a colour per
-    scan), ``reconstruction.ply``, ``view3d.html`` and ``result.json``."""
+    scan), ``reconstruction.ply`` and ``reconstruction.png`` (three sides), ``view3d.html`` and ``result.json``."""
     paths = [run_dir / "poses.json", run_dir / "result.json"]
     anchor = reg.groups[0][0]
     poses = {"world": reg.names[anchor], "poses": {n: T.tolist() for n, T in zip(reg.names, reg.poses) if T is not None},
@@ -98,8 +98,13 @@ def write_set_outputs(run_dir: Path, reg: SetRegistration, res: Result, per_scan
         write_ply(paths[-1], reg.merged, colors=SCAN_COLOURS[scan % len(SCAN_COLOURS)],
                   scalars={"scan": scan.astype(np.float32)})
     if isinstance(reg.surface, Mesh):
+        from scanreg.eval.picture import write_mesh_picture
+
         paths.append(run_dir / "reconstruction.ply")
         write_ply(paths[-1], reg.surface)
+        placed = sum(T is not None for T in reg.poses)
+        paths.append(write_mesh_picture(run_dir / "reconstruction.png", reg.surface,
+                                        f"reconstruction of {placed} scans: {len(reg.surface.faces)} faces"))
     if reg.merged is not None and reg.merged.n_points:
         from scanreg.eval.view3d import write_set_view
 

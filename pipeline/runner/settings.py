@@ -18,12 +18,21 @@ class MultiviewParams:
     neighbours: int = 5
     """``order: unordered`` (larger sets): each scan is paired with this many scans of the most similar shape
     (a histogram of the distances between its points, scaled by their spread)."""
+    rescue_pairs: int = 10
+    """Larger sets: a scan that the candidate pairs leave outside the largest group of joined scans is paired with
+    up to this many more of that group's scans (the most similar shapes first)."""
     repair_scans: bool = False
     """Repair every scan with the configured backend before sampling it. Off: the scans are sampled as scanned
     (their holes and ragged borders do not hinder registration) and the model made from them is repaired once."""
     coarse_budget: int = 1024
     """At most this many hypotheses per pair for a coarse stage that draws them: pairs that do not overlap
     would otherwise draw the stage's full ``max_iterations``."""
+    predict: bool = True
+    """A pair of scans that accepted pairs already connect starts the fine stage from the pose they predict (and
+    is skipped when that pose leaves them apart); off: every pair from any pose, by the coarse stage."""
+    predict_min_fitness: float = 0.2
+    """Only accepted pairs that overlap at least this much (share of points, 0..1) predict poses: a false pair
+    that passed the verification overlaps little, and its predictions would skip the pairs that outvote it."""
     pair_samples: int = 5000
     """Points of a pair's source scan that the fine stage pairs with the target (spread over it; 0: all): a
     pair's pose is a start that the multi-view refinement finishes, and needs no more."""

@@ -100,9 +100,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         + (f" --x {p.x}" if p.x else "") + (f" --per {p.per}" if p.per else "") + "`, "
         + f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
         "",
-        "Success: rotation error < `evaluate.success_rotation_deg` (2°) and translation error < "
-        "`evaluate.success_translation` (1 %) of the target's bounding-box diagonal; a failed run counts as a "
-        "failure. Errors are against the ground truth, in degrees and input units; times are medians in seconds.",
+        success_line(df),
         "",
         *([f"**Warning: {warn}.**", ""] if warn else []),
         f"## Results by {', '.join(group_by) or 'run'}", "",
@@ -131,6 +129,8 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         lines += [f"## Compared with experiment `{compare_to.attrs.get('experiment')}`", "", to_markdown(cmp), ""]
     if p.showcase:
         lines += showcase_section(df, dict(p.showcase), out)
+    if "metrics.scans_within_tolerance" in df.columns:
+        lines += scanset_section(df, group_by, out)
     if figs:
         lines += ["## Plots", ""] + [f"![{f.stem}]({f.name})" for f in figs] + [""]
     if n_fail:
@@ -251,6 +251,56 @@ def main(argv: list[str] | None = None) -> int:
         print(f"warning: {res['warning']}")
     print(f"every column: {out / 'report.csv'}; report: {out / 'report.md'}")
     return 0
+
+
+def success_line(df) -> str:
+    """What counts as a success: a pair's errors within ``evaluate.success_*``; a scan set's every scan within
+    ``multiview.success_*``."""
+    if "metrics.scans_within_tolerance" in df.columns:
+        return ("Success (scan sets): every scan's rotation error < `multiview.success_rotation_deg` (0.5°) and "
+                "the shift of its centroid < `multiview.success_translation` (0.25 %) of the model's bounding-box "
+                "diagonal, the frames aligned at the first scan; a failed run counts as a failure. Errors are "
+                "against the ground truth, in degrees and as shares of the diagonal; times are medians in seconds.")
+    return ("Success: rotation error < `evaluate.success_rotation_deg` (2°) and translation error < "
+            "`evaluate.success_translation` (1 %) of the target's bounding-box diagonal; a failed run counts as a "
+            "failure. Errors are against the ground truth, in degrees and input units; times are medians in seconds.")
+
+
+def scanset_section(df: pd.DataFrame, group_by: list[str], out: Path) -> list[str]:
+    """Scan sets: every scan's errors in every run (``per_scan.csv``, from each run's ``poses.json``) and the
+    reconstruction of each group's first run (its ``reconstruction.png``, copied beside the report)."""
+    import json
+    import shutil
+
+    cols, pictures = {}, []
+    ordered = df.sort_values([*(column_for(k, df) for k in group_by), "params.seed"] if "params.seed" in df
+                             else [column_for(k, df) for k in group_by])
+    for _, row in ordered.iterrows():
+        run_dir = Path(str(row.get("tags.scanreg.run_dir", "")))
+        if not (run_dir / "poses.json").is_file():
+            continue
+        groups = " ".join(str(row[column_for(k, df)]) for k in group_by) or str(row.get("tags.mlflow.runName", ""))
+        label = groups + (f" seed {row['params.seed']}" if "params.seed" in row else "")
+        per = json.loads((run_dir / "poses.json").read_text()).get("per_scan", {})
+        if "rotation_error_deg" in per:
+            cols[f"{label}: rotation [°]"] = pd.Series(per["rotation_error_deg"])
+            cols[f"{label}: shift [% diag]"] = 100 * pd.Series(per["translation_error_rel"])
+        png = run_dir / "reconstruction.png"
+        if png.is_file() and groups not in {g for g, _ in pictures}:
+            name = f"reconstruction_{_slug(groups)}.png"
+            shutil.copyfile(png, out / name)
+            pictures.append((groups, name))
+    lines = []
+    if cols:
+        table = pd.DataFrame(cols)
+        table.index.name = "scan"
+        table.to_csv(out / "per_scan.csv")
+        lines += ["## Every scan's error", "", "Rotation error (degrees) and shift of the scan's centroid (% of the "
+                  "model's diagonal) against the truth, per run; empty where a scan was not placed. per_scan.csv has "
+                  "the numbers.", "", to_markdown(table.T.round(3).rename_axis("run"), index=True), ""]
+    for groups, name in pictures:
+        lines += [f"## The reconstruction: {groups}", "", f"![reconstruction {groups}]({name})", ""]
+    return lines
 
 
 if __name__ == "__main__":
