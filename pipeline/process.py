@@ -43,20 +43,63 @@ def run_isolated(fn, *args, **kwargs):
     by side instead of scattered through the free space of the parent's heap. Standard output and error (C's
     included) are flushed before the fork and before the child leaves, so that a library's messages reach a
     file or a pipe in order."""
+    return start_isolated(fn, *args, **kwargs).result()
+
+
+class Pending:
+    """A value being computed by :func:`start_isolated`: :meth:`result` waits for it (once), :meth:`cancel` ends
+    the child without it."""
+
+    def __init__(self, pid: int | None = None, fd: int | None = None, value=None, error: BaseException | None = None):
+        self._pid, self._fd, self._value, self._error = pid, fd, value, error
+
+    def result(self):
+        """The value (or the exception) of the work, as :func:`run_isolated` returns (raises) it."""
+        if self._pid is not None:
+            pid, self._pid = self._pid, None
+            try:
+                msg = _receive(self._fd)
+            finally:
+                os.close(self._fd)
+                _, status = os.waitpid(pid, 0)
+            if msg is None:
+                self._error = IsolatedCrash(_ended(status))
+            elif msg[0] == "error":
+                self._error = msg[1]
+            else:
+                self._value = msg[1]
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+    def cancel(self) -> None:
+        """End the child (if it is still at work) and reap it; the value is not wanted."""
+        if self._pid is not None:
+            pid, self._pid = self._pid, None
+            os.close(self._fd)
+            with contextlib.suppress(OSError):
+                os.kill(pid, 9)
+            os.waitpid(pid, 0)
+
+
+def start_isolated(fn, *args, **kwargs) -> Pending:
+    """Start ``fn(*args, **kwargs)`` in a forked child (as :func:`run_isolated` runs it) and return at once: the
+    caller works on meanwhile and takes the value with :meth:`Pending.result`. Without forking the value is
+    computed here, before the call returns."""
     if not forking():
-        return fn(*args, **kwargs)
+        return _in_place(fn, args, kwargs)
     _flush_all()
     try:
         r, w = os.pipe()
     except OSError:
-        return fn(*args, **kwargs)
+        return _in_place(fn, args, kwargs)
     _widen(r)
     try:
         pid = os.fork()
     except OSError:
         os.close(r)
         os.close(w)
-        return fn(*args, **kwargs)
+        return _in_place(fn, args, kwargs)
     if pid == 0:  # the child never returns into the caller's code
         code = 1
         try:
@@ -66,7 +109,7 @@ def run_isolated(fn, *args, **kwargs):
             def work():
                 try:
                     box.append(("ok", fn(*args, **kwargs)))
-                except BaseException as e:  # noqa: BLE001: handed to the parent
+                except BaseException as e:  # noqa: BLE001  # handed to the parent
                     box.append(("error", _picklable(e)))
 
             import threading
@@ -77,24 +120,21 @@ def run_isolated(fn, *args, **kwargs):
             t.join()
             try:
                 _send(w, box[0])
-            except Exception as e:  # noqa: BLE001: a value that cannot be pickled
+            except Exception as e:  # noqa: BLE001  # a value that cannot be pickled
                 _send(w, ("error", _picklable(e)))
             code = 0
         finally:
             _flush_all()
             os._exit(code)
     os.close(w)
+    return Pending(pid, r)
+
+
+def _in_place(fn, args, kwargs) -> Pending:
     try:
-        msg = _receive(r)
-    finally:
-        os.close(r)
-        _, status = os.waitpid(pid, 0)
-    if msg is None:
-        raise IsolatedCrash(_ended(status))
-    kind, value = msg
-    if kind == "error":
-        raise value
-    return value
+        return Pending(value=fn(*args, **kwargs))
+    except BaseException as e:  # noqa: BLE001  # raised by result(), as from a child
+        return Pending(error=e)
 
 
 @contextlib.contextmanager
@@ -183,7 +223,7 @@ def _flush_all() -> None:
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
-        except Exception:  # noqa: BLE001: closed or replaced by something without flush
+        except Exception:  # noqa: BLE001  # closed or replaced by something without flush
             pass
     fn = _fflush()
     if fn is not None:
@@ -198,7 +238,7 @@ def _picklable(e: BaseException) -> BaseException:
     try:
         pickle.loads(pickle.dumps(e))
         return e
-    except Exception:  # noqa: BLE001: an exception whose constructor takes other arguments
+    except Exception:  # noqa: BLE001  # an exception whose constructor takes other arguments
         first = (str(e).strip().splitlines() or [""])[0][:200]
         return RuntimeError(f"{type(e).__name__}: {first}")
 

@@ -34,7 +34,7 @@ def compose(overrides=(), config_name: str = "config", config_dirs=(), return_hy
         with initialize_config_module(CONF_PACKAGE, version_base="1.3"):
             return hydra_compose(config_name, overrides=[*overrides, *search_path_override(config_dirs)],
                                  return_hydra_config=return_hydra_config)
-    except Exception as e:  # noqa: BLE001: Hydra's composition errors, as the CLI says them
+    except Exception as e:  # noqa: BLE001  # Hydra's composition errors, as the CLI says them
         raise ConfigError(config_error_line(e)) from None
 
 

@@ -101,7 +101,7 @@ def run_job(cfg: DictConfig) -> dict | float | None:
     except KeyboardInterrupt:
         _log(tracker, record.ended("KILLED", "interrupted", artifacts=[run_dir / "config.yaml"]), multirun)
         raise
-    except BaseException as e:  # noqa: BLE001: every failure ends the run FAILED with its reason
+    except BaseException as e:  # noqa: BLE001  # every failure ends the run FAILED with its reason
         return _failed(e, cfg, tracker, record, run_dir, multirun)
     children = [RunRecord(run_name=name, params={}, tags={"scanreg.part": "pair"}, start_time=record.start_time)
                 .ended("FINISHED", None, metrics) for name, metrics in res.children]
@@ -136,7 +136,7 @@ def _log(tracker, record, multirun: bool, children=()) -> str | None:
     results stay)."""
     try:
         return tracker.log_run(record, children)
-    except Exception as e:  # noqa: BLE001: a bad store
+    except Exception as e:  # noqa: BLE001  # a bad store
         msg = (str(e) if isinstance(e, ScanregError) else f"tracking: {type(e).__name__}: {e}").splitlines()[0]
         _err(msg)
         if multirun:
@@ -238,7 +238,7 @@ def main() -> None:
     except KeyboardInterrupt:
         try:
             n = end_interrupted_sweep()
-        except Exception:  # noqa: BLE001: the message below is what matters
+        except Exception:  # noqa: BLE001  # the message below is what matters
             n = 0
         _err("interrupted" + (f"; {n} unfinished MLflow run(s) of the sweep marked KILLED" if n else ""))
         raise SystemExit(EXIT_INTERRUPTED)
@@ -250,7 +250,7 @@ def main() -> None:
         _end_sweep_quietly(end_interrupted_sweep, reason)
         _err(reason)
         raise SystemExit(EXIT_USAGE)
-    except Exception as e:  # noqa: BLE001: e.g. a launcher that cannot start; no run is left RUNNING
+    except Exception as e:  # noqa: BLE001  # e.g. a launcher that cannot start; no run is left RUNNING
         reason = f"sweep failed: {type(e).__name__}: {e}".splitlines()[0]
         _end_sweep_quietly(end_interrupted_sweep, reason)
         if any(a.replace(" ", "") in ("verbose=true", "verbose=True") for a in argv):
@@ -264,5 +264,5 @@ def main() -> None:
 def _end_sweep_quietly(end, reason: str) -> None:
     try:
         end(reason, status="FAILED")
-    except Exception:  # noqa: BLE001: the error line is what matters
+    except Exception:  # noqa: BLE001  # the error line is what matters
         pass

@@ -85,7 +85,7 @@ def describe(family: str, name: str, width: int = 100) -> list[str]:
     docs = field_docs(cls.Params)
     try:
         hints = typing.get_type_hints(cls.Params)
-    except Exception:  # noqa: BLE001: fall back to the annotation text
+    except Exception:  # noqa: BLE001  # fall back to the annotation text
         hints = {}
     defaults = yaml_defaults(family, name)
     for f in dataclasses.fields(cls.Params):

@@ -178,5 +178,5 @@ def quick_help(overrides: list[str]) -> str | None:
 
     try:
         return string.Template(str(compose(overrides, return_hydra_config=True).hydra.help.template)).substitute({})
-    except Exception:  # noqa: BLE001: Hydra's own path reports it, or the template uses Hydra's variables
+    except Exception:  # noqa: BLE001  # Hydra's own path reports it, or the template uses Hydra's variables
         return None

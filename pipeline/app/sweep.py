@@ -73,7 +73,7 @@ class SweepCallback(Callback):
 
             try:
                 report_for_sweep(config, info["parent_run_id"], info["uri"], info["experiment"])
-            except Exception as e:  # noqa: BLE001: the runs are safe; say why the report is missing
+            except Exception as e:  # noqa: BLE001  # the runs are safe; say why the report is missing
                 msg = str(e) if isinstance(e, (ConfigError, SystemExit)) else f"{type(e).__name__}: {e}"
                 print(f"error: report not written: {msg}".splitlines()[0])
                 _sweep_outcome["failed"] = _sweep_outcome.get("failed", 0) or 1

@@ -56,7 +56,7 @@ def sweep_info() -> dict | None:
             f = Path(hc.sweep.dir) / SWEEP_FILE
             if f.exists():
                 return json.loads(f.read_text())
-    except Exception:  # noqa: BLE001: not inside a Hydra job
+    except Exception:  # noqa: BLE001  # not inside a Hydra job
         pass
     return None
 
@@ -266,7 +266,7 @@ def _warm_mlflow() -> None:
         import sqlalchemy.orm
 
         sqlalchemy.orm.configure_mappers()
-    except Exception:  # noqa: BLE001: only a head start; opening the store reports any real problem
+    except Exception:  # noqa: BLE001  # only a head start; opening the store reports any real problem
         pass
 
 
@@ -286,7 +286,7 @@ def _worker() -> None:
         return
     try:
         reply = {"run_id": _log_request(json.loads(line))}
-    except Exception as e:  # noqa: BLE001: the caller reports it
+    except Exception as e:  # noqa: BLE001  # the caller reports it
         reply = {"error": f"{type(e).__name__}: {e}".splitlines()[0] if str(e) else type(e).__name__}
     print(REPLY + json.dumps(reply), flush=True)
 
@@ -346,7 +346,7 @@ def sweep_size(config: DictConfig) -> int | None:
         for v in sizes.values():
             n *= v
         return n
-    except Exception:  # noqa: BLE001: progress is a nicety
+    except Exception:  # noqa: BLE001  # progress is a nicety
         return None
 
 
@@ -369,7 +369,7 @@ def report_progress(status: str, what: str = "") -> None:
         from hydra.core.hydra_config import HydraConfig
 
         job = f"#{HydraConfig.get().job.num} "
-    except Exception:  # noqa: BLE001: not inside a Hydra job
+    except Exception:  # noqa: BLE001  # not inside a Hydra job
         job = ""
     outcome = f"{job}{'ok' if status == 'FINISHED' else status}" + (f": {what}" if what else "")
     if total:

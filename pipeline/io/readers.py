@@ -82,7 +82,7 @@ def read_input(path: str | os.PathLike, what: str = "input", columns: str | None
         raise InputError(f"{label}: not enough memory to read it") from None
     except OSError as e:
         raise InputError(f"{label}: cannot read ({e.strerror or e})") from None
-    except Exception as e:  # noqa: BLE001: a parser's or a library's own exception is one line naming the file
+    except Exception as e:  # noqa: BLE001  # a parser's or a library's own exception is one line naming the file
         raise InputError(f"{label}: corrupt or unreadable file ({one_line(e)})") from None
     if isinstance(g, Mesh):
         g.source = label

@@ -34,8 +34,10 @@ from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.mesh.distances import area_samples, distances_to, point_distances, raycasting_scene
 from scanreg.mesh.shell import close_as_shell
 from scanreg.mesh.slivers import collapse_folds, collapse_slivers
-from scanreg.mesh.topology import (audit_mesh, border_loops, component_areas, known, mesh_stats,
+from scanreg.mesh.intersect import Intersections
+from scanreg.mesh.topology import (audit_mesh, border_loops, component_areas, intersections, known, mesh_stats,
                                    non_manifold_vertices, open_scan_borders, remember, self_intersecting_count)
+from scanreg.process import start_isolated
 from scanreg.types import Repaired, RunContext
 
 
@@ -177,6 +179,13 @@ def _first_line(e: BaseException) -> str:
     return (str(e).strip().splitlines() or [""])[0][:200]
 
 
+def _intersection_pairs(mesh: Mesh) -> tuple:
+    """The input's self-intersection test (:func:`scanreg.mesh.topology.intersections`) as the arrays that make
+    it: its intersecting pairs and its face keys (the mesh's own arrays stay with the caller)."""
+    found = intersections(mesh)
+    return found.pairs, found.keys
+
+
 def _run_backend(stage, mesh: Mesh, p: GuardParams, ctx: RunContext) -> Mesh:
     """The backend's ``run`` with the planned parameters ``p``; any failure, and an empty result, as one line
     naming the backend and file."""
@@ -264,11 +273,26 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
         raise StageError(f"{where}: the repair's audit needs libigl ({_first_line(e)}): pip install libigl") from e
     t0 = time.perf_counter()
     planned = _planned(stage, mesh, where)
-    before = audit_mesh(mesh)  # the input's self-intersection test is remembered on it: the output's starts there
-    input_side = _input_side(p, mesh, ctx.seed)
-    t1 = time.perf_counter()
-    out = _run_backend(stage, mesh, planned, ctx)
+    # the input's exact self-intersection test (the audit's costliest part) runs beside the backend, in a child
+    # process, unless the backend starts its own tests from it
+    beside = None if stage.reads_input_intersections(planned) or known(mesh, "intersections") is not None else \
+        start_isolated(_intersection_pairs, mesh)
+    try:
+        before = audit_mesh(mesh, self_intersections=beside is None)
+        input_side = _input_side(p, mesh, ctx.seed)
+        t1 = time.perf_counter()
+        out = _run_backend(stage, mesh, planned, ctx)
+    except BaseException:
+        if beside is not None:
+            beside.cancel()
+        raise
+    tb = time.perf_counter()
+    if beside is not None:  # remembered on the input: the output's test starts there
+        remember(mesh, "intersections", Intersections(mesh.vertices, mesh.faces, *beside.result()))
+        before["self_intersecting_faces"] = self_intersecting_count(mesh)
+    t_wait = time.perf_counter() - tb
     out, t_folds = _without_slivers(p, out)
+    t_folds += t_wait
     mode = planned.open_border
     if mode == "shell":
         out = close_as_shell(out, p.shell_thickness * bbox_diagonal(out.vertices))
@@ -367,6 +391,11 @@ class AuditedRepair:
 
     def fills_holes(self, p: GuardParams) -> bool:
         """Whether the backend fills holes with these parameters (the border plan keeps borders open only then)."""
+        return False
+
+    def reads_input_intersections(self, p: GuardParams) -> bool:
+        """Whether the backend, with these parameters, starts a self-intersection test of its own from the
+        input's (the audit then makes the input's first instead of beside the backend)."""
         return False
 
     def repair(self, mesh: Mesh, ctx: RunContext) -> Repaired:
