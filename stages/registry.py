@@ -47,7 +47,8 @@ class Registry:
         self._classes: dict[str, type] = {}
 
     def register(self, name: str) -> Callable[[type], type]:
-        """Class decorator: register the stage under ``name`` and store its defaults as a structured config."""
+        """Class decorator: register the stage under ``name`` (its defaults become a structured config when
+        configs are composed: :meth:`store_schemas`)."""
         def deco(cls: type) -> type:
             if name in self._classes:
                 raise ValueError(f"{self.family} '{name}' registered twice")
@@ -61,13 +62,19 @@ class Registry:
             cls.name = name
             cls.family = self.family
             self._classes[name] = cls
-            store_schema(self.family, name, params)
             return cls
 
         return deco
 
     def names(self) -> list[str]:
         return sorted(self._classes)
+
+    def store_schemas(self) -> None:
+        """Store every registered stage's defaults as the structured config ``<family>/_<name>``, which its YAML's
+        defaults line names (see :func:`store_schema`). Done before composing, not at registration, so that
+        importing a stage module needs no Hydra (the MLflow worker imports the tracking backends)."""
+        for name, cls in self._classes.items():
+            store_schema(self.family, name, cls.Params)
 
     def get(self, name: Any) -> type:
         if name not in self._classes:
@@ -233,6 +240,7 @@ def _store_group_entries(plugin_dirs: list[Path]) -> None:
     from omegaconf import OmegaConf
 
     for family, reg in REGISTRIES.items():
+        reg.store_schemas()
         for name in reg.names():
             if (conf_dir() / family / f"{name}.yaml").is_file():
                 continue  # Hydra finds it in the primary config folder

@@ -78,12 +78,13 @@ def register_schemas() -> None:
     from hydra.core.config_store import ConfigStore
     from omegaconf import OmegaConf
 
-    import scanreg.app.tracking  # noqa: F401  (registers the tracking backends)
     from scanreg.app.report.params import ReportParams
+    from scanreg.app.tracking import TRACKING
     from scanreg.eval.metrics import EvalParams
     from scanreg.runner.settings import MultiviewParams
 
     load_all()
+    TRACKING.store_schemas()
     ConfigStore.instance().store(name="_evaluate", node=EvalParams)
     ConfigStore.instance().store(name="_report", node=ReportParams)
     ConfigStore.instance().store(name="_multiview", node=MultiviewParams)

@@ -289,6 +289,10 @@ def _worker() -> None:
     except Exception as e:  # noqa: BLE001  # the caller reports it
         reply = {"error": f"{type(e).__name__}: {e}".splitlines()[0] if str(e) else type(e).__name__}
     print(REPLY + json.dumps(reply), flush=True)
+    # The run is logged and the store committed: skip the teardown of MLflow's and SQLAlchemy's module graph,
+    # which a caller reading this process's standard error (a pipe, a test) would wait for.
+    sys.stderr.flush()
+    os._exit(0)
 
 
 REPLY = "@scanreg-tracking "
