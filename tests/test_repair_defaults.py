@@ -260,10 +260,10 @@ def test_a_broken_border_plan_is_named(monkeypatch):
 
 
 def test_meshfix_tests_from_the_input_and_trusts_its_own_cleaning(monkeypatch):
-    """The audit tests the input for self-intersections first; MeshFix's loop that keeps an open scan's
-    border open (bun000) tests its meshes from that outcome (``previous``: incrementally), and the audit's
-    count of the output equals the full exact test's. With MeshFix's own cleaning (the closed bunny), the
-    input's test runs beside the backend and its verdict is the count: the output is not tested again."""
+    """The audit tests the input for self-intersections beside the backend; MeshFix's loop that keeps an open
+    scan's border open (bun000) tests its meshes from that outcome (``previous``: incrementally), and the
+    audit's count of the output equals the full exact test's. With MeshFix's own cleaning (the closed bunny),
+    its verdict is the count: the output is not tested again."""
     import scanreg.mesh.intersect as intersect
     import scanreg.mesh.topology as topology
     import scanreg.stages.repair.meshfix as meshfix
@@ -284,7 +284,17 @@ def test_meshfix_tests_from_the_input_and_trusts_its_own_cleaning(monkeypatch):
     monkeypatch.setattr(topology, "self_intersections", spy)
     monkeypatch.setattr(intersect, "_incremental", lambda *a: incremental.append(1) or inc(*a))
     scan = read_mesh(str(shared("stanford_bunny/bun000.ply")))
+    # forking (the default), the input's test runs in a child process beside MeshFix (this spy does not see
+    # it) and the loop waits for its outcome; in place, the same repair gives the same metrics and faces
+    forked, m_forked = audited(stage("meshfix"), read_mesh(str(shared("stanford_bunny/bun000.ply"))))
+    assert not [t for t in tests if t[0] == len(scan.faces) and t[1] is None] and incremental
+    tests.clear()
+    incremental.clear()
+    monkeypatch.setenv("SCANREG_NO_FORK", "1")
     out, m = audited(stage("meshfix"), scan)
+    monkeypatch.delenv("SCANREG_NO_FORK")
+    assert {k: v for k, v in m.items() if not k.endswith("time_s")} == \
+        {k: v for k, v in m_forked.items() if not k.endswith("time_s")} and np.array_equal(forked.faces, out.faces)
     assert m["guard_ok"] == 1 and m["open_border_open"] == 1
     assert tests[0][0] == len(scan.faces) and tests[0][1] is None  # the input's, first
     # the loop's first test, from the input's outcome (each later one from the round before; the output, which
@@ -295,8 +305,7 @@ def test_meshfix_tests_from_the_input_and_trusts_its_own_cleaning(monkeypatch):
                                                                                       out.faces).sum())
     tests.clear()
     bunny = read_mesh(BUNNY)
-    # MeshFix's own cleaning does not read the input's test: it runs beside the backend, in a child process,
-    # where this spy does not see it; the same repair with the test made here gives the same metrics
+    # the same with MeshFix's own cleaning
     forked, m_forked = audited(stage("meshfix"), read_mesh(BUNNY))
     assert len(bunny.faces) not in [t[0] for t in tests]
     tests.clear()

@@ -7,6 +7,8 @@ same objects, so that the repair's steps share one edge table, one labelling of 
 
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -34,11 +36,32 @@ def remember(mesh: Mesh, name: str, value) -> None:
     mesh.__dict__.setdefault("_topology_cache", {})[name] = ((mesh.vertices, mesh.faces), value)
 
 
+class _Later:
+    """A measurement still being made: ``produce()`` returns it (waiting for it if need be)."""
+
+    def __init__(self, produce: Callable[[], Any]):
+        self.produce = produce
+
+
+def remember_later(mesh: Mesh, name: str, produce: Callable[[], Any]) -> None:
+    """Record that a measurement of ``mesh`` is being made elsewhere: the first :func:`known` that asks for it
+    takes ``produce()`` (e.g. the value of a test running beside the repair backend) and keeps it."""
+    remember(mesh, name, _Later(produce))
+
+
+def forget(mesh: Mesh, name: str) -> None:
+    """Drop what :func:`remember` or :func:`remember_later` recorded under ``name`` (a test that was called off)."""
+    mesh.__dict__.get("_topology_cache", {}).pop(name, None)
+
+
 def known(mesh: Mesh, name: str):
     """A measurement :func:`remember`-ed (or cached) for ``mesh`` as it is now, or None."""
     hit = mesh.__dict__.get("_topology_cache", {}).get(name)
     if hit is None or hit[0][0] is not mesh.vertices or hit[0][1] is not mesh.faces:
         return None  # never measured, or the mesh was given new arrays since
+    if isinstance(hit[1], _Later):
+        remember(mesh, name, hit[1].produce())
+        return known(mesh, name)
     return hit[1]
 
 

@@ -35,9 +35,10 @@ from scanreg.mesh.distances import area_samples, distances_to, point_distances, 
 from scanreg.mesh.shell import close_as_shell
 from scanreg.mesh.slivers import collapse_folds, collapse_slivers
 from scanreg.mesh.intersect import Intersections
-from scanreg.mesh.topology import (audit_mesh, border_loops, component_areas, intersections, known, mesh_stats,
-                                   non_manifold_vertices, open_scan_borders, remember, self_intersecting_count)
-from scanreg.process import start_isolated
+from scanreg.mesh.topology import (audit_mesh, border_loops, component_areas, forget, intersections, known,
+                                   mesh_stats, non_manifold_vertices, open_scan_borders, remember,
+                                   remember_later, self_intersecting_count)
+from scanreg.process import forking, start_isolated
 from scanreg.types import Repaired, RunContext
 
 
@@ -274,9 +275,13 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
     t0 = time.perf_counter()
     planned = _planned(stage, mesh, where)
     # the input's exact self-intersection test (the audit's costliest part) runs beside the backend, in a child
-    # process, unless the backend starts its own tests from it
-    beside = None if stage.reads_input_intersections(planned) or known(mesh, "intersections") is not None else \
+    # process; the first test that starts from it (the output's, or a backend's own loop) waits for it. (Without
+    # forking it is made first, here.)
+    beside = None if known(mesh, "intersections") is not None or not forking() else \
         start_isolated(_intersection_pairs, mesh)
+    if beside is not None:
+        remember_later(mesh, "intersections",
+                       lambda: Intersections(mesh.vertices, mesh.faces, *beside.result()))
     try:
         before = audit_mesh(mesh, self_intersections=beside is None)
         input_side = _input_side(p, mesh, ctx.seed)
@@ -285,10 +290,10 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
     except BaseException:
         if beside is not None:
             beside.cancel()
+            forget(mesh, "intersections")
         raise
     tb = time.perf_counter()
-    if beside is not None:  # remembered on the input: the output's test starts there
-        remember(mesh, "intersections", Intersections(mesh.vertices, mesh.faces, *beside.result()))
+    if beside is not None:
         before["self_intersecting_faces"] = self_intersecting_count(mesh)
     t_wait = time.perf_counter() - tb
     out, t_folds = _without_slivers(p, out)
@@ -391,11 +396,6 @@ class AuditedRepair:
 
     def fills_holes(self, p: GuardParams) -> bool:
         """Whether the backend fills holes with these parameters (the border plan keeps borders open only then)."""
-        return False
-
-    def reads_input_intersections(self, p: GuardParams) -> bool:
-        """Whether the backend, with these parameters, starts a self-intersection test of its own from the
-        input's (the audit then makes the input's first instead of beside the backend)."""
         return False
 
     def repair(self, mesh: Mesh, ctx: RunContext) -> Repaired:

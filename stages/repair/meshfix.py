@@ -60,9 +60,6 @@ class MeshFix(AuditedRepair):
     def fills_holes(self, p: MeshFix.Params) -> bool:
         return p.fill_holes
 
-    def reads_input_intersections(self, p: MeshFix.Params) -> bool:
-        return _keeps_borders(p)  # its loop's first test starts from the input's
-
     def run(self, mesh: Mesh, p: MeshFix.Params, ctx: RunContext) -> Mesh:
         """MeshFix on ``mesh`` with the planned parameters ``p``."""
         out = self._repaired(mesh, p, ctx)
