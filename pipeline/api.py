@@ -25,6 +25,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from scanreg.app.arguments import quote_value as _quote
 from scanreg.app.config import compose
 from scanreg.errors import ConfigError, InputError, ScanregError
 from scanreg.types import Reconstruction, Result
@@ -51,11 +52,6 @@ def build_stage(family: str, name: str, **params: Any):
         built = build_stages(compose(["data.source=_", "data.target=_"])).helpers
         helpers = {fam: built[fam] for fam in cls.uses}
     return cls(p, **helpers)
-
-
-def _quote(path: str) -> str:
-    """A path as a quoted Hydra override value (spaces, ``=``, commas and brackets stay literal)."""
-    return "'" + path.replace("\\", "\\\\").replace("'", "\\'") + "'"
 
 
 def _as_input(obj: Any, role: str, folder: Path) -> str:

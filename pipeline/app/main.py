@@ -207,16 +207,26 @@ def _stdout_gone() -> None:
 
 
 def main() -> None:
-    """The Hydra application: a composition error (a bad override, an unknown group choice or parameter) is one
-    ``error:`` line and exit 2; Ctrl-C or SIGTERM ends every run of a sweep that is still open."""
+    """The Hydra application: scan files given by position (:mod:`scanreg.app.arguments`); a composition error (a
+    bad override, an unknown group choice or parameter) is one ``error:`` line and exit 2; Ctrl-C or SIGTERM
+    ends every run of a sweep that is still open."""
     import signal
 
     from hydra.errors import HydraException
 
-    from scanreg.app.startup import quick_help
+    from scanreg.app.arguments import path_override_error, with_files
+    from scanreg.app.startup import is_multirun, quick_help
     from scanreg.app.tracking import _sweep_outcome, end_interrupted_sweep
 
-    argv = sys.argv[1:]
+    try:  # scan files given by position become quoted overrides; a path Hydra cannot read says the fix
+        argv = with_files(sys.argv[1:])
+        fix = path_override_error(argv, multirun=is_multirun(argv))
+    except ConfigError as e:
+        fix = str(e)
+    if fix:
+        _err(fix)
+        raise SystemExit(EXIT_USAGE)
+    sys.argv[1:] = argv
     helps = [a for a in argv if a in ("-h", "--help")]
     if helps and all(a in helps or ("=" in a and not a.startswith("-")) for a in argv):
         text = quick_help([a for a in argv if a not in helps])

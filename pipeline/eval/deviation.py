@@ -106,6 +106,26 @@ def plural(word: str) -> str:
     return {"tooth": "teeth"}.get(word, word + "s")
 
 
+READABLE_STEPS = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
+"""The colour range's steps within a power of ten (in the display unit)."""
+
+
+def colour_range(dev: np.ndarray, p) -> float:
+    """The colour map's range ±r (input units) for the signed deviations ``dev`` of the compared points:
+    ``p.deviation_range`` when set; else the 95th percentile of |dev| in the display unit (``deviation_scale``),
+    rounded up to the next of :data:`READABLE_STEPS` times a power of ten (0.27 mm shown in µm: 300 µm); one
+    display unit when nothing was compared or every deviation is zero."""
+    if p.deviation_range is not None:
+        return float(p.deviation_range)
+    a = np.abs(dev[np.isfinite(dev)]) * p.deviation_scale
+    q = float(np.percentile(a, 95)) if len(a) else 0.0
+    if not q > 0:
+        return 1.0 / p.deviation_scale
+    decade = 10.0 ** np.floor(np.log10(q))
+    step = next(s for s in READABLE_STEPS if s * decade >= q * (1 - 1e-9))
+    return float(step * decade / p.deviation_scale)
+
+
 def colours(dev: np.ndarray, ok: np.ndarray, rng: float) -> np.ndarray:
     import matplotlib
 
@@ -116,8 +136,9 @@ def colours(dev: np.ndarray, ok: np.ndarray, rng: float) -> np.ndarray:
 
 
 def write_outputs(run_dir: Path, geom, dev_v: np.ndarray, ok_v: np.ndarray, dev_pts: np.ndarray,
-                  p, part_table: list[dict] | None, label_name: str, marks=None) -> list[Path]:
-    """The coloured PLY (``geom`` with per-vertex ``dev_v``), histogram and picture, and the part table."""
+                  p, part_table: list[dict] | None, label_name: str, rng: float, marks=None) -> list[Path]:
+    """The coloured PLY (``geom`` with per-vertex ``dev_v``), histogram and picture, and the part table; the
+    colours saturate at ±``rng`` (input units, :func:`colour_range`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -125,7 +146,7 @@ def write_outputs(run_dir: Path, geom, dev_v: np.ndarray, ok_v: np.ndarray, dev_
 
     from scanreg.io import write_ply
 
-    scale, unit, rng = p.deviation_scale, p.deviation_unit, p.deviation_range
+    scale, unit = p.deviation_scale, p.deviation_unit
     paths = [run_dir / "deviation_map.ply", run_dir / "deviation_histogram.png", run_dir / "deviation_map.png"]
     write_ply(paths[0], geom, colors=colours(dev_v, ok_v, rng),
               scalars={"quality": np.where(ok_v, dev_v * scale, np.nan).astype(np.float32)})
@@ -246,7 +267,8 @@ def evaluate_deviation(run_dir: Path, aligned: Cloud, aligned_geom, cp, labels: 
     marks = None
     if part is not None:  # part numbers at the centroid of their compared points, for the map
         marks = [(int(n), aligned.points[ok & (part == n)].mean(axis=0)) for n in np.unique(part[ok])]
-    paths = write_outputs(run_dir, aligned_geom, dev_v, ok_v, dev[ok], p, table, label_name, marks)
+    rng = colour_range(dev[ok], p)
+    paths = write_outputs(run_dir, aligned_geom, dev_v, ok_v, dev[ok], p, table, label_name, rng, marks)
     view = {"points": aligned.points, "dev": dev, "ok": ok, "sigma": sigma, "table": table, "part": part,
-            "label_name": label_name}
+            "label_name": label_name, "range": rng}
     return m, paths, view

@@ -26,8 +26,10 @@ class EvalParams:
     deviation_map: bool = False
     """Also write the deviation map of the aligned source (coloured PLY, histogram, picture) and log its
     statistics ``dev_*`` overall and per part of the target (see pipeline/deviation.py)."""
-    deviation_range: float = 0.1
-    """Colour-map range: deviations beyond ± this saturate (input units: 0.1 = 100 µm for mm data)."""
+    deviation_range: Optional[float] = None
+    """Colour-map range of the deviation map and the 3D view: deviations beyond ± this saturate (input units:
+    0.1 = 100 µm for mm data); null: from the data, the 95th percentile of the compared points' |deviation|
+    rounded up to a readable step (:func:`scanreg.eval.deviation.colour_range`), named in the view's title."""
     deviation_max_distance: Optional[float] = 0.5
     """Source points farther than this from the target are not compared (input units; e.g. the gum of a cast
     that the CT lacks); null: every point."""

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.eval.deviation import display_unit
+from scanreg.eval.deviation import colour_range, display_unit
 from scanreg.geometry import Mesh
 
 
@@ -44,14 +44,15 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
 
     rng = np.random.default_rng([seed, 77])
     k = int(p.view_max_points)
-    scale, du, r = p.deviation_scale, display_unit(p.deviation_unit), p.deviation_range
+    scale, du = p.deviation_scale, display_unit(p.deviation_unit)
     if dev_view is not None:
         pts, dev, ok, table = dev_view["points"], dev_view["dev"], dev_view["ok"], dev_view["table"]
-        label_name = dev_view["label_name"]
+        label_name, r = dev_view["label_name"], dev_view["range"]
     else:
         q, d, qn = on_surface
         sign = np.ones(len(d)) if qn is None else np.where(np.einsum("ij,ij->i", aligned - q, qn) < 0, -1.0, 1.0)
         pts, dev, ok, table, label_name = aligned, sign * d, np.isfinite(d), None, "part"
+        r = colour_range(dev[ok], p)
 
     tp = _points(target)
     tp = tp[_subsample(len(tp), k, rng)]

@@ -1,0 +1,167 @@
+"""Files as people name them (issue #36): scan files given by position, overrides whose path values need
+quoting said with the command that works, and the deviation view's colour range from the data."""
+
+import json
+import re
+import shlex
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+from scanreg.app.arguments import (file_overrides, path_override_error, quote_value, shell_arg, split_files,
+                                   with_files)
+from scanreg.errors import ConfigError
+from scanreg.geometry import Cloud, apply_T, barycentric_sample, random_pose
+from scanreg.io import read_mesh, write_ply, write_transform
+
+NASTY = ["OrthoCAD_Export_1 (4)/scan #1.ply", "Pred_Upper_Mesh_Tag=0.obj", "a,b.ply", "l'arcade [haut].stl",
+         "Zahnbogen oben Überbiss ß é 中.ply", "x=1,(2)/#[3]'.ply", "back\\slash.ply", "trailing\\", "both\\'s.ply"]
+
+
+def _parse(override: str):
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    return OverridesParser.create().parse_override(override)
+
+
+@pytest.mark.parametrize("name", NASTY)
+def test_quoted_value_reads_back_verbatim(name):
+    o = _parse(f"data.source={quote_value(name)}")
+    assert not o.is_sweep_override() and o.value() == name
+
+
+def test_positional_files_become_quoted_overrides(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "scans").mkdir()
+    for n in ("Pred_Upper_Mesh_Tag=0.obj", "b c.ply", "scans/1.ply", "scans/2.ply"):
+        (tmp_path / n).write_text("")
+    # an existing file wins over the override reading of '='; flags keep their values
+    files, rest = split_files(["Pred_Upper_Mesh_Tag=0.obj", "--config-dir", "confs", "b c.ply", "icp=gicp", "-m"])
+    assert files == ["Pred_Upper_Mesh_Tag=0.obj", "b c.ply"]
+    assert rest == ["--config-dir", "confs", "icp=gicp", "-m"]
+    assert with_files(["Pred_Upper_Mesh_Tag=0.obj", "b c.ply", "icp=gicp"]) == [
+        "icp=gicp", "data.source='Pred_Upper_Mesh_Tag=0.obj'", "data.target='b c.ply'"]
+    # a folder, three files, or data=scanset: a scan set
+    assert file_overrides(["scans"], []) == ["data=scanset", "data.scans='scans'"]
+    assert file_overrides(["scans/1.ply", "scans/2.ply"], ["data=scanset"]) == ["data.scans=['scans/1.ply','scans/2.ply']"]
+    assert file_overrides(["a", "b", "c"], []) == ["data=scanset", "data.scans=['a','b','c']"]
+    # a name that is no override and no file: still a file (its reader names it missing)
+    assert split_files(["missing.ply", "other.ply"])[0] == ["missing.ply", "other.ply"]
+    with pytest.raises(ConfigError, match=r"one scan given \(b c.ply\)"):
+        with_files(["b c.ply"])
+
+
+def _fix_command(line: str, part: str = "value") -> list[str]:
+    """The command an error line suggests: after 'quote the value:' or 'by position:'."""
+    m = re.search(r"quote the values?: (scanreg .*?)(?:  \(or |$)" if part == "value" else
+                  r"by position: (scanreg .*)\)$", line)
+    assert m, line
+    return shlex.split(m.group(1))
+
+
+def test_unparsable_path_overrides_say_the_working_command():
+    cases = {  # the issue's three cases
+        ("data.source=OrthoCAD_Export_1 (4)/scan #1.ply", "data.target=bun000.ply"): "'(', ')', '#'",
+        ("data.source=x/Pred_Upper_Mesh_Tag=0.obj", "data.target=y.ply"): "'='",
+        ("data.source=a,b.ply", "data.target=t.ply"): "','",
+    }
+    for argv, chars in cases.items():
+        line = path_override_error(list(argv), multirun=False)
+        assert line and "\n" not in line and chars in line, line
+        cmd = _fix_command(line)
+        assert cmd[0] == "scanreg" and cmd[2:] == [argv[1]]
+        o = _parse(cmd[1])
+        assert o.value() == argv[0].partition("=")[2] and not o.is_sweep_override()
+        assert _fix_command(line, "position")[1:3] == [argv[0].partition("=")[2], argv[1].partition("=")[2]]
+    # what parses as meant is left alone: plain paths, quoted paths, spaces, and a sweep over files with -m
+    for argv, multirun in ((["data.source=scans/a b.ply"], False), (["data.source='x (1).ply'"], False),
+                           (["data.source=a.ply,b.ply"], True), (["icp=gicp", "seed=3"], False)):
+        assert path_override_error(argv, multirun) is None, argv
+
+
+def test_shell_arg_round_trips():
+    for a in ["plain.ply", "data.source='a (4)/scan #1.ply'", 'say "hi" $HOME', "it's", "x!y", "l\\'Ü.ply",
+              "end\\", "a\\$b"]:
+        assert shlex.split(shell_arg(a)) == [a]
+
+
+def _pair(tmp_path, src_name: str, tgt_name: str):
+    """A bunny mesh as the target and a resampled, moved cloud of it as the source, under the given names."""
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    rng = np.random.default_rng(3)
+    pts, n, _ = barycentric_sample(m, 8000, rng)
+    T = random_pose(rng, 90, 10)  # T_target_source: the source is the cloud moved by its inverse
+    Ti = np.linalg.inv(T)
+    for name in (src_name, tgt_name):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+    write_ply(tmp_path / src_name, Cloud(apply_T(Ti, pts), n @ Ti[:3, :3].T))
+    write_ply(tmp_path / tgt_name, m)
+    write_transform(tmp_path / "gt.txt", T)
+
+
+@pytest.mark.slow
+def test_files_with_any_characters_register_positionally_and_as_quoted_overrides(tmp_path):
+    src = "OrthoCAD_Export_1 (4)/scan #1, l'Überbiss [Tag=0].ply"
+    tgt = "Zahnbogen oben (CT) é.ply"
+    _pair(tmp_path, src, tgt)
+    common = ["data.gt=gt.txt", "tracking=none", "repair=none"]
+    r = run_cli([src, tgt, *common, "hydra.run.dir=positional"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    res = json.loads((tmp_path / "positional" / "result.json").read_text())
+    assert res["rotation_error_deg"] < 0.5, res["rotation_error_deg"]
+
+    bad = run_cli([f"data.source={src}", f"data.target={tgt}", *common, "hydra.run.dir=quoted"], tmp_path)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    cmd = _fix_command(bad.stderr.strip())
+    r = run_cli(cmd[1:], tmp_path)
+    assert r.returncode == 0, r.stderr
+    # the same pipeline on the same files: the same transform, bit for bit
+    assert (tmp_path / "quoted" / "T_target_source.txt").read_bytes() == \
+        (tmp_path / "positional" / "T_target_source.txt").read_bytes()
+
+
+def test_one_positional_file_is_one_line_usage_error(tmp_path):
+    r = run_cli(["only one.ply", "tracking=none"], tmp_path)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "error: one scan given (only one.ply): give the source and the target (scanreg SOURCE TARGET), or a folder "
+        "or three or more scans to register into one model"], r.stderr
+
+
+def test_colour_range_follows_the_data():
+    from scanreg.eval.deviation import colour_range
+    from scanreg.eval.metrics import EvalParams
+
+    p = EvalParams()  # mm in, µm shown
+    assert colour_range(np.array([0.27, -0.1, 0.0]), p) == pytest.approx(0.3)
+    for p95_um, step_um in ((0.9, 1.0), (1.2, 1.5), (33.0, 40.0), (300.0, 300.0), (7100.0, 8000.0)):
+        assert colour_range(np.full(20, p95_um / 1000), p) * 1000 == pytest.approx(step_um), p95_um
+    assert colour_range(np.array([np.nan]), p) == pytest.approx(0.001)  # nothing compared: one µm
+    assert colour_range(np.array([0.27]), EvalParams(deviation_range=0.1)) == 0.1  # the fixed range, kept
+
+
+def _title(html: str) -> str:
+    """The view's title as plotly wrote it into the page (a JSON string)."""
+    m = re.search(r'"text":"(deviation of the aligned source[^"]*)"', html)
+    assert m, "no title"
+    return json.loads(f'"{m.group(1)}"')
+
+
+def test_view_colour_range_near_the_deviations(tmp_path):
+    """A pair whose deviations spread over ±0.3 mm: the view's colours span ±300 µm, said in its title."""
+    from scanreg.eval.metrics import EvalParams
+    from scanreg.eval.view3d import write_view
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 20, (5000, 2))  # mm
+    target = Cloud(np.c_[xy, np.zeros(len(xy))], np.tile([0.0, 0.0, 1.0], (len(xy), 1)))
+    dev = rng.uniform(-0.3, 0.3, len(xy))
+    aligned = np.c_[xy, dev]
+    on_surface = (target.points, np.abs(dev), target.normals)
+    html = write_view(tmp_path / "view3d.html", target, Cloud(aligned), np.eye(4), aligned, on_surface, None,
+                      EvalParams()).read_text()
+    assert "colour range ±300 µm" in _title(html)
+    assert re.search(r'"cmax":300(\.0)?[,}]', html) and re.search(r'"cmin":-300(\.0)?[,}]', html)
+    fixed = write_view(tmp_path / "fixed.html", target, Cloud(aligned), np.eye(4), aligned, on_surface, None,
+                       EvalParams(deviation_range=0.1)).read_text()
+    assert "colour range ±100 µm" in _title(fixed)
