@@ -12,7 +12,6 @@ from scanreg.app.report.write import write_report
 
 def mlflow_like_runs(key: str, values: list[str], seeds: int = 3) -> pd.DataFrame:
     """Runs as ``mlflow.search_runs`` returns them: params are strings exactly as logged ("1.0", "20000")."""
-    rng = np.random.default_rng(0)
     rows = []
     for i, v in enumerate(values):
         for s in range(seeds):
