@@ -151,7 +151,9 @@ def arch_view(tmp_path: Path) -> Path:
 
     cp = CP(target)
     cp._ids = np.arange(len(tgt))  # the source point i lies over target point i
-    p = EvalParams(deviation_map=True, deviation_max_angle_deg=None)
+    # a fixed colour range of ±100 µm: the 50 µm deviations in light red and blue (the range from the data, ±50 µm,
+    # would draw them in the map's darkest colours)
+    p = EvalParams(deviation_map=True, deviation_max_angle_deg=None, deviation_range=0.1)
     pc = pose_covariance(src, tgt, nrm)
     m, paths, view = evaluate_deviation(tmp_path, Cloud(src, nrm), Cloud(src, nrm), cp, part, p, "tooth", pose=pc)
     assert (tmp_path / "deviation_teeth.csv").exists() and "dev_pose_sigma_median_um" in m

@@ -148,24 +148,6 @@ class RunRecord:
                          [str(Path(p).resolve()) for p in artifacts])
 
 
-@TRACKING.register("none")
-class NoTracking:
-    """Track nothing (results stay in the run directory)."""
-
-    @dataclass
-    class Params:
-        uri: Optional[str] = None
-        """Ignored; accepted so that configs written for ``tracking=mlflow`` also run untracked."""
-        experiment: str = "scanreg"
-        """Ignored; accepted so that experiment files that name their MLflow experiment also run untracked."""
-
-    def __init__(self, params: Params):
-        self.p = params
-
-    def log_run(self, record: RunRecord, children: list[RunRecord] = ()) -> None:
-        return None
-
-
 @TRACKING.register("mlflow")
 class MlflowTracking:
     """Log every run to MLflow: config as params, stage choices as tags, metrics, artifacts."""
@@ -221,6 +203,20 @@ class MlflowTracking:
         if worker is not None:
             return worker.log(request)
         return _log_request(request)
+
+
+@TRACKING.register("none")
+class NoTracking:
+    """Track nothing (results stay in the run directory). Its parameters are ``tracking=mlflow``'s, accepted and
+    ignored, so that configs and experiment files written for MLflow also run untracked."""
+
+    Params = MlflowTracking.Params
+
+    def __init__(self, params: MlflowTracking.Params):
+        self.p = params
+
+    def log_run(self, record: RunRecord, children: list[RunRecord] = ()) -> None:
+        return None
 
 
 def _log_request(request: dict) -> str:

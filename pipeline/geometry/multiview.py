@@ -13,7 +13,7 @@ import numpy as np
 
 from scanreg.geometry.containers import Cloud
 from scanreg.geometry.neighbours import ClosestPoints
-from scanreg.geometry.posegraph import exp_twist
+from scanreg.geometry.posegraph import gauss_newton_step
 from scanreg.geometry.transforms import apply_T, invert_T
 from scanreg.geometry.voxels import morton_order
 
@@ -61,13 +61,7 @@ def refine_jointly(clouds: list[Cloud], poses: list[np.ndarray], links: list[tup
                             if other != anchor:
                                 H[col[node]:col[node] + 6, col[other]:col[other] + 6] += (Jn * w[:, None]).T @ Jo
             rms = float(np.sqrt(sq / used)) if used else float("nan")
-            if not free or not used:
-                break
-            scale = np.sqrt(np.maximum(np.diag(H), 1e-300))
-            step = -np.linalg.lstsq(H / np.outer(scale, scale), g / scale, rcond=1e-12)[0] / scale
-            for k in free:
-                poses[k] = exp_twist(step[col[k]:col[k] + 6]) @ poses[k]
-            if np.abs(step).max() < tol:
+            if not free or not used or gauss_newton_step(H, g, poses, free, col, tol):
                 break
     return poses, {"multiview_rms": rms, "multiview_pairs": float(used)}
 

@@ -58,6 +58,18 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     return A
 
 
+def gauss_newton_step(H: np.ndarray, g: np.ndarray, poses: list[np.ndarray], free: list[int], col: dict,
+                      tol: float) -> bool:
+    """One Gauss-Newton step on the free poses (in place): the normal equations ``H x = -g`` solved with
+    Jacobi scaling (least squares, so a direction the data leave free gets no step), each free pose moved by the
+    twist in its columns ``col[k]:col[k] + 6`` from the left. True when the step is below ``tol`` (converged)."""
+    scale = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    step = -np.linalg.lstsq(H / np.outer(scale, scale), g / scale, rcond=1e-12)[0] / scale
+    for k in free:
+        poses[k] = exp_twist(step[col[k]:col[k] + 6]) @ poses[k]
+    return bool(np.abs(step).max() < tol)
+
+
 def edge_error(poses: list[np.ndarray], e: Edge) -> np.ndarray:
     """The edge's error ``(w, t)`` about its centre (see the module docstring)."""
     A = invert_T(poses[e.i]) @ poses[e.j] @ invert_T(e.T_i_j)
@@ -112,13 +124,7 @@ def optimize_pose_graph(n: int, edges: list[Edge], initial: list[np.ndarray], an
                     if other != anchor:
                         b = col[other]
                         H[a:a + 6, b:b + 6] += w[k] * J.T @ e.information @ K
-        if not free:
-            break
-        scale = np.sqrt(np.maximum(np.diag(H), 1e-300))
-        step = -np.linalg.lstsq(H / np.outer(scale, scale), g / scale, rcond=1e-12)[0] / scale
-        for k in free:
-            poses[k] = exp_twist(step[col[k]:col[k] + 6]) @ poses[k]
-        if np.abs(step).max() < tol:
+        if not free or gauss_newton_step(H, g, poses, free, col, tol):
             break
     errors = np.array([edge_error(poses, e) for e in edges]).reshape(-1, 6)
     return GraphSolution(poses, w, errors, it)

@@ -49,6 +49,16 @@ class Open3dFpfhRansac(CoarseBase):
         """RANSAC stops early when the best model holds with this probability."""
 
 
+    def _prepared_pair(self, target: Cloud, source: Cloud, spacing: float):
+        """Open3D's registration module, then the target and the source downsampled with their FPFH features
+        (Open3D's random generator seeded first, for the matching that follows)."""
+        import open3d as o3d
+
+        o3d.utility.random.seed(self.p.seed)
+        tgt, ft = self._prepare(target, spacing)
+        src, fs = self._prepare(source, spacing)
+        return o3d.pipelines.registration, tgt, ft, src, fs
+
     def _prepare(self, cloud: Cloud, spacing: float):
         import open3d as o3d
 
@@ -64,13 +74,8 @@ class Open3dFpfhRansac(CoarseBase):
 
     def align(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext,
               landmarks=None) -> CoarseResult:
-        import open3d as o3d
-
-        reg = o3d.pipelines.registration
+        reg, tgt, ft, src, fs = self._prepared_pair(target, source, spacing)
         p = self.p
-        o3d.utility.random.seed(p.seed)
-        tgt, ft = self._prepare(target, spacing)
-        src, fs = self._prepare(source, spacing)
         dist = to_abs(p.distance_threshold, p.distances, spacing)
         res = reg.registration_ransac_based_on_feature_matching(
             src, tgt, fs, ft, p.mutual_filter, dist,
@@ -122,13 +127,8 @@ class Open3dFGR(Open3dFpfhRansac):
 
     def align(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext,
               landmarks=None) -> CoarseResult:
-        import open3d as o3d
-
-        reg = o3d.pipelines.registration
+        reg, tgt, ft, src, fs = self._prepared_pair(target, source, spacing)
         p = self.p
-        o3d.utility.random.seed(p.seed)
-        tgt, ft = self._prepare(target, spacing)
-        src, fs = self._prepare(source, spacing)
         opt = reg.FastGlobalRegistrationOption(
             maximum_correspondence_distance=to_abs(p.distance_threshold, p.distances, spacing),
             iteration_number=p.iterations)
