@@ -26,7 +26,6 @@ def test_demo_recovers_random_pose_and_logs(tmp_path, mlflow_uri):
     res = json.loads((out / "result.json").read_text())
     assert RESULT_KEYS | {"rotation_error_deg", "translation_error"} <= set(res)
     assert res["rotation_error_deg"] < 1.0 and res["translation_error_rel"] < 0.01
-    assert res["time_total_s"] < 60
     assert res["repair_before_boundary_loops"] == 70 and res["repair_after_boundary_loops"] == 0
     T = np.loadtxt(out / "T_target_source.txt")
     assert np.array_equal(T, np.array(res["T_target_source"]))
@@ -218,7 +217,10 @@ def test_stanford_bun045_to_bun000_from_random_pose(tmp_path, pose_seed):
     r = run_cli(["data=stanford", "repair=none", "tracking=none", f"seed={pose_seed}", f"hydra.run.dir={out}"], tmp_path)
     assert r.returncode == 0, r.stderr
     res = json.loads((out / "result.json").read_text())
-    assert res["rotation_error_deg"] < 2.0 and res["translation_error_rel"] < 0.01, res
+    # measured: 0.054 / 0.059 deg and 2.4e-4 / 1.6e-4 of the diagonal; the coarse stage alone ends 0.46-0.70 deg
+    # off, so a fine stage that does nothing fails
+    assert res["rotation_error_deg"] < 0.2 and res["translation_error_rel"] < 7.5e-4, res
+    assert res["coarse_rotation_error_deg"] > 2 * res["rotation_error_deg"], res
 
 
 def test_readme_starts_with_the_two_commands():

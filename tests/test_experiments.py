@@ -182,7 +182,9 @@ def test_dental_pick_error_and_determinism():
     b = cls(cls.Params(pick_error=1.0, landmarks=6, seed=2, pose_seed=1)).load(Context(0, ROOT))
     assert np.array_equal(a.source.vertices, b.source.vertices) and np.array_equal(a.landmarks[1], b.landmarks[1])
     err = np.linalg.norm(apply_T(a.T_gt, a.landmarks[1]) - a.landmarks[0], axis=1)
-    assert 0.3 < np.sqrt(np.mean(err ** 2)) < 3.0  # two picks of 1 mm RMS each
+    # two picks of 1 mm RMS each: sqrt(2) mm expected over many landmarks; this seed's 6 give 1.26 mm (without
+    # the pick error: 0.07 mm, the snapping to the nearest vertex; a doubled error: about 2.5 mm)
+    assert 1.0 < np.sqrt(np.mean(err ** 2)) < 1.9
 
 
 def test_deviation_of_a_known_offset(tmp_path):

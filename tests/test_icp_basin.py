@@ -146,8 +146,11 @@ def test_acceptance_keeps_the_start_pose_when_icp_drifts():
     assert kept.metrics["icp_accepted"] == 0.0
     assert np.array_equal(kept.T_target_source, T)
     assert kept.metrics["icp_accept_end_fitness"] < 0.99 * kept.metrics["icp_accept_start_fitness"]
-    # the reported fitness is the kept pose's
-    assert kept.metrics["icp_fitness"] > drift.metrics["icp_fitness"] - 1.0
+    # the reported fitness is the kept pose's (at the final pair limit, 20 spacings), computed here with SciPy
+    from scipy.spatial import cKDTree
+
+    d = cKDTree(tgt.points).query(apply_T(T, b.points))[0]
+    assert kept.metrics["icp_fitness"] == pytest.approx(float((d <= 20.0 * sp).mean()), abs=1e-9)
     good = icp_stage("horn").refine(tgt, b, T, sp, CTX)
     assert good.metrics["icp_accepted"] == 1.0 and transform_errors(good.T_target_source, T)[0] < 0.3
 
@@ -174,8 +177,8 @@ def test_same_seed_same_transform(variant, bunny_10deg):
 @pytest.mark.slow
 def test_3dmatch_pair_icp_keeps_a_good_coarse_pose():
     """The real 3DMatch RGB-D pair (45 % overlap), started where a good coarse stage lands (0.9 deg, 0.8 cm off
-    gt.npy): point-to-plane ICP (the default) stays within 2 deg of gt.npy and its pose explains the data at
-    least as well as the start (accepted). Translation: every ICP variant, also Open3D's, also started at gt.npy
+    gt.npy): point-to-plane ICP (the default) reaches the pose it reaches from gt.npy itself, and that pose
+    explains the data better than the start (accepted). Translation: every ICP variant, also Open3D's, also started at gt.npy
     itself, settles about 9-11 cm (at the camera origin; 5-6 cm at the overlap's centre) from gt.npy, at a pose
     with more points within 3 spacings and a lower RMS than gt.npy's (README): the data's optimum, not the
     schedule's; the test bounds it at 10 cm."""
@@ -188,8 +191,11 @@ def test_3dmatch_pair_icp_keeps_a_good_coarse_pose():
     r0, t0 = transform_errors(T0, gt)
     assert r0 == pytest.approx(0.9, abs=1e-3) and t0 < 0.05
     res = icp_stage("point_to_plane").refine(Cloud(ref), Cloud(src), T0, sp, CTX)
-    rot, trans = transform_errors(res.T_target_source, gt)
-    assert rot < 2.0 and trans < 0.10, (rot, trans)
+    # the data's optimum: the pose ICP reaches when started at gt.npy itself (measured: the two poses 7e-6 deg and
+    # 1e-7 m apart; ICP that does not move stays 0.9 deg and 4.2 cm away)
+    at_gt = icp_stage("point_to_plane").refine(Cloud(ref), Cloud(src), gt, sp, CTX)
+    rot, trans = transform_errors(res.T_target_source, at_gt.T_target_source)
+    assert rot < 1e-3 and trans < 1e-5, (rot, trans)
     assert res.metrics["icp_accepted"] == 1.0
     assert res.metrics["icp_accept_end_fitness"] > res.metrics["icp_accept_start_fitness"]
     assert res.metrics["icp_accept_end_rms"] < res.metrics["icp_accept_start_rms"]

@@ -198,3 +198,5 @@ def test_meshfix_in_children_is_meshfix_here(monkeypatch):
         assert np.array_equal(forked[0].faces, here[0].faces)
         assert forked[1] == here[1]
     assert forked[1]["before_components"] >= 1
+    if not hole.exists():
+        pytest.skip(f"{hole} absent (../shared/data): only the two cows were repaired both ways")

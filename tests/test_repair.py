@@ -277,16 +277,17 @@ def test_audit_is_the_same_with_and_without_forking(backend, mesh, monkeypatch):
     out, m = forked
     assert m["after_self_intersecting_faces"] == int(self_intersecting_faces(out.vertices, out.faces).sum())
     monkeypatch.delenv("SCANREG_NO_FORK")
-    if Path("/proc/self/stat").exists():
-        assert settled(before)  # no child process left behind, not even a zombie
+    if not Path("/proc/self/stat").exists():
+        pytest.skip("no /proc here: the child processes left behind are not counted")
+    assert settled(before)  # no child process left behind, not even a zombie
 
-        def breaks(mesh, p, ctx):
-            raise RuntimeError("the backend broke")
-        broken = stage(backend)
-        broken.run = breaks
-        with pytest.raises(StageError, match="the backend failed"):
-            repair_with_audit(broken, load(mesh), CTX)
-        assert settled(before)
+    def breaks(mesh, p, ctx):
+        raise RuntimeError("the backend broke")
+    broken = stage(backend)
+    broken.run = breaks
+    with pytest.raises(StageError, match="the backend failed"):
+        repair_with_audit(broken, load(mesh), CTX)
+    assert settled(before)
 
 
 def test_meshfix_renumbers_the_scattered_bunny_and_gets_the_same_triangles(monkeypatch):

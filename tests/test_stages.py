@@ -14,7 +14,7 @@ from scanreg.io import read_mesh, read_stanford_conf
 from scanreg.geometry import estimate_spacing
 from scanreg.stages.repair.meshfix import MeshFix
 from scanreg.mesh.topology import mesh_stats
-from scanreg.geometry import barycentric_sample, triangle_areas_normals
+from scanreg.geometry import barycentric_sample
 from scanreg.stages.sampler import Barycentric
 
 TET = Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float), np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
@@ -99,8 +99,13 @@ def test_sampled_points_lie_on_their_triangles_inside():
     assert resid.max() < 1e-9 * np.abs(m.vertices).max()
     assert (sol >= -1e-9).all() and (sol.sum(axis=1) <= 1 + 1e-9).all(), "reflection must keep points inside"
     assert uv.shape == (2,)
-    _, fn = triangle_areas_normals(m)
-    assert np.array_equal(normals, fn[face])
+    cr = np.cross(b - a, c - a)  # the sampled faces' unit normals, by the cross product here
+    assert np.allclose(normals, cr / np.linalg.norm(cr, axis=1, keepdims=True), atol=1e-12)
+
+
+def face_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Triangle areas by the cross product, written here (not the package's triangle_areas_normals)."""
+    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
 
 
 def test_counts_follow_area_chi_square():
@@ -109,7 +114,7 @@ def test_counts_follow_area_chi_square():
     f = rng.integers(0, 60, size=(40, 3))
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
     m = Mesh(v, f)
-    areas, _ = triangle_areas_normals(m)
+    areas = face_areas(v, f)
     n = 200000
     _, _, face = barycentric_sample(m, n, np.random.default_rng(7))
     observed = np.bincount(face, minlength=len(f))
@@ -125,7 +130,7 @@ def test_sampler_seed_density_and_small_triangles():
     s = lambda **kw: Barycentric(Barycentric.Params(**kw)).sample(m, ctx())  # noqa: E731
     a, b, c = s(seed=3), s(seed=3), s(seed=4)
     assert np.array_equal(a.points, b.points) and not np.array_equal(a.points, c.points)
-    areas, _ = triangle_areas_normals(m)
+    areas = face_areas(m.vertices, m.faces)
     d = s(n_points=None, density=2.0)
     assert d.n_points == round(2.0 * areas.sum())
     q = s(min_triangle_area=0.5, min_area_quantile=True)
@@ -187,6 +192,59 @@ def test_mutual_knn_recovers_a_permutation():
     assert len(pairs) == 300 and np.array_equal(perm[pairs[:, 0]], pairs[:, 1])
     k3 = MutualKNN(MutualKNN.Params(k=3)).match(d[perm], d)
     assert len(k3) >= 300 and {tuple(p) for p in pairs} <= {tuple(p) for p in k3}
+
+
+def test_salience_nms_uses_its_own_radius_and_top_k_the_most_salient():
+    """Keypoints of an eigenvalue measure with the covariance radius (2) and the NMS radius (3.5) apart: every
+    point whose salience is at least that of every point within the NMS radius (brute force over all pairs),
+    which differs from suppression within the covariance radius; ``top_k`` keeps the k most salient of them."""
+    from scanreg.stages.registry import SALIENCE, load_all
+
+    load_all()
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 30, (1500, 2))
+    pts = np.c_[xy, 0.8 * np.sin(xy[:, 0] / 2.0) * np.cos(xy[:, 1] / 3.0) + 0.02 * rng.normal(size=len(xy))]
+    cloud = Cloud(pts)
+    kw = dict(radius=2.0, nms_radius=3.5, distances=Distances.absolute, max_neighbors=128)
+    stage = SALIENCE.get("cp_min_ratio")(SALIENCE.get("cp_min_ratio").Params(**kw))
+    h = stage.values(cloud, 1.0)
+    dist = np.sqrt(((pts[:, None, :] - pts[None, :, :]) ** 2).sum(-1))
+    assert (dist < 3.5).sum(axis=1).max() <= 128  # every NMS neighbourhood complete
+
+    def maxima(r):
+        hn = np.where(dist < r, h[None, :], -np.inf).max(axis=1)
+        return np.flatnonzero(np.isfinite(h) & (h >= hn))
+
+    expected = maxima(3.5)
+    assert np.array_equal(stage.keypoints(cloud, 1.0), expected)
+    assert not np.array_equal(maxima(2.0), expected) and len(expected) > 10
+    top = SALIENCE.get("cp_min_ratio")(SALIENCE.get("cp_min_ratio").Params(**kw, top_k=5)).keypoints(cloud, 1.0)
+    assert np.array_equal(top, np.sort(expected[np.argsort(-h[expected])[:5]]))
+
+
+def test_mutual_knn_equals_its_definition_by_brute_force():
+    """Descriptors in tight clusters (near ties): the matcher's pairs for k = 3 mutual (the paper's rule), k = 1
+    and one-way k = 3 each equal the definition computed from the full distance matrix, and the three differ,
+    so that matching with another k or without the mutual check fails here."""
+    from scanreg.stages.matcher import MutualKNN
+
+    rng = np.random.default_rng(3)
+    centres = rng.normal(size=(8, 6))
+    dt = centres[rng.integers(0, 8, 40)] + 0.05 * rng.normal(size=(40, 6))
+    ds = centres[rng.integers(0, 8, 50)] + 0.05 * rng.normal(size=(50, 6))
+    dist = np.sqrt(((dt[:, None, :] - ds[None, :, :]) ** 2).sum(-1))  # (target, source)
+
+    def expected(k, mutual):
+        t_of_s = {(t, s) for s in range(50) for t in np.argsort(dist[:, s])[:k]}
+        s_of_t = {(t, s) for t in range(40) for s in np.argsort(dist[t, :])[:k]}
+        return t_of_s & s_of_t if mutual else t_of_s
+
+    got = {}
+    for k, mutual in ((3, True), (1, True), (3, False)):
+        pairs = MutualKNN(MutualKNN.Params(k=k, mutual=mutual)).match(dt, ds)
+        got[k, mutual] = {(int(t), int(s)) for t, s in pairs}
+        assert got[k, mutual] == {(int(t), int(s)) for t, s in expected(k, mutual)}, (k, mutual)
+    assert len({frozenset(v) for v in got.values()}) == 3
 
 
 def test_fpfh_is_rotation_invariant():

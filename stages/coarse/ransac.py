@@ -27,6 +27,9 @@ class RansacResult:
     """Mask over the correspondences: within the threshold at the final model."""
     hypotheses: int
     """Hypotheses drawn."""
+    all_inlier_probability: float = 0.0
+    """The probability that one hypothesis is all-inlier, as the adaptive stopping rule last estimated it from
+    the best model (0 before any model)."""
 
 
 PER_SEED = 8
@@ -48,7 +51,7 @@ def lo_ransac(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndar
         search.uniform(rng)
     if search.best_inl.sum() >= 3:
         search.final_fit(N0, N1)
-    return RansacResult(search.best_T, search.best_inl, search.drawn)
+    return RansacResult(search.best_T, search.best_inl, search.drawn, search.q)
 
 
 class _Search:
@@ -59,6 +62,7 @@ class _Search:
         self.M = len(P0)
         self.best_T, self.best_inl, self.best_n = np.eye(4), np.zeros(self.M, bool), -1
         self.needed, self.drawn = p.max_iterations, 0
+        self.q = 0.0  # the all-inlier probability the stopping rule last used
 
     def more(self) -> bool:
         """Whether to draw another batch (the adaptive count, at least ``min_iterations``, at most
@@ -125,7 +129,8 @@ class _Search:
             k = int(np.argmax(counts))
             if counts[k] > self.best_n:
                 self.accept(Ts[k], counts[k])
-                self.needed = self.needed_for((self.best_n / M) ** 3)
+                self.q = (self.best_n / M) ** 3
+                self.needed = self.needed_for(self.q)
 
     def guided(self, rng: np.random.Generator) -> None:
         """Guided sampling. Each seed correspondence i defines the set C_i of correspondences rigidly compatible
@@ -151,8 +156,8 @@ class _Search:
                     sub = I[rng.permutation(len(I))[:32]]
                     Cs = np.abs(self._d1(sub) - self._d0(sub)) < 2 * thr
                     r_est = float((Cs[:, I].sum(axis=1) / np.maximum(Cs.sum(axis=1), 1)).mean())
-                q = self.best_n / M * (1 - (1 - r_est ** 2) ** PER_SEED)
-                self.needed = self.needed_for(q) * PER_SEED
+                self.q = self.best_n / M * (1 - (1 - r_est ** 2) ** PER_SEED)
+                self.needed = self.needed_for(self.q) * PER_SEED
 
     def _d1(self, rows: np.ndarray) -> np.ndarray:
         return cdist(self.P1[rows], self.P1[np.arange(self.M)])
