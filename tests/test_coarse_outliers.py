@@ -70,7 +70,8 @@ def test_lo_ransac_registers_scans_with_30_percent_outliers_on_thinned_clouds():
     res = build_coarse("lo_ransac", helpers, fallback_voxel=None).align(tgt, src, sp, c)
     T, m = res.T_target_source, res.metrics
     rot, trans = transform_errors(T, T_gt)
-    assert rot < 5 and trans < 0.05 * bbox_diagonal(tgt.points), (rot, trans, m)
+    # measured: 1.10 deg and 0.77 % of the diagonal
+    assert rot < 3.3 and trans < 0.023 * bbox_diagonal(tgt.points), (rot, trans, m)
     # nearly every outlier dropped (those within 3 spacings of the surface stay), few surface points
     assert 0.85 * n_out < m["coarse_isolated_source"] < 1.05 * n_out, (n_out, m)
     assert m["coarse_isolated_target"] < 0.01 * tgt.n_points, m
@@ -103,7 +104,7 @@ def test_lo_ransac_remeasures_the_spacing_at_50_percent_outliers():
     assert spacing > 1.3 * clean  # the runner's spacing, inflated by the outliers
     res = build_coarse("lo_ransac", helpers, fallback_voxel=None).align(tgt, src, spacing, c)
     T, m = res.T_target_source, res.metrics
-    assert transform_errors(T, T_gt)[0] < 5, m
+    assert transform_errors(T, T_gt)[0] < 3.7, m  # measured: 1.24 deg
     assert 0.8 * len(out) < m["coarse_isolated_source"] < 1.05 * len(out), m
     # thinned on the grid of the spacing measured again (coarse spacing 1.17 times the clean run's here), not
     # on the inflated one (one pass: 1.48 times)
