@@ -87,6 +87,28 @@ def test_descriptor_invariant_to_rotation(bunny, name):
     assert np.median(rel) < 1e-6 and np.quantile(rel, 0.95) < 1e-3
 
 
+def test_local_frames_by_construction():
+    """A keypoint whose neighbours form a grid symmetric about its axes (3 wide, 1.5 deep, flat), plus one point
+    on the +x side, all turned by a known rotation R: the frame's rows are R's columns, x along the long side
+    (towards the extra point), z along the given normal, y = z x x. Also without normals: z then points along the
+    weighted mean offset, here lifted by a point above the plane."""
+    from scipy.spatial.transform import Rotation
+
+    from scanreg.stages.descriptor import local_frames
+
+    g = np.array([(x, y, 0.0) for x in np.linspace(-3, 3, 7) for y in np.linspace(-1.5, 1.5, 5)])
+    local = np.vstack([[0.0, 0.0, 0.0], g[np.any(g != 0, axis=1)], [4.0, 0.0, 0.0]])
+    R = Rotation.from_rotvec([0.3, -0.7, 0.5]).as_matrix()
+    pts = local @ R.T + [5.0, -2.0, 1.0]
+    nrm = np.tile(R[:, 2], (len(pts), 1))
+    F = local_frames(pts, nrm, np.array([0]), 10.0)[0]
+    assert np.allclose(F, R.T, atol=1e-9), F @ R
+    F_flip = local_frames(pts, -nrm, np.array([0]), 10.0)[0]  # the normal turned: z and y turn with it
+    assert np.allclose(F_flip, np.diag([1.0, -1.0, -1.0]) @ R.T, atol=1e-9)
+    above = np.vstack([pts, R @ [0.0, 0.0, 0.01] + [5.0, -2.0, 1.0]])
+    assert np.allclose(local_frames(above, None, np.array([0]), 10.0)[0], R.T, atol=1e-4)
+
+
 def test_local_frames_repeat_across_scans(bunny):
     from scanreg.stages.descriptor import local_frames
 
