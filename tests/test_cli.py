@@ -25,7 +25,8 @@ def test_demo_recovers_random_pose_and_logs(tmp_path, mlflow_uri):
     assert r.returncode == 0, r.stderr
     res = json.loads((out / "result.json").read_text())
     assert RESULT_KEYS | {"rotation_error_deg", "translation_error"} <= set(res)
-    assert res["rotation_error_deg"] < 1.0 and res["translation_error_rel"] < 0.01
+    # measured: 0.0082 deg and 4.6e-5 of the diagonal (the coarse stage alone: 1.19 deg)
+    assert res["rotation_error_deg"] < 0.025 and res["translation_error_rel"] < 1.4e-4, res
     assert res["repair_before_boundary_loops"] == 70 and res["repair_after_boundary_loops"] == 0
     T = np.loadtxt(out / "T_target_source.txt")
     assert np.array_equal(T, np.array(res["T_target_source"]))
@@ -55,6 +56,8 @@ def test_deterministic_transform(tmp_path):
         r = run_cli(["data=synthetic", "tracking=none", "seed=5", f"hydra.run.dir={out}"], tmp_path)
         assert r.returncode == 0, r.stderr
         Ts.append((out / "T_target_source.txt").read_bytes())
+        res = json.loads((out / "result.json").read_text())
+        assert res["rotation_error_deg"] < 0.04, res  # and the right transform (measured: 0.0127 deg)
     assert Ts[0] == Ts[1]
 
 

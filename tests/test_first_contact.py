@@ -56,4 +56,5 @@ def test_source_in_mm_target_in_m(tmp_path):
     assert r.returncode == 0, r.stderr
     res = json.loads((tmp_path / "b" / "result.json").read_text())
     rot, trans = transform_errors(np.array(res["T_target_source"]), T)
-    assert res["success"] == 1 and rot < 0.5, (rot, trans)
+    # measured: 0.0027 deg and 0.00054 (target units); a scale fix applied to the translation too fails
+    assert res["success"] == 1 and rot < 0.01 and trans < 0.0016, (rot, trans)

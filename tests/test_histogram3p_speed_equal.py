@@ -120,4 +120,4 @@ def test_coarse_registration_unchanged(bunny):
     assert np.array_equal(tr0.ransac_inliers, tr1.ransac_inliers) and m0 == m1
     assert np.array_equal(T0, T1)
     rot, trans = transform_errors(T0, T_gt)
-    assert rot < 5 and m0["coarse_inliers"] >= 10, (rot, m0)
+    assert rot < 1.1 and m0["coarse_inliers"] >= 40, (rot, m0)  # measured: 0.359 deg, 119 inliers
