@@ -232,7 +232,8 @@ def test_columns_override(tmp_path):
     with pytest.raises(InputError, match="7 columns|neither unit normals nor colours"):
         read_geometry(p)
     c = read_geometry(p, columns="x y z - r g b")
-    assert np.allclose(c.points, arr[:, :3]) and c.extra["colors"].shape == (20, 3)
+    assert np.allclose(c.points, arr[:, :3])
+    assert np.array_equal(c.extra["colors"], np.round(arr[:, 4:7] * 255).astype(np.uint8))  # 0..1 -> 0..255
     c = read_geometry(p, columns="x,y,z,-,-,-,-")
     assert c.normals is None and "colors" not in c.extra
     with pytest.raises(InputError, match="names 3 column"):

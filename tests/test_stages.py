@@ -459,4 +459,9 @@ def test_cloud_inputs_pass_through_or_are_voxel_downsampled():
     d = Barycentric(Barycentric.Params(cloud_voxel=1.0, cloud_distances=Distances.absolute)).thin_cloud(c, ctx())
     assert d.n_points == 1000 and d.extra["voxel"] == 1.0
     s = Barycentric(Barycentric.Params(cloud_voxel=3.0)).thin_cloud(c, ctx())
-    assert 0 < s.n_points < 20000
+    # 3 spacings of the cloud (as the stage measures it), one point per occupied voxel of that edge
+    from scanreg.geometry import estimate_spacing
+
+    voxel = 3.0 * estimate_spacing(pts, ctx().rng(3))
+    assert s.extra["voxel"] == pytest.approx(voxel, rel=1e-12)
+    assert s.n_points == len(np.unique(np.floor((pts - pts.min(axis=0)) / voxel), axis=0)) < 20000
