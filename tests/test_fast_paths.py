@@ -129,6 +129,21 @@ def test_coarse_thinning_keeps_min_points_and_caps_max_points():
     t, s, c = downsampled(dense, dense, sp, ctx, 4 * sp, None, None)
     n4 = t.n_points
     assert n4 < dense.n_points // 2 and c > sp  # the plain 4-spacing voxel
+    # by the definition, written here: one point per occupied voxel of edge 4 spacings, the one nearest the
+    # centroid of that voxel's points; and the spacing the thinned pair has (median nearest-neighbour distance)
+    from scipy.spatial import cKDTree
+
+    keys = np.floor((dense.points - dense.points.min(axis=0)) / (4 * sp)).astype(np.int64)
+    _, voxel_of = np.unique(keys, axis=0, return_inverse=True)
+    voxel_of = voxel_of.ravel()
+    expected = []
+    for v in range(voxel_of.max() + 1):
+        members = np.flatnonzero(voxel_of == v)
+        centroid = dense.points[members].mean(axis=0)
+        expected.append(members[np.argmin(np.linalg.norm(dense.points[members] - centroid, axis=1))])
+    assert np.array_equal(t.points, dense.points[np.sort(expected)])
+    nn = cKDTree(t.points).query(t.points, k=2)[0][:, 1]
+    assert c == pytest.approx(np.median(nn), rel=0.05)
     t, s, c = downsampled(dense, dense, sp, ctx, 4 * sp, None, 20000)
     assert min(t.n_points, s.n_points) >= 0.8 * 20000 and t.n_points > n4  # shrunk towards min_points
     t, s, c = downsampled(dense, dense, sp, ctx, sp, 5000, None)
