@@ -435,6 +435,20 @@ def test_every_sampler_puts_points_on_the_surface(name):
     d = scene.compute_distance(o3d.core.Tensor(c.points.astype(np.float32))).numpy()
     assert d.max() < 1e-4 * np.linalg.norm(np.ptp(m.vertices, axis=0))
     assert np.allclose(np.linalg.norm(c.normals, axis=1), 1.0, atol=1e-6)
+    # the normals turn outwards as the surface does: against the face under each point (cross products here),
+    # and for the vertices against their faces' area-weighted sum
+    v0, v1, v2 = (m.vertices[m.faces[:, k]] for k in range(3))
+    cr = np.cross(v1 - v0, v2 - v0)
+    if name == "vertices":
+        ref = np.zeros_like(m.vertices)
+        for k in range(3):
+            np.add.at(ref, m.faces[:, k], cr)
+        ref = ref[np.unique(m.faces)]
+    else:
+        face = scene.compute_closest_points(o3d.core.Tensor(c.points.astype(np.float32)))["primitive_ids"].numpy()
+        ref = cr[face]
+    cos = np.einsum("ij,ij->i", c.normals, ref / np.linalg.norm(ref, axis=1, keepdims=True))
+    assert np.mean(cos > 0.99) > 0.97, np.quantile(cos, [0.01, 0.05, 0.5])
 
 
 def test_poisson_disk_is_more_even_than_random():
