@@ -41,23 +41,19 @@ def _is_override(arg: str) -> bool:
     return arg.startswith("~") or "=" in arg
 
 
+def _is_flag(argv: list[str], i: int) -> bool:
+    """Whether ``argv[i]`` is a Hydra flag or the value of the flag before it."""
+    return argv[i].startswith("-") or (i > 0 and argv[i - 1] in VALUE_FLAGS)
+
+
 def split_files(argv: list[str]) -> tuple[list[str], list[str]]:
     """``(files, rest)``: the positional scan files of ``argv`` in their order, and everything else (flags, their
     values, overrides) in its order. An argument is a file when it names an existing file or folder, or when it
     is neither a flag nor an override (no ``=``; a missing file is then reported by the reader, by name)."""
     files, rest = [], []
-    takes_value = False
-    for a in argv:
-        if takes_value:
-            rest.append(a)
-            takes_value = False
-        elif a.startswith("-"):
-            rest.append(a)
-            takes_value = a in VALUE_FLAGS
-        elif os.path.lexists(a) or not _is_override(a):
-            files.append(a)
-        else:
-            rest.append(a)
+    for i, a in enumerate(argv):
+        is_file = not _is_flag(argv, i) and (os.path.lexists(a) or not _is_override(a))
+        (files if is_file else rest).append(a)
     return files, rest
 
 
@@ -151,7 +147,7 @@ def path_override_error(argv: list[str], multirun: bool) -> str | None:
     source and the target are given so, the positional form). None when every path parses."""
     bad = {}
     for i, a in enumerate(argv):
-        if a.startswith("-") or "=" not in a or (i and argv[i - 1] in VALUE_FLAGS):
+        if _is_flag(argv, i) or "=" not in a:
             continue
         found = _unparsable_path(a, multirun)
         if found:

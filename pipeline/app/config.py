@@ -74,7 +74,11 @@ def help_groups() -> str:
 def register_schemas() -> None:
     """Every default as a structured config, before a config is composed: the stages' (:func:`load_all`), the
     tracking backends', and the ``evaluate`` and ``report`` blocks' (``_evaluate``, ``_report`` in
-    ``conf/config.yaml``'s defaults list); and the resolvers ``conf/config.yaml``'s help text uses."""
+    ``conf/config.yaml``'s defaults list); and the resolvers ``conf/config.yaml``'s help text uses. Once per
+    process (every compose calls it)."""
+    global _schemas_registered
+    if _schemas_registered:
+        return
     from hydra.core.config_store import ConfigStore
     from omegaconf import OmegaConf
 
@@ -91,6 +95,10 @@ def register_schemas() -> None:
     if not OmegaConf.has_resolver("scanreg_conf_dir"):
         OmegaConf.register_new_resolver("scanreg_conf_dir", lambda: str(conf_dir()))
         OmegaConf.register_new_resolver("scanreg_groups", help_groups)
+    _schemas_registered = True
+
+
+_schemas_registered = False
 
 
 def config_error_line(e: BaseException) -> str:

@@ -59,9 +59,10 @@ def known(mesh: Mesh, name: str):
     hit = mesh.__dict__.get("_topology_cache", {}).get(name)
     if hit is None or hit[0][0] is not mesh.vertices or hit[0][1] is not mesh.faces:
         return None  # never measured, or the mesh was given new arrays since
-    if isinstance(hit[1], _Later):
-        remember(mesh, name, hit[1].produce())
-        return known(mesh, name)
+    if isinstance(hit[1], _Later):  # taken now, and kept
+        value = hit[1].produce()
+        remember(mesh, name, value)
+        return value
     return hit[1]
 
 
