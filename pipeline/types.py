@@ -112,6 +112,9 @@ class CoarseResult:
     trace: Optional[CoarseTrace] = None
     histories: dict[str, list[float]] = field(default_factory=dict)
     """Per-item series logged as MLflow step metrics (e.g. ``landmark_residual``)."""
+    estimated: bool = True
+    """False when the pose is the inputs' own, not an estimate (``coarse=none``): the fine stage may then
+    search a wider basin (``icp.basin``)."""
 
 
 @dataclass

@@ -101,9 +101,11 @@ class FineStage(Protocol):
     """``icp=NAME``: refines a transform (ICP and its variants)."""
 
     def refine(self, target: Cloud, source: Cloud, T_init: np.ndarray, spacing: float, ctx: RunContext,
-               target_mesh: Optional[Mesh] = None) -> IcpResult:
+               target_mesh: Optional[Mesh] = None, start_is_estimate: bool = True) -> IcpResult:
         """``T_init``: the start (the coarse stage's result); ``target_mesh``: the target's triangles when it is a
-        mesh (closest points on them instead of on its points)."""
+        mesh (closest points on them instead of on its points); ``start_is_estimate``: False when ``T_init`` is
+        the inputs' own pose rather than a coarse stage's estimate (``coarse=none``), so that the stage may search
+        a wider basin."""
 
 
 @runtime_checkable

@@ -83,7 +83,8 @@ def register_pair(target: PreparedScan, source: PreparedScan, stages: Stages, ct
     t0 = time.perf_counter_ns()
     coarse = stages.coarse.align(target.cloud, source.cloud, spacing, ctx, landmarks)
     t1 = time.perf_counter_ns()
-    icp = stages.icp.refine(target.cloud, source.cloud, coarse.T_target_source, spacing, ctx, target.mesh)
+    icp = stages.icp.refine(target.cloud, source.cloud, coarse.T_target_source, spacing, ctx, target.mesh,
+                            coarse.estimated)
     return PairResult(coarse, icp, spacing, diagonal, {"coarse": (t1 - t0) / 1e9, "icp": _seconds_since(t1)})
 
 
@@ -178,5 +179,6 @@ def bootstrap(stages: Stages, target: PreparedScan, source: PreparedScan, pair: 
     Ts = []
     for b in range(runs):
         idx = ctx.rng(1000 + b).integers(0, src.n_points, src.n_points)
-        Ts.append(stages.icp.refine(target.cloud, src.subset(idx), T0, pair.spacing, ctx, target.mesh).T_target_source)
+        Ts.append(stages.icp.refine(target.cloud, src.subset(idx), T0, pair.spacing, ctx, target.mesh,
+                                    pair.coarse.estimated).T_target_source)
     return bootstrap_spread(Ts, pair.T_target_source, centre)

@@ -23,4 +23,4 @@ class NoCoarse(CoarseBase):
 
     def align(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext,
               landmarks=None) -> CoarseResult:
-        return CoarseResult(np.eye(4))
+        return CoarseResult(np.eye(4), estimated=False)

@@ -24,6 +24,13 @@ enough for where a coarse stage, or none, leaves the source) and is halved (``sh
 settled at the current limit (RMS change below ``settle`` times the RMS), down to ``max_correspondence_distance``;
 the stopping rule (RMS change < ``tau``) applies only once the limit has reached that floor, and compares two RMS
 values taken at the same limit.
+
+That schedule finds the end point near a start pose that a coarse stage estimated. Without such an estimate
+(``coarse=none``: the inputs' own pose, possibly far off), ``basin: auto`` also searches the widest basin ICP has:
+the paper's Besl-McKay loop with every pair (point-to-point; its RMS never increases), then the variant's own
+schedule from where that loop ends. Of the two end points, the one that explains clearly more of the source
+(:meth:`IcpBase.accept`'s rule, at ``accept_distance``) is kept; on a tie the schedule's own, so that partial
+overlap, where every pair pulls the source off, keeps the local end point.
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ from typing import Optional
 import numpy as np
 
 from scanreg.errors import ConfigError, StageError
-from scanreg.geometry import ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, morton_order
+from scanreg.geometry import ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, horn_quaternion, morton_order
 from scanreg.process import blas_single_thread
 from scanreg.types import Correspondences, Distances, IcpResult, RunContext, to_abs
 
@@ -147,6 +154,15 @@ class IcpParams:
     full ICP's (its last iterations use every point), reached with fewer full searches. 1: every point
     throughout."""
 
+    basin: str = "auto"
+    """Where the end point is searched: ``local`` (the pair-limit schedule from the start pose), ``wide`` (also
+    from where the paper's Besl-McKay loop, every pair, point-to-point, takes the start pose; the end point that
+    explains clearly more of the source is kept, see the module's docstring), ``auto`` (``wide`` when the start
+    pose is the inputs' own, as with ``coarse=none``; ``local`` after a coarse stage's estimate)."""
+    basin_points: int = 5000
+    """``wide``: the Besl-McKay loop runs on at most this many source points (every k-th along a Morton curve,
+    so spread evenly); the variant's schedule then uses every point."""
+
     def check(self):
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
@@ -172,6 +188,10 @@ class IcpParams:
             raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, got '{self.kernel}'")
         if not self.kernel_scale > 0:
             raise ValueError(f"kernel_scale must be > 0, got {self.kernel_scale}")
+        if self.basin not in ("auto", "local", "wide"):
+            raise ValueError(f"basin must be auto, local or wide, got '{self.basin}'")
+        if self.basin_points < 3:
+            raise ValueError(f"basin_points must be >= 3, got {self.basin_points}")
 
 
 class IcpBase:
@@ -245,7 +265,7 @@ class IcpBase:
         return PairLimit(start, maxd, p.shrink, p.settle, kernel_scale)
 
     def refine(self, target: Cloud, source: Cloud, T_init: np.ndarray, spacing: float, ctx: RunContext,
-               target_mesh: Mesh | None = None) -> IcpResult:
+               target_mesh: Mesh | None = None, start_is_estimate: bool = True) -> IcpResult:
         p = self.p
         tau = to_abs(p.tau, p.distances, spacing)
         maxd = to_abs(p.max_correspondence_distance, p.distances, spacing)
@@ -256,29 +276,55 @@ class IcpBase:
         start_limit = self.schedule(target, maxd, kscale).limit
         try:
             with blas_single_thread():
-                step = int(round(1.0 / p.initial_share))
-                if step > 1 and len(moving.points) >= 3 * step:
-                    first = self.iterate(target, moving.subset(slice(None, None, step)), T_init, cp, tau,
-                                         self.schedule(target, maxd, kscale))
-                    # every point starts where the subset ended, at the subset's final (settled) limit
-                    res = self.iterate(target, moving, first.T_target_source, cp, tau,
-                                       PairLimit(maxd, maxd, kernel_scale=kscale))
-                    res.iterations += first.iterations
-                    # the subset's last entry is at the pose where every point's first one is: keep the latter
-                    res.rms_history = first.rms_history[:-1] + res.rms_history
-                else:
-                    res = self.iterate(target, moving, T_init, cp, tau, self.schedule(target, maxd, kscale))
+                res = self.converge(target, moving, T_init, cp, tau, maxd, kscale)
+                if p.basin == "wide" or (p.basin == "auto" and not start_is_estimate):
+                    res = self.widest(target, moving, T_init, cp, tau, maxd, kscale, spacing, res)
         except (np.linalg.LinAlgError, ValueError) as e:
             raise StageError(f"icp={self.name}: the update failed ({e}); the pairs are degenerate") from e
         return self.finish(res, cp, moving, T_init, maxd, start_limit, spacing, source, target, target_mesh)
+
+    def converge(self, target: Cloud, moving: Cloud, T_init: np.ndarray, cp: ClosestPoints, tau: float,
+                 maxd: float | None, kscale: float | None) -> IcpResult:
+        """The pair-limit schedule from ``T_init`` to its end point (coarse-to-fine when ``initial_share`` < 1)."""
+        p = self.p
+        step = int(round(1.0 / p.initial_share))
+        if step > 1 and len(moving.points) >= 3 * step:
+            first = self.iterate(target, moving.subset(slice(None, None, step)), T_init, cp, tau,
+                                 self.schedule(target, maxd, kscale))
+            # every point starts where the subset ended, at the subset's final (settled) limit
+            res = self.iterate(target, moving, first.T_target_source, cp, tau,
+                               PairLimit(maxd, maxd, kernel_scale=kscale))
+            return _joined(first, res)
+        return self.iterate(target, moving, T_init, cp, tau, self.schedule(target, maxd, kscale))
+
+    def widest(self, target: Cloud, moving: Cloud, T_init: np.ndarray, cp: ClosestPoints, tau: float,
+               maxd: float | None, kscale: float | None, spacing: float, local: IcpResult) -> IcpResult:
+        """``basin: wide``: Besl-McKay (every pair, Horn's update) from ``T_init`` on at most ``basin_points``
+        source points, then :meth:`converge` from there; that end point when it explains clearly more of the
+        source than ``local`` (the schedule's from ``T_init``), else ``local``. Metric ``icp_basin_wide``: 1 when
+        the wide basin's end point is kept."""
+        step = max(1, -(-len(moving.points) // self.p.basin_points))
+        basin = besl_mckay(cp, moving.points[::step], T_init, tau, self.p.max_iterations)
+        wide = self.converge(target, moving, basin.T_target_source, cp, tau, maxd, kscale)
+        acc_d = self.accept_distance(maxd, spacing)
+        fit = [self.final_metrics(cp(apply_T(r.T_target_source, moving.points), acc_d)[1], acc_d) for r in (wide, local)]
+        kept = local if self.accept(*fit) else _joined(basin, wide)  # local unless clearly worse than wide
+        kept.metrics["icp_basin_wide"] = float(kept is not local)
+        return kept
+
+    def accept_distance(self, maxd: float | None, spacing: float) -> float:
+        """The acceptance test's distance (input units): ``accept_distance``, else the final pair limit, else 3
+        spacings."""
+        if self.p.accept_distance is not None:
+            return to_abs(self.p.accept_distance, self.p.distances, spacing)
+        return maxd if maxd is not None else 3.0 * spacing
 
     def finish(self, res: IcpResult, cp, moving: Cloud, T_init, maxd, start_limit, spacing: float,
                source: Cloud, target: Cloud, target_mesh: Mesh | None) -> IcpResult:
         """Final metrics, the acceptance test against the start pose at ``accept_distance``, and the pairs kept
         at the pose returned (``source``: the source as given, ``moving``: the same points as iterated)."""
         m = self.final_metrics(res.final_distances, maxd)
-        acc_d = (to_abs(self.p.accept_distance, self.p.distances, spacing) if self.p.accept_distance is not None
-                 else maxd if maxd is not None else 3.0 * spacing)
+        acc_d = self.accept_distance(maxd, spacing)
         m0 = self.final_metrics(cp(apply_T(T_init, moving.points), acc_d)[1], acc_d)
         m1 = self.final_metrics(cp(apply_T(res.T_target_source, moving.points), acc_d)[1], acc_d)
         accepted = self.accept(m0, m1) if self.p.accept else True
@@ -286,7 +332,7 @@ class IcpBase:
             res.T_target_source = T_init.copy()
             res.final_distances = cp(apply_T(T_init, moving.points), maxd)[1]
             m = self.final_metrics(res.final_distances, maxd)
-        res.metrics = {**m, "icp_accepted": float(accepted),
+        res.metrics = {**res.metrics, **m, "icp_accepted": float(accepted),
                        "icp_accept_start_fitness": m0["icp_fitness"], "icp_accept_end_fitness": m1["icp_fitness"],
                        "icp_accept_start_rms": m0["icp_inlier_rms"], "icp_accept_end_rms": m1["icp_inlier_rms"]}
         if start_limit is not None and spacing > 0:
@@ -369,6 +415,33 @@ def least_norm_solve(H: np.ndarray, g: np.ndarray, rcond: float = 1e-10) -> np.n
         dk = d[keep]
         x[keep] = np.linalg.lstsq(H[np.ix_(keep, keep)] / np.outer(dk, dk), g[keep] / dk, rcond=rcond)[0] / dk
     return x
+
+
+def besl_mckay(cp: ClosestPoints, points: np.ndarray, T_init: np.ndarray, tau: float,
+               max_iterations: int) -> IcpResult:
+    """The paper's loop (Besl & McKay 1992): every point paired with its closest target point, the transform by
+    Horn's quaternion, until the RMS changes by less than ``tau`` or after ``max_iterations`` updates. With every
+    pair kept the RMS never increases, which gives the loop the widest basin of the ICP variants."""
+    T, history, converged = T_init.copy(), [], False
+    for it in range(max_iterations + 1):
+        moved = apply_T(T, points)
+        q, d, _ = cp(moved, None)
+        history.append(float(np.sqrt(d @ d / len(d))))
+        if it > 0 and abs(history[-2] - history[-1]) < tau:
+            converged = True
+            break
+        if it == max_iterations:
+            break
+        T = horn_quaternion(q, moved) @ T
+    return IcpResult(T, len(history) - 1, history, converged)
+
+
+def _joined(first: IcpResult, then: IcpResult) -> IcpResult:
+    """``then``, run from where ``first`` ended, with ``first``'s updates counted and its RMS history before
+    ``then``'s (``first``'s last entry, at the pose where ``then``'s first is taken, dropped)."""
+    then.iterations += first.iterations
+    then.rms_history = first.rms_history[:-1] + then.rms_history
+    return then
 
 
 def _rms(d: np.ndarray, ok: np.ndarray) -> float:

@@ -32,6 +32,8 @@ class Open3dIcp(IcpBase):
             super().check()
             if self.estimation not in ("point_to_point", "point_to_plane"):
                 raise ValueError(f"estimation must be point_to_point or point_to_plane, got '{self.estimation}'")
+            if self.basin == "wide":
+                raise ValueError("basin: Open3D's own loop searches no wide basin; leave it at auto (ignored) or local")
 
     def _kernel(self, scale: float):
         import open3d as o3d
@@ -41,7 +43,7 @@ class Open3dIcp(IcpBase):
                 "cauchy": reg.CauchyLoss}[self.p.kernel](scale)
 
     def refine(self, target: Cloud, source: Cloud, T_init: np.ndarray, spacing: float, ctx: RunContext,
-               target_mesh: Mesh | None = None) -> IcpResult:
+               target_mesh: Mesh | None = None, start_is_estimate: bool = True) -> IcpResult:
         import open3d as o3d
 
         p = self.p

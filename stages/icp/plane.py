@@ -32,10 +32,10 @@ class PointToPlane(IcpBase):
         :class:`~scanreg.stages.icp.base.IcpParams`). 1: every point throughout."""
 
     def refine(self, target: Cloud, source: Cloud, T_init: np.ndarray, spacing: float, ctx: RunContext,
-               target_mesh: Mesh | None = None) -> IcpResult:
+               target_mesh: Mesh | None = None, start_is_estimate: bool = True) -> IcpResult:
         if target.normals is None and target_mesh is None:
             target = Cloud(target.points, estimate_normals(target.points), target.source)
-        return super().refine(target, source, T_init, spacing, ctx, target_mesh)
+        return super().refine(target, source, T_init, spacing, ctx, target_mesh, start_is_estimate)
 
     def step(self, moved, q, qn, ok, w):
         if not ok.all():
