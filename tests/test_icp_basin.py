@@ -156,13 +156,16 @@ def test_acceptance_keeps_the_start_pose_when_icp_drifts():
 
 
 def test_accept_rule():
-    s = {"icp_fitness": 0.5, "icp_inlier_rms": 1.0}
-    assert IcpBase.accept(s, {"icp_fitness": 0.6, "icp_inlier_rms": 1.2})  # more points explained
-    assert IcpBase.accept(s, {"icp_fitness": 0.5, "icp_inlier_rms": 0.9})  # as many, closer
-    assert not IcpBase.accept(s, {"icp_fitness": 0.45, "icp_inlier_rms": 0.5})  # fewer points explained
-    assert not IcpBase.accept(s, {"icp_fitness": 0.501, "icp_inlier_rms": 1.1})  # as many, farther
-    assert not IcpBase.accept(s, {"icp_fitness": 0.0, "icp_inlier_rms": float("nan")})
-    assert IcpBase.accept({"icp_fitness": 0.0, "icp_inlier_rms": float("nan")}, s)
+    """The truncated least-squares cost at distance D: (1 - f) D^2 + f rms^2, f the share within D."""
+    s = {"icp_fitness": 0.5, "icp_inlier_rms": 1.0}  # cost at D = 2: 0.5 * 4 + 0.5 * 1 = 2.5
+    assert IcpBase.accept(s, {"icp_fitness": 0.6, "icp_inlier_rms": 1.2}, 2.0)  # 1.6 + 0.864 = 2.464
+    assert IcpBase.accept(s, {"icp_fitness": 0.5, "icp_inlier_rms": 0.9}, 2.0)  # as many, closer
+    assert IcpBase.accept(s, {"icp_fitness": 0.45, "icp_inlier_rms": 0.5}, 2.0)  # 2.2 + 0.1125: fewer, tighter
+    assert not IcpBase.accept(s, {"icp_fitness": 0.45, "icp_inlier_rms": 0.5}, 3.0)  # 4.95 + 0.11 > 4.5 + 0.5
+    assert not IcpBase.accept(s, {"icp_fitness": 0.501, "icp_inlier_rms": 1.1}, 2.0)  # 1.996 + 0.606 > 1.01 x 2.5
+    assert IcpBase.accept(s, {"icp_fitness": 0.5, "icp_inlier_rms": 1.004}, 2.0)  # within 1 %: not clearly worse
+    assert not IcpBase.accept(s, {"icp_fitness": 0.0, "icp_inlier_rms": float("nan")}, 2.0)
+    assert IcpBase.accept({"icp_fitness": 0.0, "icp_inlier_rms": float("nan")}, s, 2.0)
 
 
 @pytest.mark.parametrize("variant", ["point_to_plane", "gicp", "anderson"])

@@ -125,10 +125,16 @@ def rigid_points_normals(target, source, target_normals=None, source_normals=Non
     return make_T(R, mu_t - R @ mu_s)
 
 
-def kabsch_batch(target: np.ndarray, source: np.ndarray) -> np.ndarray:
-    """Batched least-squares rigid transforms: ``target, source`` (B, k, 3) -> ``T_target_source`` (B, 4, 4)."""
-    mu_s, mu_t = source.mean(axis=1, keepdims=True), target.mean(axis=1, keepdims=True)
-    H = np.einsum("bki,bkj->bij", source - mu_s, target - mu_t)
+def kabsch_batch(target: np.ndarray, source: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Batched least-squares rigid transforms: ``target, source`` (B, k, 3) -> ``T_target_source`` (B, 4, 4);
+    ``weights`` (B, k), each row with a positive sum, weigh the pairs."""
+    if weights is None:
+        mu_s, mu_t = source.mean(axis=1, keepdims=True), target.mean(axis=1, keepdims=True)
+        H = np.einsum("bki,bkj->bij", source - mu_s, target - mu_t)
+    else:
+        w = weights / weights.sum(axis=1, keepdims=True)
+        mu_s, mu_t = np.einsum("bk,bki->bi", w, source)[:, None], np.einsum("bk,bki->bi", w, target)[:, None]
+        H = np.einsum("bk,bki,bkj->bij", w, source - mu_s, target - mu_t)
     U, _, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(np.einsum("bji,bkj->bik", Vt, U)))
     D = np.zeros_like(H)

@@ -12,6 +12,7 @@ from scanreg.geometry import Cloud, estimate_spacing, sparse_voxel_mask, voxel_r
 from scanreg.process import blas_single_thread
 from scanreg.stages.coarse.base import CoarseBase, Described
 from scanreg.stages.coarse.ransac import lo_ransac
+from scanreg.stages.coarse.sc2 import sc2_pcr
 from scanreg.stages.coarse.thinning import downsampled, without_isolated
 from scanreg.stages.registry import COARSE, SALIENCE
 from scanreg.types import CoarseResult, CoarseTrace, Distances, RunContext, to_abs
@@ -57,6 +58,18 @@ class LoRansac(CoarseBase):
         """Weight w of the normal term of the final fit, in squared inlier thresholds: a normal residual of
         1 (about 60 degrees) costs as much as a point residual of ``w`` times ``distance_threshold`` (0: points
         only). Scaled so, the fit does not depend on the input's units."""
+        estimator: str = "ransac"
+        """How the transform is found from the matches: ``ransac`` (the paper's LO-RANSAC, the sampling above) or
+        ``sc2`` (second-order spatial compatibility, SC2-PCR, Chen et al. 2022: one hypothesis per seed from its
+        consensus set, no random draws; :mod:`scanreg.stages.coarse.sc2`)."""
+        seed_share: float = 0.2
+        """``estimator: sc2``: at most this share of the matches become seeds (unitless, in (0, 1])."""
+        sc2_k1: int = 30
+        """``estimator: sc2``: a seed's consensus set is first the matches of highest second-order compatibility
+        with it, this many."""
+        sc2_k2: int = 20
+        """``estimator: sc2``: then, of those, this many of highest compatibility recomputed within them; the
+        hypothesis is fitted to them and the seed."""
         min_inliers: int = 10
         """Fewer inliers than this is reported as a failure."""
         seed: int = 0
@@ -122,6 +135,12 @@ class LoRansac(CoarseBase):
                 raise ValueError("batch and max_iterations must be >= 1")
             if self.sampling not in ("guided", "uniform"):
                 raise ValueError(f"sampling must be guided or uniform, got '{self.sampling}'")
+            if self.estimator not in ("ransac", "sc2"):
+                raise ValueError(f"estimator must be ransac or sc2, got '{self.estimator}'")
+            if not 0 < self.seed_share <= 1:
+                raise ValueError(f"seed_share must be in (0, 1], got {self.seed_share}")
+            if not 3 <= self.sc2_k2 <= self.sc2_k1:
+                raise ValueError(f"sc2_k2 must be >= 3 and <= sc2_k1, got sc2_k1 {self.sc2_k1}, sc2_k2 {self.sc2_k2}")
 
     def __init__(self, params: Params, salience, descriptor, matcher):
         self.p = params
@@ -186,7 +205,7 @@ class LoRansac(CoarseBase):
         N0 = None if target.normals is None else target.normals[kt[pairs[:, 0]]]
         N1 = None if source.normals is None else source.normals[ks[pairs[:, 1]]]
         thr = to_abs(p.distance_threshold, p.distances, t.spacing)
-        r = lo_ransac(P0, P1, N0, N1, thr, p, p.seed)
+        r = lo_ransac(P0, P1, N0, N1, thr, p, p.seed) if p.estimator == "ransac" else sc2_pcr(P0, P1, N0, N1, thr, p)
         inl = r.inliers
         metrics.update({"coarse_ransac_iterations": r.hypotheses, "coarse_inliers": int(inl.sum()),
                         "coarse_inlier_ratio": float(inl.mean())})

@@ -70,20 +70,10 @@ class _Search:
         return self.drawn < max(self.needed, self.p.min_iterations) and self.drawn < self.p.max_iterations
 
     def inliers(self, T: np.ndarray) -> np.ndarray:
-        return np.linalg.norm(apply_T(T, self.P1) - self.P0, axis=1) < self.thr
+        return inliers_at(T, self.P0, self.P1, self.thr)
 
     def local_opt(self, inl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Least squares on the inliers, re-selected, until they stop changing (``lo_iterations`` at most)."""
-        T = np.eye(4)
-        for _ in range(self.p.lo_iterations):
-            if inl.sum() < 3:
-                break
-            T = horn_quaternion(self.P0[inl], self.P1[inl])
-            new = self.inliers(T)
-            if np.array_equal(new, inl):
-                break
-            inl = new
-        return T, inl
+        return local_opt(self.P0, self.P1, self.thr, inl, self.p.lo_iterations)
 
     def accept(self, T_cand: np.ndarray, count: int) -> None:
         """Local optimisation of a candidate that beats the best; it becomes the best model."""
@@ -212,22 +202,51 @@ class _Search:
         return Ts, counts
 
     def final_fit(self, N0: np.ndarray | None, N1: np.ndarray | None) -> None:
-        """The best model refitted over its inliers with points and normals (normals sign-aligned to the current
-        fit), three times; kept only if it loses none of the model's support."""
-        p, P0, P1, thr = self.p, self.P0, self.P1, self.thr
-        T = self.best_T
-        for _ in range(3):
-            inl = self.inliers(T)
-            if inl.sum() < 3:
-                break
-            n0 = n1 = None
-            if N0 is not None and N1 is not None and p.normal_weight > 0:
-                n0, n1 = N0[inl], N1[inl]
-                flip = np.einsum("ij,ij->i", n1 @ T[:3, :3].T, n0) < 0
-                n1 = np.where(flip[:, None], -n1, n1)
-            T = rigid_points_normals(P0[inl], P1[inl], n0, n1, p.normal_weight * thr * thr)
-        if self.inliers(T).sum() >= self.best_inl.sum():
-            self.best_T, self.best_inl = T, self.inliers(T)
+        self.best_T, self.best_inl = final_fit(self.P0, self.P1, N0, N1, self.thr, self.p.normal_weight,
+                                               self.best_T, self.best_inl)
+
+
+def inliers_at(T: np.ndarray, P0: np.ndarray, P1: np.ndarray, thr: float) -> np.ndarray:
+    """Mask of the correspondences within ``thr`` at ``T``."""
+    return np.linalg.norm(apply_T(T, P1) - P0, axis=1) < thr
+
+
+def local_opt(P0: np.ndarray, P1: np.ndarray, thr: float, inl: np.ndarray,
+              rounds: int) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares on the inliers ``inl``, re-selected, until they stop changing (``rounds`` at most): the
+    local optimisation of LO-RANSAC. Returns the last fit and its inliers (the identity when never fitted)."""
+    T = np.eye(4)
+    for _ in range(rounds):
+        if inl.sum() < 3:
+            break
+        T = horn_quaternion(P0[inl], P1[inl])
+        new = inliers_at(T, P0, P1, thr)
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    return T, inl
+
+
+def final_fit(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndarray | None, thr: float,
+              normal_weight: float, T: np.ndarray, inl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The model ``T`` (inliers ``inl``) refitted over its inliers with points and normals (normals sign-aligned
+    to the current fit), three times; the refit and its inliers when it loses none of the model's support,
+    else ``T`` and ``inl``."""
+    T0 = T
+    for _ in range(3):
+        cur = inliers_at(T, P0, P1, thr)
+        if cur.sum() < 3:
+            break
+        n0 = n1 = None
+        if N0 is not None and N1 is not None and normal_weight > 0:
+            n0, n1 = N0[cur], N1[cur]
+            flip = np.einsum("ij,ij->i", n1 @ T[:3, :3].T, n0) < 0
+            n1 = np.where(flip[:, None], -n1, n1)
+        T = rigid_points_normals(P0[cur], P1[cur], n0, n1, normal_weight * thr * thr)
+    new = inliers_at(T, P0, P1, thr)
+    if new.sum() >= inl.sum():
+        return T, new
+    return T0, inl
 
 
 def _padded_members(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

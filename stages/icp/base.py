@@ -129,8 +129,8 @@ class IcpParams:
     """The kernel's scale at the final pair limit (see ``distances``); while the adaptive limit is wider, the
     scale grows in proportion to it."""
     accept: bool = True
-    """Keep the start pose when ICP's final pose explains the data worse (fewer source points within
-    ``accept_distance``, or as many at a higher RMS over them; see :meth:`IcpBase.accept`); logs
+    """Keep the start pose when ICP's final pose explains the data worse (a higher truncated least-squares cost
+    at ``accept_distance``: points outside it, and the RMS of those within; see :meth:`IcpBase.accept`); logs
     ``icp_accepted``."""
     accept_distance: Optional[float] = None
     """The fixed distance of the acceptance test (see ``distances``): the start and the final pose are compared
@@ -308,7 +308,7 @@ class IcpBase:
         wide = self.converge(target, moving, basin.T_target_source, cp, tau, maxd, kscale)
         acc_d = self.accept_distance(maxd, spacing)
         fit = [self.final_metrics(cp(apply_T(r.T_target_source, moving.points), acc_d)[1], acc_d) for r in (wide, local)]
-        kept = local if self.accept(*fit) else _joined(basin, wide)  # local unless clearly worse than wide
+        kept = local if self.accept(*fit, acc_d) else _joined(basin, wide)  # local unless clearly worse than wide
         kept.metrics["icp_basin_wide"] = float(kept is not local)
         return kept
 
@@ -327,7 +327,7 @@ class IcpBase:
         acc_d = self.accept_distance(maxd, spacing)
         m0 = self.final_metrics(cp(apply_T(T_init, moving.points), acc_d)[1], acc_d)
         m1 = self.final_metrics(cp(apply_T(res.T_target_source, moving.points), acc_d)[1], acc_d)
-        accepted = self.accept(m0, m1) if self.p.accept else True
+        accepted = self.accept(m0, m1, acc_d) if self.p.accept else True
         if not accepted:
             res.T_target_source = T_init.copy()
             res.final_distances = cp(apply_T(T_init, moving.points), maxd)[1]
@@ -352,18 +352,16 @@ class IcpBase:
         return Correspondences(moved[ok], q[ok], None if qn is None else qn[ok], d[ok])
 
     @staticmethod
-    def accept(start: dict, end: dict) -> bool:
+    def accept(start: dict, end: dict, distance: float) -> bool:
         """Whether ICP's final pose explains the data at least as well as the start pose, both measured at
-        ``accept_distance`` (``icp_fitness``: share of source points within it, ``icp_inlier_rms``): fitness
-        first, inlier RMS second. Rejected when it has clearly fewer points within that distance (1 % fewer), or
-        about as many (within 1 %) at a clearly higher RMS (1 % higher)."""
-        f0, f1 = start["icp_fitness"], end["icp_fitness"]
-        r0, r1 = start["icp_inlier_rms"], end["icp_inlier_rms"]
-        if not f0 > 0:
-            return True
-        if f1 < 0.99 * f0:
-            return False
-        return not (f1 <= 1.01 * f0 and r1 > 1.01 * r0)
+        ``accept_distance`` (``distance``, input units): by the truncated least-squares cost, the mean over the
+        source points of min(d, distance)^2 = f rms^2 + (1 - f) distance^2 (``icp_fitness`` f: the share within
+        it, ``icp_inlier_rms``: their RMS). Rejected when ICP's cost is clearly (1 %) higher. The cost weighs a
+        point left outside the distance against how tightly the others fit: at low overlap a pose a few degrees
+        off can keep a few more points within it, loosely, than the right one."""
+        costs = [(1.0 - m["icp_fitness"]) * distance ** 2 +
+                 (m["icp_fitness"] * m["icp_inlier_rms"] ** 2 if m["icp_fitness"] > 0 else 0.0) for m in (start, end)]
+        return not costs[1] > 1.01 * costs[0]
 
     def step(self, moved, q, qn, ok, w) -> np.ndarray:  # pragma: no cover - per variant
         raise NotImplementedError
