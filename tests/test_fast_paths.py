@@ -115,6 +115,17 @@ def test_voxel_representatives_equal_the_reference(n, voxel):
     assert np.array_equal(voxel_representatives(grid, 2.0), reference_voxel_representatives(grid, 2.0))
 
 
+@pytest.mark.parametrize("voxel", [0.05, 0.7, 1e-17])
+def test_voxel_count_is_the_number_of_representatives(voxel):
+    """The thinning loop chooses its voxel by counts alone; each count is what the representatives would number
+    (the last voxel: a grid too fine for a 62-bit cell index, counted over rows)."""
+    from scanreg.geometry import voxel_count, voxel_representatives
+
+    pts = np.random.default_rng(3).normal(size=(5000, 3)) * [1.0, 3.0, 0.2]
+    assert voxel_count(pts, voxel) == len(reference_voxel_representatives(pts, voxel)) == \
+        len(voxel_representatives(pts, voxel)) > 1
+
+
 def test_coarse_thinning_keeps_min_points_and_caps_max_points():
     """The coarse stage's voxel thinning (stages/coarse/thinning.py ``downsampled``): a sparse pair is left as it is, the
     thinner cloud keeps at least ``min_points`` (the voxel shrinks), and ``max_points`` bounds a dense one."""

@@ -15,7 +15,7 @@ from scanreg.geometry.transforms import (apply_T, horn_quaternion, invert_T, kab
                                          random_pose, rigid_points_normals, rotate_normals, rotation_angle_deg,
                                          rotation_from_cross_covariance, transform_errors, transform_geometry)
 from scanreg.geometry.voxels import (LOCALITY_SPAN, locality_ordered, morton_order, sparse_voxel_mask, voxel_cells,
-                                     voxel_groups, voxel_occupancy, voxel_representatives)
+                                     voxel_count, voxel_groups, voxel_occupancy, voxel_representatives)
 
 __all__ = [
     "LOCALITY_SPAN", "ClosestPoints", "Cloud", "Geometry", "Mesh", "apply_T", "area_weighted_draws",
@@ -25,5 +25,5 @@ __all__ = [
     "rotate_normals", "rotation_angle_deg", "rotation_from_cross_covariance", "row_norms", "rows_all", "rows_any",
     "sparse_voxel_mask", "submesh", "to_o3d", "to_o3d_mesh", "transform_errors", "transform_geometry",
     "triangle_areas_normals", "validate_mesh", "validate_points", "vertex_normals", "voxel_cells", "voxel_groups",
-    "voxel_occupancy", "voxel_representatives",
+    "voxel_count", "voxel_occupancy", "voxel_representatives",
 ]

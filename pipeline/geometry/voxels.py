@@ -83,6 +83,13 @@ def voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarr
     return inv.ravel(), counts
 
 
+def voxel_count(points: np.ndarray, voxel: float) -> int:
+    """How many cells of :func:`voxel_cells`' grid hold a point: the number of points
+    :func:`voxel_representatives` keeps, without choosing them."""
+    flat, keys, _ = voxel_cells(points, voxel)
+    return len(np.unique(flat)) if flat is not None else len(np.unique(keys, axis=0))
+
+
 def voxel_occupancy(points: np.ndarray, voxel: float) -> np.ndarray:
     """For each point, how many points (itself included) fall in its cell of a grid of edge ``voxel`` (input units)
     anchored at the points' minimum corner: the grid :func:`scanreg.stages.salience.voxel_representatives` thins

@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 
 from scanreg.errors import StageError
-from scanreg.geometry import Cloud, estimate_spacing, sparse_voxel_mask, voxel_representatives
+from scanreg.geometry import Cloud, estimate_spacing, sparse_voxel_mask, voxel_count, voxel_representatives
 from scanreg.process import blas_single_thread
 from scanreg.stages.coarse.base import CoarseBase, Described
 from scanreg.stages.coarse.ransac import lo_ransac
@@ -230,7 +230,7 @@ class LoRansac(CoarseBase):
                     clouds = [c.subset(sparse_voxel_mask(c.points, voxel, p.isolated_ratio, 3 * spacing))
                               for c in clouds]
                 for _ in range(4):
-                    counts = [len(voxel_representatives(c.points, voxel)) for c in clouds]
+                    counts = [voxel_count(c.points, voxel) for c in clouds]
                     if p.max_points is not None and max(counts) > p.max_points:
                         voxel *= float(np.sqrt(max(counts) / p.max_points))
                     elif p.min_points is not None and min(counts) < p.min_points:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from scanreg.geometry import Cloud, estimate_spacing, sparse_voxel_mask, voxel_representatives
+from scanreg.geometry import Cloud, estimate_spacing, sparse_voxel_mask, voxel_count, voxel_representatives
 from scanreg.types import RunContext
 
 
@@ -47,15 +47,17 @@ def downsampled(target: Cloud, source: Cloud, spacing: float, ctx: RunContext, v
     out 0). Clouds with fewer than ``min_points`` points are returned as they are, with ``spacing``."""
     if min_points is not None and min(target.n_points, source.n_points) <= min_points:
         return target, source, spacing
-    for _ in range(4):
-        ti, si = voxel_representatives(target.points, voxel), voxel_representatives(source.points, voxel)
-        hi, lo = max(len(ti), len(si)), min(len(ti), len(si))
+    for _ in range(4):  # the voxel chosen by counts alone; the points kept at the last voxel counted
+        used = voxel
+        counts = voxel_count(target.points, voxel), voxel_count(source.points, voxel)
+        hi, lo = max(counts), min(counts)
         if max_points is not None and hi > max_points:
             voxel *= float(np.sqrt(hi / max_points))
         elif min_points is not None and lo < min_points:
             voxel *= float(np.sqrt(lo / min_points))
         else:
             break
-    tgt, src = target.subset(ti), source.subset(si)
+    tgt = target.subset(voxel_representatives(target.points, used))
+    src = source.subset(voxel_representatives(source.points, used))
     thinned = pair_spacing(tgt.points, src.points, ctx)
     return tgt, src, thinned if thinned > 0 else spacing
