@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from scanreg.geometry import apply_T, transform_errors
+from scanreg.geometry import ClosestPoints, Cloud, apply_T, transform_errors
 from scanreg.types import CoarseTrace, Distances, to_abs
 
 
@@ -147,13 +147,16 @@ def registration_recall(rotation_error_deg: float, translation_error: float, dia
 
 
 def overlap_mask(points: np.ndarray, target_points: np.ndarray, T_gt: np.ndarray, radius: float,
-                 tree: cKDTree | None = None) -> np.ndarray:
+                 search: ClosestPoints | None = None) -> np.ndarray:
     """Which of ``points`` (source frame) lie, after ``T_gt``, within ``radius`` of some ``target_points``
-    (``tree``: their k-d tree, when the caller has one)."""
+    (``search``: the closest-point search on them, when the caller has one)."""
     if not len(points) or not len(target_points):
         return np.zeros(len(points), bool)
-    tree = cKDTree(target_points) if tree is None else tree
-    d, _ = tree.query(apply_T(T_gt, points), distance_upper_bound=np.nextafter(radius, np.inf))
+    bound = np.nextafter(radius, np.inf)
+    if search is not None:
+        d = search(apply_T(T_gt, points), bound)[1]
+    else:
+        d, _ = cKDTree(target_points).query(apply_T(T_gt, points), distance_upper_bound=bound)
     return d <= radius
 
 
@@ -178,7 +181,7 @@ class Repeatability:
 
 def keypoint_repeatability(kp_target: np.ndarray, kp_source: np.ndarray, T_gt: np.ndarray, eps: float,
                            overlap_radius: float, target_points: np.ndarray | None = None,
-                           target_tree: cKDTree | None = None) -> Repeatability:
+                           target_search: ClosestPoints | None = None) -> Repeatability:
     """Relative repeatability of Tombari et al. 2013 (IJCV, "Performance evaluation of 3D keypoint detectors").
 
     ``kp_target`` (K, 3) and ``kp_source`` (L, 3) are keypoint positions in their own frames, ``T_gt`` the true
@@ -186,11 +189,11 @@ def keypoint_repeatability(kp_target: np.ndarray, kp_source: np.ndarray, T_gt: n
     ``overlap_radius`` of a point of ``target_points`` (the sampled target cloud; the target keypoints when not
     given). It is *repeatable* when it is in the overlap and a target keypoint lies within ``eps`` of it. The
     repeatability is the share of repeatable keypoints among the source keypoints in the overlap (NaN when
-    none is). Distances in input units. ``target_tree``: the k-d tree of ``target_points``, when the caller has
-    one."""
+    none is). Distances in input units. ``target_search``: the closest-point search on ``target_points``, when
+    the caller has one."""
     kp_target, kp_source = np.asarray(kp_target, float).reshape(-1, 3), np.asarray(kp_source, float).reshape(-1, 3)
     ref = kp_target if target_points is None else target_points
-    inside = overlap_mask(kp_source, ref, T_gt, overlap_radius, target_tree if target_points is not None else None)
+    inside = overlap_mask(kp_source, ref, T_gt, overlap_radius, target_search if target_points is not None else None)
     rep = np.zeros(len(kp_source), bool)
     trep = np.zeros(len(kp_target), bool)
     if len(kp_target) and inside.any():
@@ -241,15 +244,17 @@ def gt_rmse(T: np.ndarray, T_gt: np.ndarray, source_points: np.ndarray, in_overl
 
 def field_metrics(trace: CoarseTrace | None, T0: np.ndarray, T: np.ndarray, T_gt: np.ndarray,
                   source_points: np.ndarray, target_points: np.ndarray, p: EvalParams,
-                  spacing: float) -> tuple[dict[str, float], dict]:
-    """The field's metrics of one run with ground truth, and the per-keypoint / per-match masks for the PLYs.
+                  spacing: float, search: ClosestPoints | None = None) -> tuple[dict[str, float], dict]:
+    """The field's metrics of one run with ground truth, and the per-keypoint / per-match masks for the PLYs
+    (``search``: the closest-point search on ``target_points``, when the caller has one; else one is built).
 
     ``trace`` is what the coarse stage exposes (:class:`~scanreg.types.CoarseTrace`): keypoints, descriptor
     matches, RANSAC's inliers; any may be missing, and the metrics that need it are then absent. ``gt_rmse`` and
     ``coarse_gt_rmse`` are always given."""
     to = lambda v: to_abs(v, p.distances, spacing)
-    tree = cKDTree(target_points) if len(target_points) else None  # one tree for both overlap tests
-    inside = overlap_mask(source_points, target_points, T_gt, to(p.overlap_distance), tree)
+    if search is None and len(target_points):
+        search = ClosestPoints(Cloud(target_points))  # one search for both overlap tests
+    inside = overlap_mask(source_points, target_points, T_gt, to(p.overlap_distance), search)
     out = {"gt_rmse": gt_rmse(T, T_gt, source_points, inside), "coarse_gt_rmse": gt_rmse(T0, T_gt, source_points, inside),
            "overlap_share_gt": float(inside.mean())}
     masks: dict = {}
@@ -258,7 +263,7 @@ def field_metrics(trace: CoarseTrace | None, T0: np.ndarray, T: np.ndarray, T_gt
     if kt is not None and ks is not None:
         out["n_keypoints_target"], out["n_keypoints_source"] = len(kt), len(ks)
         eps = to_abs(p.repeatability_distance, p.distances, spacing if trace.spacing is None else trace.spacing)  # the detector's
-        rep = keypoint_repeatability(kt, ks, T_gt, eps, to(p.overlap_distance), target_points, tree)
+        rep = keypoint_repeatability(kt, ks, T_gt, eps, to(p.overlap_distance), target_points, search)
         out.update(rep.metrics())
         masks["repeatability"] = rep
     P0, P1 = trace.matches_target, trace.matches_source

@@ -110,7 +110,8 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     out = Evaluation()
     m = out.metrics
     aligned = apply_T(T, src.points)
-    on_points = ClosestPoints(tgt)(aligned)
+    on_target = ClosestPoints(tgt)  # the target points' search, for the fit and the field's overlap tests
+    on_points = on_target(aligned)
     m.update(alignment_metrics(on_points[1], ev, spacing))
     surface = None if target.mesh is None else ClosestPoints(tgt, target.mesh)
     on_surface = on_points if surface is None else surface(aligned)
@@ -119,7 +120,7 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     if T_gt is not None:
         m.update(gt_metrics(T0, T_gt, pair.diagonal, ev, prefix="coarse_"))
         m.update(gt_metrics(T, T_gt, pair.diagonal, ev))
-        fm, masks = field_metrics(pair.coarse.trace, T0, T, T_gt, src.points, tgt.points, ev, spacing)
+        fm, masks = field_metrics(pair.coarse.trace, T0, T, T_gt, src.points, tgt.points, ev, spacing, on_target)
         m.update(fm)
     write = ctx.run_dir is not None
     keypoint_files, view_files = [], []
