@@ -159,3 +159,18 @@ def test_coarse_thinning_keeps_min_points_and_caps_max_points():
     assert min(t.n_points, s.n_points) >= 0.8 * 20000 and t.n_points > n4  # shrunk towards min_points
     t, s, c = downsampled(dense, dense, sp, ctx, sp, 5000, None)
     assert max(t.n_points, s.n_points) <= 1.25 * 5000  # grown towards max_points
+
+
+def test_apply_T_gives_what_the_transposed_view_gave():
+    """apply_T multiplies by a contiguous copy of R^T (so that NumPy uses BLAS): the same numbers, bit for bit,
+    as the product with the transposed view, and as the rotation applied point by point."""
+    from scipy.spatial.transform import Rotation
+
+    from scanreg.geometry import apply_T, make_T, rotate_normals
+
+    rng = np.random.default_rng(7)
+    p = rng.normal(size=(20000, 3)) * 100.0
+    T = make_T(Rotation.random(random_state=3).as_matrix(), rng.normal(size=3))
+    assert np.array_equal(apply_T(T, p), p @ T[:3, :3].T + T[:3, 3])
+    assert np.array_equal(rotate_normals(T, p), p @ T[:3, :3].T)
+    assert np.allclose(apply_T(T, p[:5]), [T[:3, :3] @ x + T[:3, 3] for x in p[:5]], rtol=0, atol=1e-12)

@@ -42,7 +42,8 @@ from typing import Optional
 import numpy as np
 
 from scanreg.errors import ConfigError, StageError
-from scanreg.geometry import ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, horn_quaternion, morton_order
+from scanreg.geometry import (ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, horn_quaternion, morton_order,
+                              rotate_normals)
 from scanreg.process import blas_single_thread
 from scanreg.types import Correspondences, Distances, IcpResult, RunContext, to_abs
 
@@ -347,7 +348,7 @@ class IcpBase:
         distance, normal and trim rejections at ``maxd``), in ``source``'s order."""
         moved = apply_T(T, source.points)
         q, d, qn = self.closest(target, target_mesh)(moved)
-        mn = None if source.normals is None else source.normals @ T[:3, :3].T
+        mn = rotate_normals(T, source.normals)
         ok = self.kept(d, mn, qn, maxd)
         return Correspondences(moved[ok], q[ok], None if qn is None else qn[ok], d[ok])
 
@@ -378,7 +379,7 @@ class IcpBase:
         converged, iterations = False, 0
         for it in range(self.p.max_iterations + 1):
             moved = apply_T(T, src)
-            mn = None if sn is None else sn @ T[:3, :3].T
+            mn = rotate_normals(T, sn)
             q, d, qn, ok = self.pairs(moved, mn, cp, limit.limit, it)
             history.append(_rms(d, ok))
             if it > 0:

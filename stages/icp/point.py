@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanreg.geometry import apply_T, horn_quaternion, make_T
+from scanreg.geometry import apply_T, horn_quaternion, make_T, rotate_normals
 from scanreg.stages.icp.base import IcpBase, IcpParams, PairLimit, _compress, _rms
 from scanreg.stages.registry import ICP
 from scanreg.types import IcpResult
@@ -66,7 +66,7 @@ class Anderson(IcpBase):
         for it in range(self.p.max_iterations + 1):
             T = self._mat(x)
             moved = apply_T(T, src)
-            mn = None if sn is None else sn @ T[:3, :3].T
+            mn = rotate_normals(T, sn)
             q, d, qn, ok = self.pairs(moved, mn, cp, limit.limit, it)
             rms = _rms(d, ok)
             if rms > accepted_rms and g_acc is not None:
@@ -75,7 +75,7 @@ class Anderson(IcpBase):
                 x = g_acc
                 T = self._mat(x)
                 moved = apply_T(T, src)
-                mn = None if sn is None else sn @ T[:3, :3].T
+                mn = rotate_normals(T, sn)
                 q, d, qn, ok = self.pairs(moved, mn, cp, limit.limit, it)
                 rms = _rms(d, ok)
             history.append(rms)
