@@ -174,3 +174,20 @@ def test_apply_T_gives_what_the_transposed_view_gave():
     assert np.array_equal(apply_T(T, p), p @ T[:3, :3].T + T[:3, 3])
     assert np.array_equal(rotate_normals(T, p), p @ T[:3, :3].T)
     assert np.allclose(apply_T(T, p[:5]), [T[:3, :3] @ x + T[:3, 3] for x in p[:5]], rtol=0, atol=1e-12)
+
+
+def test_estimate_spacing_is_the_median_nearest_neighbour_distance():
+    """By brute force on a cloud with a duplicated point (distance 0, left out) and on a seeded subset."""
+    from scipy.spatial.distance import cdist
+
+    from scanreg.geometry import estimate_spacing
+
+    pts = np.random.default_rng(5).normal(size=(800, 3)) * [1.0, 2.0, 0.1]
+    pts = np.vstack([pts, pts[:1]])
+    D = cdist(pts, pts)
+    np.fill_diagonal(D, np.inf)
+    nn = D.min(axis=1)
+    assert estimate_spacing(pts, np.random.default_rng(0)) == float(np.median(nn[nn > 0]))
+    idx = np.random.default_rng(1).choice(len(pts), size=300, replace=False)
+    sub = nn[idx]
+    assert estimate_spacing(pts, np.random.default_rng(1), n=300) == float(np.median(sub[sub > 0]))
