@@ -24,6 +24,7 @@ from scanreg.eval.metrics import (EvalParams, alignment_metrics, field_metrics, 
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
                                       relative_motion)
 from scanreg.geometry import ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, transform_geometry
+from scanreg.process import blas_single_thread
 from scanreg.runner.build import Stages
 from scanreg.runner.outputs import write_keypoints
 from scanreg.types import Correspondences, PairResult, PreparedScan, Problem, RunContext, ScanSet
@@ -109,7 +110,8 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     src, tgt, spacing = source.cloud, target.cloud, pair.spacing
     out = Evaluation()
     m = out.metrics
-    aligned = apply_T(T, src.points)
+    with blas_single_thread():
+        aligned = apply_T(T, src.points)
     on_target = ClosestPoints(tgt)  # the target points' search, for the fit and the field's overlap tests
     on_points = on_target(aligned)
     m.update(alignment_metrics(on_points[1], ev, spacing))
@@ -120,7 +122,8 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     if T_gt is not None:
         m.update(gt_metrics(T0, T_gt, pair.diagonal, ev, prefix="coarse_"))
         m.update(gt_metrics(T, T_gt, pair.diagonal, ev))
-        fm, masks = field_metrics(pair.coarse.trace, T0, T, T_gt, src.points, tgt.points, ev, spacing, on_target)
+        with blas_single_thread():  # its products of (N, 3) arrays by 3 x 3: rows apart, no gain from threads
+            fm, masks = field_metrics(pair.coarse.trace, T0, T, T_gt, src.points, tgt.points, ev, spacing, on_target)
         m.update(fm)
     write = ctx.run_dir is not None
     keypoint_files, view_files = [], []
