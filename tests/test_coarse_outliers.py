@@ -116,3 +116,26 @@ def test_isolated_ratio_is_checked():
 
     with pytest.raises((ConfigError, ValueError), match="isolated_ratio"):
         build_coarse("lo_ransac", isolated_ratio=0.0)
+
+
+def test_near_test_against_every_point_by_brute_force():
+    """The near test of sparse_voxel_mask (a sparse cell's point with no other point within ``near`` goes)
+    decided by brute force on a noisy cloud: its k-d tree holds only the sparse cells' blocks, which must give
+    the same answer as every point."""
+    from scipy.spatial.distance import cdist
+
+    from scanreg.geometry import voxel_occupancy
+
+    rng = np.random.default_rng(11)
+    plane = np.c_[rng.uniform(0, 40, size=(3000, 2)), rng.normal(scale=0.2, size=3000)]
+    pts = np.vstack([plane, rng.uniform([-5, -5, -6], [45, 45, 6], size=(150, 3))])
+    voxel, ratio, near = 4.0, 0.25, 3.0
+    base = sparse_voxel_mask(pts, voxel, ratio)
+    got = sparse_voxel_mask(pts, voxel, ratio, near=near)
+    occ = voxel_occupancy(pts, voxel)  # the grid without the margin: the same cells
+    sparse = occ < ratio * np.quantile(occ, 0.9)
+    D = cdist(pts, pts)
+    np.fill_diagonal(D, np.inf)
+    lonely = D.min(axis=1) > near
+    expected = base & ~(sparse & lonely)
+    assert np.array_equal(got, expected) and (got != base).sum() > 5

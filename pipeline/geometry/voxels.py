@@ -142,7 +142,10 @@ def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float, near: floa
         if len(ask):
             from scipy.spatial import cKDTree
 
-            tree = cKDTree(points, leafsize=32, balanced_tree=False, compact_nodes=False)  # an unbalanced tree: quicker to build
+            # every point within near of an asked one lies in its cell's 3 x 3 x 3 block when near <= voxel: the
+            # tree holds those blocks' points only
+            pool = points[np.isin(cells, nb)[inv]] if near <= voxel else points
+            tree = cKDTree(pool, leafsize=32, balanced_tree=False, compact_nodes=False)  # an unbalanced tree: quicker to build
             d = tree.query(points[ask], k=2, distance_upper_bound=near)[0][:, 1]  # inf beyond near
             keep[ask[d > near]] = False
     return keep
