@@ -1,0 +1,81 @@
+"""Known answers that kill the mutants of the ICP maths (./run mutants, issue #38): the least-norm solve of the
+normal equations against NumPy's solve and pseudo-inverse, the kernel scale along the pair-limit schedule, and the
+schedule's settle rule at its exact boundary."""
+
+import numpy as np
+import pytest
+
+from scanreg.stages.icp.base import PairLimit, least_norm_solve
+
+
+def spd(rng, scales):
+    """A symmetric positive definite 6x6 matrix whose coordinates have very different scales (as rotation and
+    translation columns do)."""
+    A = rng.normal(size=(40, 6)) * scales
+    return A.T @ A
+
+
+def scaled_pinv_solution(H, g, rcond):
+    """The least-norm solution on the unit-diagonal scaling of H, written with NumPy's pseudo-inverse."""
+    d = np.sqrt(np.diag(H))
+    return np.linalg.pinv(H / np.outer(d, d), rcond=rcond) @ (g / d) / d
+
+
+def test_least_norm_solve_is_the_solution_when_every_direction_is_determined():
+    rng = np.random.default_rng(0)
+    H = spd(rng, [1e3, 1.0, 1e-2, 5.0, 1e2, 0.3])
+    g = rng.normal(size=6)
+    assert np.allclose(least_norm_solve(H, g), np.linalg.solve(H, g), rtol=1e-9, atol=0)
+
+
+def test_least_norm_solve_gives_undetermined_directions_no_motion():
+    rng = np.random.default_rng(1)
+    # a direction with no weight at all (its row and column zero): zero there, the rest solved without it
+    H = spd(rng, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+    H[2, :] = H[:, 2] = 0.0
+    g = rng.normal(size=6)
+    g[2] = 0.0
+    keep = [0, 1, 3, 4, 5]
+    x = least_norm_solve(H, g)
+    assert x[2] == 0.0 and np.allclose(x[keep], np.linalg.solve(H[np.ix_(keep, keep)], g[keep]), rtol=1e-9)
+    # nothing determined: no motion
+    assert np.array_equal(least_norm_solve(np.zeros((6, 6)), np.ones(6)), np.zeros(6))
+    # a direction determined 1e12 times more weakly than the rest: below the relative cut-off 1e-10 it is
+    # dropped as undetermined (NumPy's own cut-off, machine precision, would keep it and move far along it)
+    Q, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    H = Q @ np.diag([1.0, 0.8, 0.5, 0.3, 0.2, 1e-12]) @ Q.T
+    g = rng.normal(size=6)
+    x = least_norm_solve(H, g)
+    assert np.allclose(x, scaled_pinv_solution(H, g, 1e-10), rtol=1e-6, atol=1e-9)
+    assert np.linalg.norm(x) < 100 < np.linalg.norm(scaled_pinv_solution(H, g, 1e-15))
+
+
+def test_least_norm_solve_drops_a_column_with_almost_no_weight():
+    # a diagonal entry 1e-30 of the largest (its scale 1e-15 of the largest's, under the 1e-12 cut-off): dropped,
+    # as a zero column is; one of 1e-20 (scale 1e-10) is kept
+    H = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 1e-30])
+    g = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1e-30])
+    assert np.allclose(least_norm_solve(H, g), [1.0, 0.5, 1 / 3, 0.25, 0.2, 0.0], rtol=1e-12)
+    H[5, 5], g[5] = 1e-20, 2e-20
+    assert np.allclose(least_norm_solve(H, g), [1.0, 0.5, 1 / 3, 0.25, 0.2, 2.0], rtol=1e-9)
+
+
+def test_kernel_scale_grows_with_the_pair_limit():
+    assert PairLimit(16.0, 4.0, kernel_scale=2.0).scale() == 8.0  # 4 times the floor: 4 times the scale
+    assert PairLimit(4.0, 4.0, kernel_scale=2.0).scale() == 2.0
+    assert PairLimit(None, None, kernel_scale=2.0).scale() == 2.0
+    lim = PairLimit(16.0, 4.0, shrink=0.5, settle=0.01, kernel_scale=1.0)
+    assert lim.advance(1.0, 1.0, 1e-4) and lim.scale() == 2.0
+
+
+@pytest.mark.parametrize("prev, rms, tau, settle, tightens", [
+    (1.0, 0.5, 0.5, 0.01, False),     # a change of exactly tau is not settled
+    (1.0, 0.75, 0.5, 0.01, True),     # 0.25 < tau: settled, though 25 % of the RMS
+    (2.0, 1.85, 1e-4, 0.1, True),     # 0.15 < 10 % of the previous RMS (0.2)
+    (2.0, 1.75, 1e-4, 0.125, False),  # exactly 12.5 % of 2: not settled
+    (0.5, 0.55, 1e-4, 0.125, True),   # a rise: its size counts, 0.05 < 12.5 % of 0.5
+])
+def test_the_limit_tightens_when_the_change_is_below_tau_or_settle_times_the_rms(prev, rms, tau, settle, tightens):
+    lim = PairLimit(16.0, 3.0, shrink=0.5, settle=settle)
+    assert lim.advance(prev, rms, tau) == tightens
+    assert lim.limit == (8.0 if tightens else 16.0)
