@@ -75,13 +75,35 @@ def test_local_frames_reuse_a_search_only_when_it_covers_the_cap():
 
 def test_histogram3p_with_a_frame_radius_beyond_the_support_radius():
     """frame_radius (20 spacings) > radius (15): the frames come from a search of their own, not from the support
-    radius's neighbours; the descriptor equals the straightforward implementation kept in test_fast_paths."""
+    radius's neighbours; and a density radius (8 spacings) whose points exceed the cap of 64. The descriptor
+    equals the straightforward implementation kept in test_fast_paths."""
     from test_fast_paths import reference_histogram3p
 
     pts, nrm = strip(3000, 3)
     cloud = Cloud(pts, nrm)
-    p = Histogram3P.Params(radius=15.0, frame_radius=20.0, density_radius=2.0)
+    p = Histogram3P.Params(radius=15.0, frame_radius=20.0, density_radius=8.0)
     spacing = 0.0125
     kp = np.arange(5, 3000, 61)
+    assert np.median(cKDTree(pts).query_ball_point(pts[kp], 8.0 * spacing, return_length=True)) > 64
     got = Histogram3P(p).compute(cloud, kp, spacing)
     assert np.allclose(got, reference_histogram3p(p, cloud, kp, spacing), atol=1e-12)
+
+
+def test_fpfh_does_not_depend_on_the_input_units():
+    """FPFH in spacings on the same bunny sampling in two units, 0.1 and 100 times the mesh's: the support voxel
+    (3 spacings) is below 1 in one and above it in the other, and both are thinned alike. Open3D's search and
+    voxel grid round differently at the two scales: the histograms (entries up to ~170) measured 2.4 apart at
+    most; without the support voxel they are 68 apart."""
+    from scanreg.geometry import barycentric_sample, estimate_spacing
+    from scanreg.io import read_mesh
+    from scanreg.stages.descriptor import FPFH
+
+    m = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    p, n, _ = barycentric_sample(m, 4000, np.random.default_rng(5))
+    sp = estimate_spacing(p, np.random.default_rng(0))
+    kp = np.arange(0, 4000, 50)
+    small, large = (FPFH(FPFH.Params()).compute(Cloud(p * s, n), kp, sp * s) for s in (0.1, 100.0))
+    assert 3 * sp * 0.1 < 1 < 3 * sp * 100
+    assert np.abs(small - large).max() < 7.0
+    unthinned = FPFH(FPFH.Params(support_voxel=0.0)).compute(Cloud(p * 0.1, n), kp, sp * 0.1)
+    assert np.abs(unthinned - large).max() > 30.0
