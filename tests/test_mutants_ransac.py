@@ -112,11 +112,12 @@ def test_a_sample_is_valid_when_its_sides_agree_within_thr_and_it_is_not_near_co
     assert s.valid(a, b).tolist() == [True, False, True, True, False]
 
 
+@pytest.mark.parametrize("sampling", ["uniform", "guided"])
 @pytest.mark.parametrize("seed", range(6))
-def test_uniform_ransac_keeps_the_largest_consensus(seed):
-    """Two rigid structures among the matches: 45 % follow one pose, 40 % another, the rest are random. Uniform
-    sampling finds samples of both in its first batch; the model kept is the one with more inliers, whichever
-    it met first."""
+def test_ransac_keeps_the_largest_consensus(seed, sampling):
+    """Two rigid structures among the matches: 45 % follow one pose, 40 % another, the rest are random. Both
+    samplers find samples of both in their first batch; the model kept is the one with more inliers, whichever
+    they met first."""
     rng = np.random.default_rng(100 + seed)
     M, thr = 200, 0.05
     P1 = rng.uniform(0, 10, (M, 3))
@@ -124,7 +125,30 @@ def test_uniform_ransac_keeps_the_largest_consensus(seed):
     T1, T2 = random_pose(rng, 180, 5.0), random_pose(rng, 180, 5.0)
     P0[:90] = apply_T(T1, P1[:90])
     P0[90:170] = apply_T(T2, P1[90:170])
-    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute", sampling="uniform", seed=seed)
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute", sampling=sampling, seed=seed)
     r = lo_ransac(P0, P1, None, None, thr, st.p, st.p.seed)
     assert r.inliers[:90].all() and r.inliers.sum() == 90
     assert np.allclose(r.T_target_source, T1, atol=1e-9)
+
+
+def test_guided_hypotheses_are_scored_on_their_seeds_compatible_set():
+    """One guided batch whose 64 seeds are all correspondence 0 (an inlier): 512 samples, more hypotheses than
+    one block of 64. Each hypothesis's count is, by brute force, the correspondences within thr of it (squared
+    distance) among those compatible with the seed (|d1 - d0| < 2 thr)."""
+    rng = np.random.default_rng(5)
+    M, thr = 300, 0.05
+    T = random_pose(rng, 180, 5.0)
+    P1 = rng.uniform(0, 10, (M, 3))
+    P0 = rng.uniform(-5, 15, (M, 3))
+    P0[:120] = apply_T(T, P1[:120]) + rng.normal(scale=0.01, size=(120, 3))
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
+    s = _Search(P0, P1, thr, st.p)
+    seeds = np.zeros(64, np.int64)
+    diff = np.abs(s._d1(seeds) - s._d0(seeds))
+    Ts, counts = s._guided_batch(np.random.default_rng(0), seeds, diff)
+    assert len(Ts) > 64
+    pool = np.flatnonzero(diff[0] < 2 * thr)
+    for Th, c in zip(Ts, counts):
+        r = apply_T(Th, P1[pool]) - P0[pool]
+        assert c == (np.einsum("ij,ij->i", r, r) < thr * thr).sum()
+    assert counts.max() >= 100  # the all-inlier hypotheses see the inliers
