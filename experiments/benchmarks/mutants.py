@@ -381,7 +381,7 @@ def write_report(cfg: dict, command: str) -> tuple[int, int]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--module", nargs="+", help="only these modules (names in mutants.toml)")
+    ap.add_argument("--module", nargs="+", help="only these modules (names in mutants.toml), in this order")
     ap.add_argument("--list", action="store_true", help="count the mutants per module and stop")
     ap.add_argument("--report-only", action="store_true", help="rewrite the report from the last results")
     args = ap.parse_args()
@@ -389,8 +389,8 @@ def main() -> None:
     known = {m["name"] for m in cfg["module"]}
     if args.module and not set(args.module) <= known:
         raise SystemExit(f"unknown module(s) {sorted(set(args.module) - known)}; mutants.toml has {sorted(known)}")
-    chosen = [m for m in cfg["module"] if not args.module or m["name"] in args.module]
-    command = "./run mutants" + (f" --module {' '.join(args.module)}" if args.module else "")
+    by_name = {m["name"]: m for m in cfg["module"]}
+    chosen = [by_name[n] for n in dict.fromkeys(args.module)] if args.module else cfg["module"]  # in the order given
     WORK.mkdir(parents=True, exist_ok=True)
     if not args.report_only:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
