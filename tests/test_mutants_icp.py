@@ -164,3 +164,120 @@ def test_point_to_plane_estimates_the_normals_a_bare_target_lacks():
         Cloud(tp), Cloud(sp_, sn), T, sp, RunContext(seed=0))
     rot, trans = transform_errors(res.T_target_source, np.eye(4))
     assert rot < 0.025 and trans < 0.02 * sp  # reached 0.007 deg and 0.006 spacings, from 3 deg off
+
+
+# ------------------------------------------------------------------------------------------------ Anderson
+
+
+def anderson_case(seed=0):
+    """An anisotropic blob, and 120 of its points moved back by a pose 8-12 degrees off, with noise."""
+    from scanreg.geometry import apply_T, random_pose
+
+    rng = np.random.default_rng(seed)
+    target = rng.normal(size=(150, 3)) * [3.0, 2.0, 1.0]
+    T = random_pose(rng, 12, 0.3, min_angle_deg=8)
+    src = apply_T(np.linalg.inv(T), target[:120]) + rng.normal(scale=0.02, size=(120, 3))
+    return target, src
+
+
+def aa_icp_history(target, source, memory, n):
+    """RMS closest-point distance at each of n + 1 iterates of Anderson-accelerated point-to-point ICP, written
+    out: x = (rotation vector, translation); G(x) the Besl-McKay step from x (brute-force closest points, the
+    rigid fit by SVD); type-II mixing over the last memory + 1 steps, x = g - dG gamma with gamma the least-squares
+    solution of dF gamma = f; an iterate whose RMS exceeds the last accepted one is replaced by that one's plain
+    step, the history cleared."""
+    from scipy.spatial.transform import Rotation
+
+    from scanreg.geometry import apply_T, make_T
+
+    vec = lambda T: np.r_[Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]]  # noqa: E731
+    mat = lambda x: make_T(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:])  # noqa: E731
+
+    def at(x):
+        moved = apply_T(mat(x), source)
+        D = np.linalg.norm(moved[:, None] - target[None], axis=2)
+        j = D.argmin(axis=1)
+        return moved, target[j], np.sqrt(np.mean(D[np.arange(len(moved)), j] ** 2))
+
+    def step(moved, q, x):
+        mp, mq = moved.mean(axis=0), q.mean(axis=0)
+        U, _, Vt = np.linalg.svd((moved - mp).T @ (q - mq))
+        R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+        return vec(make_T(R, mq - R @ mp) @ mat(x))
+
+    x, G, F, hist, accepted, g_acc = np.zeros(6), [], [], [], np.inf, None
+    for it in range(n + 1):
+        moved, q, rms = at(x)
+        if rms > accepted and g_acc is not None:
+            G, F, x = [], [], g_acc
+            moved, q, rms = at(x)
+        hist.append(rms)
+        if it == n:
+            break
+        g = step(moved, q, x)
+        accepted, g_acc = rms, g
+        G.append(g)
+        F.append(g - x)
+        G, F = G[-(memory + 1):], F[-(memory + 1):]
+        x = g
+        if len(G) > 1:
+            gamma = np.linalg.lstsq(np.diff(F, axis=0).T, F[-1], rcond=None)[0]
+            x = g - np.diff(G, axis=0).T @ gamma
+    return np.array(hist)
+
+
+@pytest.mark.parametrize("memory", [1, 2])  # a wider window mixes nearly parallel steps: round-off then decides
+def test_anderson_iterates_are_the_mixing_written_out(memory):
+    from scanreg.geometry import Cloud
+    from scanreg.stages.icp.point import Anderson
+    from scanreg.types import RunContext
+
+    from scanreg.geometry import ClosestPoints
+
+    target, src = anderson_case()
+    n = 12
+    st = Anderson(Anderson.Params(memory=memory, max_iterations=n, distances="absolute"))
+    res = st.iterate(Cloud(target), Cloud(src), np.eye(4), ClosestPoints(Cloud(target)), 0.0, PairLimit(None, None))
+    want = aa_icp_history(target, src, memory, n)
+    assert res.iterations == n and not res.converged and len(res.rms_history) == n + 1
+    assert np.allclose(res.rms_history, want, rtol=1e-9, atol=1e-12)
+    assert want[-1] < 0.5 * want[0]
+
+
+def test_anderson_limit_tightens_only_when_settled_and_final_distances_stay_within_the_floor():
+    """Three iterations from 10 degrees off with an adaptive limit far above its floor: the fit moves by more
+    than 1 % per iteration, so the limit stays where it started; the final distances beyond the floor are inf."""
+    from scanreg.geometry import ClosestPoints, Cloud
+    from scanreg.stages.icp.point import Anderson
+
+    target, src = anderson_case(1)
+    st = Anderson(Anderson.Params(max_iterations=3, distances="absolute"))
+    lim = PairLimit(6.0, 0.05, shrink=0.5, settle=0.01)
+    res = st.iterate(Cloud(target), Cloud(src), np.eye(4), ClosestPoints(Cloud(target)), 1e-6, lim)
+    assert res.final_limit == 6.0 and res.iterations == 3
+    d = res.final_distances
+    assert np.isinf(d).any() and np.all(np.isinf(d) | (d <= 0.05))
+
+
+def test_anderson_rejects_pairs_whose_normals_disagree():
+    """Two parallel sheets 0.1 apart facing away from each other (normals up on the upper one, down on the lower).
+    The source faces up: 80 % of it 0.02 below the upper sheet, 20 % 0.02 above the lower one. With a 60-degree
+    normal test the 20 % (paired with the lower sheet, normals opposed) are dropped and the source moves up
+    0.02 onto the upper sheet; without, the two parts pull apart and it settles at 0.8 x 0.02 - 0.2 x 0.02 =
+    0.012 (where the upper part's pull, 0.8 x 0.008, balances the lower part's, 0.2 x 0.032)."""
+    from scanreg.geometry import Cloud
+    from scanreg.stages.icp.point import Anderson
+    from scanreg.types import RunContext
+
+    rng = np.random.default_rng(2)
+    n = 6000  # per sheet of 1 x 1: about 0.01 apart, closer than the sheets
+    top = np.c_[rng.uniform(0, 1, (n, 2)), np.full(n, 0.1)]
+    bottom = np.c_[rng.uniform(0, 1, (n, 2)), np.zeros(n)]
+    target = Cloud(np.vstack([top, bottom]), np.vstack([np.tile([0, 0, 1.0], (n, 1)), np.tile([0, 0, -1.0], (n, 1))]))
+    src_pts = np.c_[rng.uniform(0.2, 0.8, (500, 2)), np.r_[np.full(400, 0.08), np.full(100, 0.02)]]
+    source = Cloud(src_pts, np.tile([0, 0, 1.0], (500, 1)))
+    kw = dict(max_correspondence_distance=None, schedule="fixed", distances="absolute", accept=False)
+    for angle, dz in ((60.0, 0.02), (None, 0.012)):
+        res = Anderson(Anderson.Params(max_normal_angle_deg=angle, **kw)).refine(target, source, np.eye(4), 0.01,
+                                                                               RunContext(seed=0))
+        assert res.T_target_source[2, 3] == pytest.approx(dz, abs=0.002), angle
