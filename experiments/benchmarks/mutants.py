@@ -363,6 +363,9 @@ def write_report(cfg: dict, command: str) -> tuple[int, int]:
         meta = metas.get(module["name"], {})
         lines.append(f"| {module['name']} | {', '.join(f'`{f}`' for f in module['functions'])} | "
                      f"{'<br>'.join(f'`{t}`' for t in module['tests'])} | {meta.get('baseline_seconds', '')} |")
+    if cfg.get("finding"):
+        lines += ["", "## Findings", "", "What the mutants showed beyond the tests (mutants.toml's `finding` entries):", ""]
+        lines += [f"- {f['text']}" for f in cfg["finding"]]
     lines += ["", "## Surviving mutants", ""]
     if not survivors:
         lines.append("None.")
