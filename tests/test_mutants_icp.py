@@ -281,3 +281,34 @@ def test_anderson_rejects_pairs_whose_normals_disagree():
         res = Anderson(Anderson.Params(max_normal_angle_deg=angle, **kw)).refine(target, source, np.eye(4), 0.01,
                                                                                RunContext(seed=0))
         assert res.T_target_source[2, 3] == pytest.approx(dz, abs=0.002), angle
+
+
+def test_anderson_with_a_normal_test_that_keeps_every_pair_iterates_as_without():
+    """Normals all +z on both sides and a 90-degree normal test: every pair passes, so the iterates are those of
+    the mixing written out, including the steps the safeguard replaces (where the normals are turned again)."""
+    from scanreg.geometry import ClosestPoints, Cloud
+    from scanreg.stages.icp.point import Anderson
+
+    target, src = anderson_case()
+    up = lambda n: np.tile([0.0, 0.0, 1.0], (n, 1))  # noqa: E731
+    st = Anderson(Anderson.Params(memory=2, max_iterations=12, distances="absolute", max_normal_angle_deg=90.0))
+    tc = Cloud(target, up(len(target)))
+    res = st.iterate(tc, Cloud(src, up(len(src))), np.eye(4), ClosestPoints(tc), 0.0, PairLimit(None, None))
+    want = aa_icp_history(target, src, 2, 12)
+    assert np.allclose(res.rms_history, want, rtol=1e-9, atol=1e-12)
+    assert (np.diff(want) > 0).any()  # the safeguard had a mixed step to replace
+
+
+def test_anderson_history_starts_at_the_start_pose_when_the_limit_tightens():
+    """The first entry is the RMS of the pairs within the start limit at the start pose (brute force here); an
+    entry rewritten when the limit tightens is that iterate's own."""
+    from scanreg.geometry import ClosestPoints, Cloud
+    from scanreg.stages.icp.point import Anderson
+
+    target, src = anderson_case(3)
+    st = Anderson(Anderson.Params(max_iterations=40, distances="absolute"))
+    lim = PairLimit(1.0, 0.1, shrink=0.5, settle=0.01)
+    res = st.iterate(Cloud(target), Cloud(src), np.eye(4), ClosestPoints(Cloud(target)), 1e-9, lim)
+    assert res.final_limit < 1.0  # it tightened
+    d = np.linalg.norm(src[:, None] - target[None], axis=2).min(axis=1)
+    assert res.rms_history[0] == pytest.approx(np.sqrt(np.mean(d[d <= 1.0] ** 2)), rel=1e-12)
