@@ -312,3 +312,29 @@ def test_anderson_history_starts_at_the_start_pose_when_the_limit_tightens():
     assert res.final_limit < 1.0  # it tightened
     d = np.linalg.norm(src[:, None] - target[None], axis=2).min(axis=1)
     assert res.rms_history[0] == pytest.approx(np.sqrt(np.mean(d[d <= 1.0] ** 2)), rel=1e-12)
+
+
+def test_point_to_plane_uses_the_normals_the_target_has():
+    """A target cloud with normals of its own (here the surface's turned 10 degrees: not what an estimate would
+    give), and a source sampled elsewhere on the surface: one update is the linearised least squares with those
+    normals (written here, closest points by brute force), so they are not estimated again."""
+    from scanreg.geometry import Cloud
+    from scanreg.stages.icp.plane import PointToPlane
+    from scanreg.types import RunContext
+
+    _, q, nq, _, _ = paired_case(4, n=800)
+    given = nq @ rotvec_matrix([np.radians(10.0), 0.0, 0.0]).T
+    xy = np.random.default_rng(5).uniform(-2.5, 2.5, (150, 2))  # other points of the same surface, moved
+    src = np.c_[xy, np.sin(xy[:, 0]) * np.cos(xy[:, 1])] + [20.0, -5.0, 3.0] + [0.02, -0.01, 0.05]
+    D = np.linalg.norm(src[:, None] - q[None], axis=2)
+    j = D.argmin(axis=1)
+    qk, nk = q[j], given[j]
+    c = src.mean(axis=0)
+    x = np.linalg.lstsq(np.c_[np.cross(src - c, nk), nk], -np.einsum("ij,ij->i", src - qk, nk), rcond=None)[0]
+    R = rotvec_matrix(x[:3])
+    st = PointToPlane(PointToPlane.Params(max_iterations=1, initial_share=1.0, schedule="fixed", kernel="none",
+                                          max_correspondence_distance=None, accept=False, distances="absolute"))
+    res = st.refine(Cloud(q, given), Cloud(src), np.eye(4), 1.0, RunContext(seed=0))
+    assert res.iterations == 1
+    assert np.allclose(res.T_target_source[:3, :3], R, atol=1e-10)
+    assert np.allclose(res.T_target_source[:3, 3], x[3:] + c - R @ c, atol=1e-10)

@@ -41,6 +41,7 @@ def test_weighted_horn_is_the_weighted_least_squares_fit():
     k = rng.integers(1, 4, 40)
     assert np.allclose(horn_quaternion(P0, P1, k.astype(float)),
                        horn_quaternion(np.repeat(P0, k, axis=0), np.repeat(P1, k, axis=0)), atol=1e-10)
+    assert np.allclose(horn_quaternion(P0[:3], P1[:3]), svd_fit(P0[:3], P1[:3]), atol=1e-10)  # 3 are enough
     with pytest.raises(ValueError, match="at least 3"):
         horn_quaternion(P0[:2], P1[:2])
     with pytest.raises(ValueError, match="at least 3"):

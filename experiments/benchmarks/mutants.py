@@ -289,7 +289,6 @@ def explanation(cfg: dict, module: dict, rec: dict) -> dict | None:
 
 
 def write_report(cfg: dict, command: str) -> tuple[int, int]:
-    import cosmic_ray  # noqa: F401 (its version)
     from importlib.metadata import version
 
     rows, survivors = [], []
