@@ -58,6 +58,9 @@ def test_fit_with_normals_is_the_least_squares_fit_of_points_and_normals():
         got = rigid_points_normals(P0, P1, N0, N1, wn)
         assert np.allclose(got, svd_fit(P0, P1, N0=N0, N1=N1, wn=wn), atol=1e-10), wn
     assert np.allclose(rigid_points_normals(P0, P1), svd_fit(P0, P1), atol=1e-10)
+    # normals on one side only: the points-only fit
+    assert np.allclose(rigid_points_normals(P0, P1, N0, None, 20.0), svd_fit(P0, P1), atol=1e-10)
+    assert np.allclose(rigid_points_normals(P0, P1, None, N1, 20.0), svd_fit(P0, P1), atol=1e-10)
     assert np.abs(rigid_points_normals(P0, P1, N0, N1, 20.0) - svd_fit(P0, P1)).max() > 1e-3
 
 
