@@ -58,12 +58,19 @@ def test_least_norm_solve_drops_a_column_with_almost_no_weight():
     assert np.allclose(least_norm_solve(H, g), [1.0, 0.5, 1 / 3, 0.25, 0.2, 0.0], rtol=1e-12)
     H[5, 5], g[5] = 1e-20, 2e-20
     assert np.allclose(least_norm_solve(H, g), [1.0, 0.5, 1 / 3, 0.25, 0.2, 2.0], rtol=1e-9)
+    # the cut-off is relative to the largest scale: with a largest diagonal entry of 1e6 (scale 1e3), an entry of
+    # 1e-20 (scale 1e-10) is below 1e-12 of it and dropped
+    H = np.diag([1e6, 2.0, 3.0, 4.0, 5.0, 1e-20])
+    g = np.array([1e6, 1.0, 1.0, 1.0, 1.0, 2e-20])
+    assert np.allclose(least_norm_solve(H, g), [1.0, 0.5, 1 / 3, 0.25, 0.2, 0.0], rtol=1e-12)
 
 
 def test_kernel_scale_grows_with_the_pair_limit():
     assert PairLimit(16.0, 4.0, kernel_scale=2.0).scale() == 8.0  # 4 times the floor: 4 times the scale
     assert PairLimit(4.0, 4.0, kernel_scale=2.0).scale() == 2.0
     assert PairLimit(None, None, kernel_scale=2.0).scale() == 2.0
+    assert PairLimit(5.0, None, kernel_scale=2.0).scale() == 2.0  # no floor: no schedule, the scale as given
+    assert PairLimit(5.0, None).settled and PairLimit(None, 3.0).settled
     lim = PairLimit(16.0, 4.0, shrink=0.5, settle=0.01, kernel_scale=1.0)
     assert lim.advance(1.0, 1.0, 1e-4) and lim.scale() == 2.0
 
