@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from scanreg.eval.metrics import (EvalParams, alignment_metrics, field_metrics, gt_metrics, keypoint_repeatability,
-                                  match_inliers, overlap_mask, surface_deviation)
+                                  match_inliers, overlap_mask, registration_recall, surface_deviation)
 from scanreg.types import CoarseTrace, Distances
 
 
@@ -69,9 +69,16 @@ def test_success_needs_the_translation_under_its_share_of_the_diagonal():
     assert "success" not in gt_metrics(shift(0.3), np.eye(4), 20.0, p, prefix="coarse_")
 
 
+def test_registration_recall_is_strict_at_both_thresholds():
+    p = EvalParams(recall_translation_abs=0.5)  # 15 degrees and 0.5 exactly
+    assert registration_recall(15.0, 0.1, 100.0, p) == 0.0 and registration_recall(14.5, 0.1, 100.0, p) == 1.0
+    assert registration_recall(1.0, 0.5, 100.0, p) == 0.0 and registration_recall(1.0, 0.25, 100.0, p) == 1.0
+
+
 def test_surface_deviation_unsigned_at_the_boundary_and_empty():
-    aligned = np.array([[0.0, 0, 0.5], [0.0, 0, -1.0], [0.0, 0, 2.0], [0.0, 0, 0.25]])
-    q = np.zeros((4, 3))
+    # closest points on the plane z = 5 (normal +z), the aligned points above or below them
+    q = np.array([[1.0, 2.0, 5.0], [3.0, -1.0, 5.0], [0.0, 0.0, 5.0], [-2.0, 4.0, 5.0]])
+    aligned = q + [[0.0, 0, 0.5], [0.0, 0, -1.0], [0.0, 0, 2.0], [0.0, 0, 0.25]]
     d = np.array([0.5, 1.0, 2.0, 0.25])
     p = EvalParams(inlier_distance=1.0, distances=Distances.absolute)
     m = surface_deviation(aligned, (q, d, None), p, spacing=7.0)  # no normals: unsigned; 1.0 is an inlier
@@ -97,6 +104,10 @@ def test_field_metrics_leave_out_what_the_trace_does_not_give():
     m, _ = field_metrics(CoarseTrace(**base, ransac_inliers=np.array([True, False, False])), np.eye(4), np.eye(4),
                          np.eye(4), k, k, p, 1.0)
     assert m["ransac_inlier_precision"] == 1.0
+    # keypoints of one side only: no keypoint metrics (not a crash)
+    for one in (dict(keypoints_target=k), dict(keypoints_source=k)):
+        m, masks = field_metrics(CoarseTrace(**one), np.eye(4), np.eye(4), np.eye(4), k, k, p, 1.0)
+        assert "n_keypoints_target" not in m and "repeatability" not in masks
     # only matches: no keypoint metrics; nothing: only the ground-truth RMSEs and the overlap share
     m, masks = field_metrics(CoarseTrace(matches_target=k, matches_source=k), np.eye(4), np.eye(4), np.eye(4), k, k,
                              p, 1.0)
