@@ -3,6 +3,7 @@ the fast tests that exercise it.
 
     ./run mutants                      every module of mutants.toml, then the report (experiments/benchmarks/mutants.md)
     ./run mutants --module ransac ...  only these modules (the others' last results stay in the report)
+    ./run mutants --survivors [--module ...]  only the last run's survivors again, with the current tests
     ./run mutants --list               count the mutants per module, run nothing
     ./run mutants --report-only        rewrite the report from the last results (after editing explanations)
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import hashlib
 import json
 import os
 import platform
@@ -206,17 +208,25 @@ def init_session(module: dict, cfg: dict, db: Path, cfg_file: Path) -> int:
     return left
 
 
-def run_module(module: dict, cfg: dict, commit: str) -> None:
-    name = module["name"]
-    db, cfg_file = WORK / f"{name}.sqlite", WORK / f"{name}.cosmic-ray.toml"
-    # the unmutated tests first: they must pass (else every mutant would count as killed), and their time sets
-    # the timeout (a mutant that loops forever is killed by it)
+def baseline(module: dict, cfg: dict) -> tuple[float, float]:
+    """The module's tests on the unmutated copy: they must pass (else every mutant would count as killed). Returns
+    their time and the timeout it sets (a mutant that loops forever is killed by it)."""
     t0 = time.monotonic()
     base = subprocess.run(shlex.split(test_command(module)), cwd=TREE, env=env(), capture_output=True, text=True)
     base_s = time.monotonic() - t0
     if base.returncode:
-        raise SystemExit(f"{name}: the tests fail without any mutant:\n{base.stdout[-3000:]}{base.stderr[-2000:]}")
-    timeout = round(max(30.0, cfg["run"]["timeout_factor"] * base_s), 1)
+        raise SystemExit(f"{module['name']}: the tests fail without any mutant:\n{base.stdout[-3000:]}{base.stderr[-2000:]}")
+    return base_s, round(max(30.0, cfg["run"]["timeout_factor"] * base_s), 1)
+
+
+def source_sha(module: dict) -> str:
+    return hashlib.sha256((TREE / module["path"]).read_bytes()).hexdigest()[:16]
+
+
+def run_module(module: dict, cfg: dict, commit: str) -> None:
+    name = module["name"]
+    db, cfg_file = WORK / f"{name}.sqlite", WORK / f"{name}.cosmic-ray.toml"
+    base_s, timeout = baseline(module, cfg)
     cfg_file.write_text(cosmic_config(module, timeout))
     n = init_session(module, cfg, db, cfg_file)
     print(f"mutants: {name}: {n} mutants of {module['path']} (unmutated tests {base_s:.1f} s)", flush=True)
@@ -226,8 +236,48 @@ def run_module(module: dict, cfg: dict, commit: str) -> None:
         raise SystemExit(f"cosmic-ray exec failed for {name}:\n{r.stderr[-3000:]}")
     meta = {"commit": commit, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
             "seconds": round(time.monotonic() - t0), "baseline_seconds": round(base_s, 1), "timeout": timeout,
-            "tests": module["tests"], "path": module["path"], "mutants": results(module, db)}
+            "tests": module["tests"], "path": module["path"], "source_sha": source_sha(module),
+            "mutants": results(module, db)}
     (WORK / f"{name}.json").write_text(json.dumps(meta, indent=1) + "\n")
+
+
+def rerun_survivors(module: dict, cfg: dict, commit: str) -> None:
+    """The module's surviving mutants of its last run tested again with the current tests (after tests were
+    added to kill them); its killed mutants stay killed (tests are only added). Refused when the module's source
+    changed since that run: the mutants are numbered by their place in the file."""
+    import sqlite3
+
+    name = module["name"]
+    db, meta_file = WORK / f"{name}.sqlite", WORK / f"{name}.json"
+    if not (db.exists() and meta_file.exists()):
+        raise SystemExit(f"{name}: no run to take the survivors of; run ./run mutants --module {name}")
+    meta = json.loads(meta_file.read_text())
+    was = meta.get("source_sha") or hashlib.sha256(subprocess.run(
+        ["git", "show", f"{meta['commit'].split()[0]}:{module['path']}"], cwd=ROOT, capture_output=True,
+        check=True).stdout).hexdigest()[:16]
+    if was != source_sha(module):
+        raise SystemExit(f"{name}: {module['path']} changed since its last run; run the module again in full")
+    base_s, timeout = baseline(module, cfg)
+    cfg_file = WORK / f"{name}.cosmic-ray.toml"
+    cfg_file.write_text(cosmic_config(module, timeout))
+    from cosmic_ray.work_db import WorkDB, use_db
+    from cosmic_ray.work_item import TestOutcome
+
+    with use_db(str(db), WorkDB.Mode.open) as work_db:
+        again = [item.job_id for item, res in work_db.completed_work_items if res.test_outcome == TestOutcome.SURVIVED]
+    with sqlite3.connect(db) as con:  # cosmic-ray runs the work items without a result
+        con.executemany("DELETE FROM work_results WHERE job_id = ?", [(j,) for j in again])
+    print(f"mutants: {name}: {len(again)} survivors of {module['path']} again (unmutated tests {base_s:.1f} s)",
+          flush=True)
+    t0 = time.monotonic()
+    r = cosmic_ray("exec", str(cfg_file), str(db))
+    if r.returncode:
+        raise SystemExit(f"cosmic-ray exec failed for {name}:\n{r.stderr[-3000:]}")
+    meta.update({"source_sha": was, "mutants": results(module, db), "tests": module["tests"],
+                 "seconds": meta["seconds"] + round(time.monotonic() - t0),
+                 "survivors_rerun": {"commit": commit, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+                                     "mutants": len(again)}})
+    meta_file.write_text(json.dumps(meta, indent=1) + "\n")
 
 
 # ---------------------------------------------------------------------------------------------------- results
@@ -335,6 +385,10 @@ def write_report(cfg: dict, command: str) -> tuple[int, int]:
         "",
         f"- date: {', '.join(dates)}",
         f"- commit: {', '.join(commits)}",
+        *([f"- survivors tested again (`--survivors`, after tests were added): "
+           + "; ".join(f"{n} at {m['survivors_rerun']['commit']} ({m['survivors_rerun']['mutants']} mutants, "
+                       f"{m['survivors_rerun']['date']})" for n, m in metas.items() if "survivors_rerun" in m)]
+          if any("survivors_rerun" in m for m in metas.values()) else []),
         f"- tool: cosmic-ray {version('cosmic-ray')}, Python {platform.python_version()}, pytest {version('pytest')}",
         f"- machine: {os.cpu_count()} cores; one test process at a time, one thread (OMP/BLAS), `nice -n 19`",
         f"- time: {tot['seconds'] / 60:.0f} min of mutants (each module's unmutated tests first)",
@@ -386,6 +440,8 @@ def main() -> None:
     ap.add_argument("--module", nargs="+", help="only these modules (names in mutants.toml), in this order")
     ap.add_argument("--list", action="store_true", help="count the mutants per module and stop")
     ap.add_argument("--report-only", action="store_true", help="rewrite the report from the last results")
+    ap.add_argument("--survivors", action="store_true",
+                    help="test only the last run's survivors again, with the current tests (after adding tests)")
     args = ap.parse_args()
     cfg = load_config()
     known = {m["name"] for m in cfg["module"]}
@@ -410,7 +466,7 @@ def main() -> None:
                 print(f"{module['name']}: {n} mutants of {module['path']}")
             return
         for module in chosen:
-            run_module(module, cfg, commit)
+            (rerun_survivors if args.survivors else run_module)(module, cfg, commit)
     unexplained, n = write_report(cfg, "./run mutants")
     print(f"mutants: report in {REPORT.relative_to(ROOT)} ({n} mutants, {unexplained} survivors not explained)")
 
