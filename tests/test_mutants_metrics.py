@@ -67,6 +67,15 @@ def test_success_needs_the_translation_under_its_share_of_the_diagonal():
     bad = gt_metrics(shift(0.3), np.eye(4), 20.0, p)  # 0.3 off
     assert bad["success"] == 0.0 and bad["registration_recall"] == 1.0
     assert "success" not in gt_metrics(shift(0.3), np.eye(4), 20.0, p, prefix="coarse_")
+    # both halves strict: exactly 1 % of a diagonal of 50 (0.5) is not a success, nor is a rotation error equal
+    # to the limit
+    assert gt_metrics(shift(0.5), np.eye(4), 50.0, p)["success"] == 0.0
+    assert gt_metrics(shift(0.25), np.eye(4), 50.0, p)["success"] == 1.0
+    turned = np.eye(4)
+    turned[:2, :2] = [[np.cos(0.02), -np.sin(0.02)], [np.sin(0.02), np.cos(0.02)]]
+    rot = gt_metrics(turned, np.eye(4), 50.0, p)["rotation_error_deg"]
+    assert gt_metrics(turned, np.eye(4), 50.0, EvalParams(success_rotation_deg=rot))["success"] == 0.0
+    assert gt_metrics(turned, np.eye(4), 50.0, EvalParams(success_rotation_deg=rot * 1.001))["success"] == 1.0
 
 
 def test_registration_recall_is_strict_at_both_thresholds():
@@ -104,10 +113,10 @@ def test_field_metrics_leave_out_what_the_trace_does_not_give():
     m, _ = field_metrics(CoarseTrace(**base, ransac_inliers=np.array([True, False, False])), np.eye(4), np.eye(4),
                          np.eye(4), k, k, p, 1.0)
     assert m["ransac_inlier_precision"] == 1.0
-    # keypoints of one side only: no keypoint metrics (not a crash)
-    for one in (dict(keypoints_target=k), dict(keypoints_source=k)):
+    # keypoints or matches of one side only: no keypoint or match metrics (not a crash)
+    for one in (dict(keypoints_target=k), dict(keypoints_source=k), dict(matches_target=k), dict(matches_source=k)):
         m, masks = field_metrics(CoarseTrace(**one), np.eye(4), np.eye(4), np.eye(4), k, k, p, 1.0)
-        assert "n_keypoints_target" not in m and "repeatability" not in masks
+        assert "n_keypoints_target" not in m and "n_matches" not in m and masks == {}
     # only matches: no keypoint metrics; nothing: only the ground-truth RMSEs and the overlap share
     m, masks = field_metrics(CoarseTrace(matches_target=k, matches_source=k), np.eye(4), np.eye(4), np.eye(4), k, k,
                              p, 1.0)
