@@ -89,6 +89,8 @@ def test_guided_sampling_with_exactly_three_correspondences():
     st = build_coarse("lo_ransac", distance_threshold=0.1, distances="absolute", seed=0)
     r = lo_ransac(apply_T(T, P1), P1, None, None, 0.1, st.p, st.p.seed)
     assert r.inliers.all() and np.allclose(r.T_target_source, T, atol=1e-9)
+    # every inlier's compatible set is all inliers (r = 1) and w = 1: q = 1, one batch of 64 x 8 is enough
+    assert r.all_inlier_probability == 1.0 and r.hypotheses == 512
 
 
 def test_hypotheses_needed_for_an_all_inlier_probability():
@@ -131,16 +133,18 @@ def test_ransac_keeps_the_largest_consensus(seed, sampling):
     assert np.allclose(r.T_target_source, T1, atol=1e-9)
 
 
-def test_guided_hypotheses_are_scored_on_their_seeds_compatible_set():
+@pytest.mark.parametrize("scale", [1.0, 100.0])
+def test_guided_hypotheses_are_scored_on_their_seeds_compatible_set(scale):
     """One guided batch whose 64 seeds are all correspondence 0 (an inlier): 512 samples, more hypotheses than
     one block of 64. Each hypothesis's count is, by brute force, the correspondences within thr of it (squared
-    distance) among those compatible with the seed (|d1 - d0| < 2 thr)."""
+    distance) among those compatible with the seed (|d1 - d0| < 2 thr); at two scales (thr 0.05 and 5), so that
+    the pool's width is not mistaken for another expression of thr."""
     rng = np.random.default_rng(5)
-    M, thr = 300, 0.05
-    T = random_pose(rng, 180, 5.0)
-    P1 = rng.uniform(0, 10, (M, 3))
-    P0 = rng.uniform(-5, 15, (M, 3))
-    P0[:120] = apply_T(T, P1[:120]) + rng.normal(scale=0.01, size=(120, 3))
+    M, thr = 300, 0.05 * scale
+    T = random_pose(rng, 180, 5.0 * scale)
+    P1 = rng.uniform(0, 10, (M, 3)) * scale
+    P0 = rng.uniform(-5, 15, (M, 3)) * scale
+    P0[:120] = apply_T(T, P1[:120]) + rng.normal(scale=0.4 * thr, size=(120, 3))
     st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
     s = _Search(P0, P1, thr, st.p)
     seeds = np.zeros(64, np.int64)
@@ -151,4 +155,41 @@ def test_guided_hypotheses_are_scored_on_their_seeds_compatible_set():
     for Th, c in zip(Ts, counts):
         r = apply_T(Th, P1[pool]) - P0[pool]
         assert c == (np.einsum("ij,ij->i", r, r) < thr * thr).sum()
-    assert counts.max() >= 100  # the all-inlier hypotheses see the inliers
+    assert counts.max() >= 60  # the all-inlier hypotheses see most inliers
+
+
+def test_local_optimisation_refits_a_candidate_until_its_inliers_settle():
+    """A candidate 0.8 degrees off the pose of 40 noisy inliers (thr 0.05): it holds part of them; local
+    optimisation refits on its inliers until they stop changing, and the best model is that fit (Kabsch by SVD
+    here, over its own inliers) with more inliers than the candidate."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(8)
+    M, thr = 60, 0.05
+    T = random_pose(rng, 180, 2.0)
+    P1 = rng.uniform(-3, 3, (M, 3))
+    P0 = rng.uniform(-10, 10, (M, 3))
+    P0[:40] = apply_T(T, P1[:40]) + rng.normal(scale=0.01, size=(40, 3))
+    cand = T.copy()
+    cand[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(0.8)]).as_matrix() @ T[:3, :3]
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
+    s = _Search(P0, P1, thr, st.p)
+    n_cand = int(s.inliers(cand).sum())
+    s.accept(cand, n_cand)
+    assert n_cand < 40 and s.best_n == 40 and s.best_inl[:40].all()
+    P0i, P1i = P0[s.best_inl], P1[s.best_inl]
+    m1, m0 = P1i.mean(axis=0), P0i.mean(axis=0)
+    U, _, Vt = np.linalg.svd((P1i - m1).T @ (P0i - m0))
+    R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+    assert np.allclose(s.best_T[:3, :3], R, atol=1e-9) and np.allclose(s.best_T[:3, 3], m0 - R @ m1, atol=1e-9)
+
+
+def test_uniform_ransac_draws_exactly_max_iterations_without_a_model():
+    """Random correspondences (no rigid triple agrees within a tight thr): no model, the identity, and exactly
+    max_iterations hypotheses drawn in batches of 64 (64 + 36)."""
+    rng = np.random.default_rng(9)
+    P0, P1 = rng.uniform(0, 10, (50, 3)), rng.uniform(0, 10, (50, 3))
+    st = build_coarse("lo_ransac", distance_threshold=1e-4, distances="absolute", sampling="uniform", batch=64,
+                      min_iterations=1, max_iterations=100)
+    r = lo_ransac(P0, P1, None, None, 1e-4, st.p, st.p.seed)
+    assert r.hypotheses == 100 and not r.inliers.any() and np.array_equal(r.T_target_source, np.eye(4))
