@@ -107,3 +107,21 @@ def test_fpfh_does_not_depend_on_the_input_units():
     assert np.abs(small - large).max() < 7.0
     unthinned = FPFH(FPFH.Params(support_voxel=0.0)).compute(Cloud(p * 0.1, n), kp, sp * 0.1)
     assert np.abs(unthinned - large).max() > 30.0
+
+
+def test_histogram3p_frames_see_the_frame_radius_in_a_sparse_cloud():
+    """A sparse strip (400 points): about 50 points within the support radius (15 spacings) and 90 within the
+    frame radius (20), both under the 128-neighbour cap, so the frames need their own, wider search. The
+    descriptor equals the straightforward implementation kept in test_fast_paths."""
+    from test_fast_paths import reference_histogram3p
+
+    pts, nrm = strip(400, 4)
+    spacing = 0.0125
+    kp = np.arange(5, 400, 13)
+    counts = cKDTree(pts).query_ball_point(pts[kp], 20.0 * spacing, return_length=True)
+    assert np.median(counts) < 128 and np.median(counts) > 1.3 * np.median(
+        cKDTree(pts).query_ball_point(pts[kp], 15.0 * spacing, return_length=True))
+    p = Histogram3P.Params(radius=15.0, frame_radius=20.0)
+    cloud = Cloud(pts, nrm)
+    assert np.allclose(Histogram3P(p).compute(cloud, kp, spacing), reference_histogram3p(p, cloud, kp, spacing),
+                       atol=1e-12)
