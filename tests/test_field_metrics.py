@@ -140,15 +140,24 @@ def test_write_ply_edges_read_back_as_a_line_set(tmp_path):
         write_ply(tmp_path / "bad.ply", Cloud(pts, None, "l"), edges=[[0, 4]])
 
 
-def test_stanford_run_logs_the_field_metrics_and_writes_coloured_plys(tmp_path):
+STANFORD = ["data=stanford", "repair=none", "tracking=none", "evaluate.view_html=false",
+            "evaluate.pose_uncertainty=false"]
+
+
+@pytest.fixture(scope="module")
+def stanford_run(tmp_path_factory):
+    """One run with ground truth (two Stanford scans, random pose): its result, result.json and folder."""
     shared("stanford_bunny/bun.conf")
     from scanreg.app.config import compose
     from scanreg.runner import run_pipeline
 
-    cfg = compose(["data=stanford", "repair=none", "tracking=none", "evaluate.view_html=false",
-                   "evaluate.pose_uncertainty=false"])
-    res = run_pipeline(cfg, tmp_path)
-    r = json.loads((tmp_path / "result.json").read_text())
+    run_dir = tmp_path_factory.mktemp("stanford")
+    res = run_pipeline(compose(STANFORD), run_dir)
+    return res, json.loads((run_dir / "result.json").read_text()), run_dir
+
+
+def test_stanford_run_logs_the_field_metrics_and_writes_coloured_plys(stanford_run):
+    res, r, tmp_path = stanford_run
     for k in ("keypoint_repeatability", "inlier_ratio", "feature_match_recall", "registration_recall",
               "coarse_registration_recall", "gt_rmse", "n_keypoints_source", "n_keypoints_target"):
         assert k in r and r[k] == res.metrics[k], k
@@ -164,3 +173,50 @@ def test_stanford_run_logs_the_field_metrics_and_writes_coloured_plys(tmp_path):
     assert green.sum() == round(r["inlier_ratio"] * r["n_matches"])
     kp = o3d.io.read_point_cloud(str(tmp_path / "keypoints_source.ply"))
     assert np.isclose(np.asarray(kp.colors)[:, 1], 170 / 255).sum() == r["n_keypoints_repeatable"]
+
+
+def test_repeatability_recomputed_from_the_keypoint_plys(stanford_run):
+    """The run's keypoint repeatability recomputed from what it wrote, by brute force over all distances: the
+    keypoint PLYs (the source keypoints already moved by the true transform), the run's spacings from
+    result.json, and the target cloud the run sampled (made again with the run's stages and seed, its count
+    checked against result.json). A source keypoint is in the overlap when a target sample lies within
+    ``overlap_distance`` (3) run spacings, repeatable when in it and a target keypoint lies within
+    ``repeatability_distance`` (2) spacings of the coarse stage's thinned clouds, where the detector ran
+    (README "Metrics"; Tombari et al. 2013). The PLY colours must say the same keypoint by keypoint."""
+    import open3d as o3d
+    from scipy.spatial.distance import cdist
+
+    from scanreg.app.config import compose
+    from scanreg.runner.build import build_stages
+    from scanreg.runner.steps import prepare_scan
+    from scanreg.types import RunContext
+
+    _, r, run_dir = stanford_run
+    cfg = compose(STANFORD)
+    stages = build_stages(cfg)
+    ctx = RunContext(seed=int(cfg.seed))
+    target = prepare_scan(stages.data.load(ctx).target, stages, ctx, "target", 1).cloud.points
+    assert len(target) == r["n_target_points"]
+    ev = EvalParams()
+    overlap, eps = ev.overlap_distance * r["spacing"], ev.repeatability_distance * r["coarse_spacing"]
+
+    ply_s = o3d.io.read_point_cloud(str(run_dir / "keypoints_source.ply"))
+    ply_t = o3d.io.read_point_cloud(str(run_dir / "keypoints_target.ply"))
+    ks, kt = np.asarray(ply_s.points), np.asarray(ply_t.points)
+    assert (len(ks), len(kt)) == (r["n_keypoints_source"], r["n_keypoints_target"])
+    inside = cdist(ks, target).min(axis=1) <= overlap
+    d_kk = cdist(ks, kt)
+    repeatable = inside & (d_kk.min(axis=1) <= eps)
+    target_repeatable = (d_kk[inside] <= eps).any(axis=0)
+    assert 50 < inside.sum() < len(ks) and 0 < repeatable.sum() < inside.sum()  # a case with every kind
+    assert r["n_keypoints_overlap"] == inside.sum() and r["n_keypoints_repeatable"] == repeatable.sum()
+    assert r["keypoint_repeatability"] == pytest.approx(repeatable.sum() / inside.sum(), rel=1e-12)
+
+    # colours: green repeatable, red in the overlap but not repeatable, grey outside (source); green when a
+    # repeatable source keypoint of the overlap lies within eps, else grey (target)
+    green, red, grey = (np.array(c) / 255 for c in ((0, 170, 0), (220, 0, 0), (150, 150, 150)))
+    want_s = np.where(repeatable[:, None], green, np.where(inside[:, None], red, grey))
+    want_t = np.where(target_repeatable[:, None], green, grey)
+    assert np.allclose(np.asarray(ply_s.colors), want_s, atol=1e-6)
+    assert np.allclose(np.asarray(ply_t.colors), want_t, atol=1e-6)
+

@@ -1,0 +1,221 @@
+"""Known answers that kill the mutants of LO-RANSAC (./run mutants, issue #38): the final fit with normals in closed
+form (SVD, written here) over the inliers it returns, with three inliers and with thirty; the guided sampler's
+all-inlier probability against its formula counted by brute force; the iteration count's edge cases."""
+
+import math
+
+import numpy as np
+import pytest
+
+from conftest import build_coarse
+from scanreg.geometry import apply_T, random_pose
+from scanreg.stages.coarse.ransac import PER_SEED, _Search, lo_ransac
+
+
+def fit_points_normals(P0, P1, N0, N1, w):
+    """argmin over rigid (R, t) of sum |R p1 + t - p0|^2 + w sum |R n1 - n0|^2, by SVD (Kabsch with the normals'
+    term added to the cross-covariance; a reflection corrected)."""
+    m1, m0 = P1.mean(axis=0), P0.mean(axis=0)
+    H = (P1 - m1).T @ (P0 - m0) + w * N1.T @ N0
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, m0 - R @ m1
+    return T
+
+
+def noisy_case(n_in, n_out, seed):
+    """n_in correspondences of a pose with 0.01 of noise on the points and a few degrees on the normals (some
+    source normals given the other way round), then n_out random ones far from agreeing."""
+    rng = np.random.default_rng(seed)
+    T = random_pose(rng, 180, 5.0)
+    P1 = rng.uniform(-3, 3, (n_in + n_out, 3))
+    N1 = rng.normal(size=P1.shape)
+    N1 /= np.linalg.norm(N1, axis=1, keepdims=True)
+    P0 = apply_T(T, P1) + rng.normal(scale=0.01, size=P1.shape)
+    N0 = N1 @ T[:3, :3].T + rng.normal(scale=0.05, size=P1.shape)
+    N0 /= np.linalg.norm(N0, axis=1, keepdims=True)
+    P0[n_in:] = rng.uniform(-20, 20, (n_out, 3))
+    N1[::3] *= -1  # unoriented: the fit turns them to agree with the current pose
+    return P0, P1, N0, N1, T
+
+
+@pytest.mark.parametrize("weight", [1.0, 100.0])  # the default, and normals weighing as much as points 1 apart
+@pytest.mark.parametrize("n_in, n_out", [(3, 5), (30, 30)])
+@pytest.mark.parametrize("sampling", ["guided", "uniform"])
+def test_the_final_fit_is_the_points_and_normals_least_squares_over_the_inliers(n_in, n_out, sampling, weight):
+    thr = 0.1
+    P0, P1, N0, N1, T = noisy_case(n_in, n_out, 7)
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute", sampling=sampling, seed=2,
+                      normal_weight=weight)
+    r = lo_ransac(P0, P1, N0, N1, thr, st.p, st.p.seed)
+    inl = r.inliers
+    assert inl[:n_in].all() and not inl[n_in:].any()
+    R = r.T_target_source[:3, :3]
+    n1 = np.where((np.einsum("ij,ij->i", N1 @ R.T, N0) < 0)[:, None], -N1, N1)
+    want = fit_points_normals(P0[inl], P1[inl], N0[inl], n1[inl], st.p.normal_weight * thr * thr)
+    assert np.allclose(r.T_target_source, want, atol=1e-9)
+    points_only = fit_points_normals(P0[inl], P1[inl], N0[inl], n1[inl], 0.0)
+    assert np.abs(want - points_only).max() > (1e-4 if weight > 1 else 1e-8)  # the normals' term matters here
+
+
+def test_guided_all_inlier_probability_by_brute_force():
+    """q = w (1 - (1 - r^2)^8): w the final model's inlier share, r the mean over its inliers i of the share of
+    inliers in C_i = {c : |d1(i, c) - d0(i, c)| < 2 thr} (i included). With at most 32 inliers every one of
+    them enters the mean."""
+    rng = np.random.default_rng(11)
+    M, n_in, thr = 400, 32, 0.05  # 32: the most that enter the mean all
+    T = random_pose(rng, 180, 5.0)
+    P1 = rng.uniform(0, 10, (M, 3))
+    P0 = rng.uniform(-5, 15, (M, 3))
+    P0[:n_in] = apply_T(T, P1[:n_in]) + rng.normal(scale=0.005, size=(n_in, 3))
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute", seed=1)
+    r = lo_ransac(P0, P1, None, None, thr, st.p, st.p.seed)
+    inl = r.inliers
+    assert inl[:n_in].all() and inl.sum() == n_in
+    d1 = np.linalg.norm(P1[:, None] - P1[None], axis=2)
+    d0 = np.linalg.norm(P0[:, None] - P0[None], axis=2)
+    C = np.abs(d1 - d0)[inl] < 2 * thr
+    r_share = np.mean(C[:, inl].sum(axis=1) / C.sum(axis=1))
+    assert 0.5 < r_share < 0.99  # outliers in the compatible sets (measured 0.92): the share is not 1
+    assert r.all_inlier_probability == pytest.approx(n_in / M * (1 - (1 - r_share ** 2) ** PER_SEED), rel=1e-12)
+
+
+def test_guided_sampling_with_exactly_three_correspondences():
+    """Three correspondences of a pose: each seed's compatible set is the other two, enough for a sample."""
+    rng = np.random.default_rng(3)
+    T = random_pose(rng, 180, 5.0)
+    P1 = np.array([[0.0, 0, 0], [2.0, 0, 0], [0, 3.0, 0]])
+    st = build_coarse("lo_ransac", distance_threshold=0.1, distances="absolute", seed=0)
+    r = lo_ransac(apply_T(T, P1), P1, None, None, 0.1, st.p, st.p.seed)
+    assert r.inliers.all() and np.allclose(r.T_target_source, T, atol=1e-9)
+    # every inlier's compatible set is all inliers (r = 1) and w = 1: q = 1, one batch of 64 x 8 is enough
+    assert r.all_inlier_probability == 1.0 and r.hypotheses == 512
+
+
+def test_hypotheses_needed_for_an_all_inlier_probability():
+    st = build_coarse("lo_ransac", miss_probability=0.01, max_iterations=5000)
+    s = _Search(np.zeros((3, 3)), np.zeros((3, 3)), 0.1, st.p)
+    assert s.needed_for(0.5) == math.ceil(math.log(0.01) / math.log(0.5)) == 7
+    assert s.needed_for(0.0) == 5000 and s.needed_for(-0.1) == 5000  # no model yet: the most
+    assert s.needed_for(1.0) == 1  # certain: log(1 - q) held at log(1e-12), one hypothesis
+
+
+def test_a_sample_is_valid_when_its_sides_agree_within_thr_and_it_is_not_near_collinear():
+    """Samples (source triangle a, target triangle b): b is a moved 10 away, its sides agree exactly, or one
+    side is 0.9 thr or exactly thr longer (strict); a's cross product |(a1 - a0) x (a2 - a0)| must exceed thr^2
+    / 2 (thr = 1: right triangles with legs 1 and h, cross product h)."""
+    st = build_coarse("lo_ransac")
+    s = _Search(np.zeros((3, 3)), np.zeros((3, 3)), 1.0, st.p)
+    tri = lambda h, stretch=0.0: np.array([[0.0, 0, 0], [1.0 + stretch, 0, 0], [0, h, 0]]) + [3.0, 2.0, 1.0]  # noqa: E731
+    a = np.stack([tri(1.0), tri(0.4), tri(0.75), tri(2.0), tri(2.0)])
+    b = np.stack([tri(1.0), tri(0.4), tri(0.75), tri(2.0, 0.9), tri(2.0, 1.0)]) + [10.0, 0, 0]
+    # sides of the 4th: 1.9 vs 1 (0.9 off), sqrt(1.9^2 + 4) vs sqrt(5) (0.52 off); of the 5th: 2 vs 1, exactly 1 off
+    assert s.valid(a, b).tolist() == [True, False, True, True, False]
+
+
+@pytest.mark.parametrize("sampling", ["uniform", "guided"])
+@pytest.mark.parametrize("seed", range(6))
+def test_ransac_keeps_the_largest_consensus(seed, sampling):
+    """Two rigid structures among the matches: 45 % follow one pose, 40 % another, the rest are random. Both
+    samplers find samples of both in their first batch; the model kept is the one with more inliers, whichever
+    they met first."""
+    rng = np.random.default_rng(100 + seed)
+    M, thr = 200, 0.05
+    P1 = rng.uniform(0, 10, (M, 3))
+    P0 = rng.uniform(-10, 20, (M, 3))
+    T1, T2 = random_pose(rng, 180, 5.0), random_pose(rng, 180, 5.0)
+    P0[:90] = apply_T(T1, P1[:90])
+    P0[90:170] = apply_T(T2, P1[90:170])
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute", sampling=sampling, seed=seed)
+    r = lo_ransac(P0, P1, None, None, thr, st.p, st.p.seed)
+    assert r.inliers[:90].all() and r.inliers.sum() == 90
+    assert np.allclose(r.T_target_source, T1, atol=1e-9)
+
+
+@pytest.mark.parametrize("scale", [1.0, 100.0])
+def test_guided_hypotheses_are_scored_on_their_seeds_compatible_set(scale):
+    """One guided batch whose 64 seeds are all correspondence 0 (an inlier): 512 samples, more hypotheses than
+    one block of 64. Each hypothesis's count is, by brute force, the correspondences within thr of it (squared
+    distance) among those compatible with the seed (|d1 - d0| < 2 thr); at two scales (thr 0.05 and 5), so that
+    the pool's width is not mistaken for another expression of thr."""
+    rng = np.random.default_rng(5)
+    M, thr = 300, 0.05 * scale
+    T = random_pose(rng, 180, 5.0 * scale)
+    P1 = rng.uniform(0, 10, (M, 3)) * scale
+    P0 = rng.uniform(-5, 15, (M, 3)) * scale
+    P0[:120] = apply_T(T, P1[:120]) + rng.normal(scale=0.4 * thr, size=(120, 3))
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
+    s = _Search(P0, P1, thr, st.p)
+    seeds = np.zeros(64, np.int64)
+    diff = np.abs(s._d1(seeds) - s._d0(seeds))
+    Ts, counts = s._guided_batch(np.random.default_rng(0), seeds, diff)
+    assert len(Ts) > 64
+    pool = np.flatnonzero(diff[0] < 2 * thr)
+    for Th, c in zip(Ts, counts):
+        r = apply_T(Th, P1[pool]) - P0[pool]
+        assert c == (np.einsum("ij,ij->i", r, r) < thr * thr).sum()
+    assert counts.max() >= 60  # the all-inlier hypotheses see most inliers
+
+
+def test_local_optimisation_refits_a_candidate_until_its_inliers_settle():
+    """A candidate 0.8 degrees off the pose of 40 noisy inliers (thr 0.05): it holds part of them; local
+    optimisation refits on its inliers until they stop changing, and the best model is that fit (Kabsch by SVD
+    here, over its own inliers) with more inliers than the candidate."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(8)
+    M, thr = 60, 0.05
+    T = random_pose(rng, 180, 2.0)
+    P1 = rng.uniform(-3, 3, (M, 3))
+    P0 = rng.uniform(-10, 10, (M, 3))
+    P0[:40] = apply_T(T, P1[:40]) + rng.normal(scale=0.01, size=(40, 3))
+    cand = T.copy()
+    cand[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(0.8)]).as_matrix() @ T[:3, :3]
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
+    s = _Search(P0, P1, thr, st.p)
+    n_cand = int(s.inliers(cand).sum())
+    s.accept(cand, n_cand)
+    assert n_cand < 40 and s.best_n == 40 and s.best_inl[:40].all()
+    P0i, P1i = P0[s.best_inl], P1[s.best_inl]
+    m1, m0 = P1i.mean(axis=0), P0i.mean(axis=0)
+    U, _, Vt = np.linalg.svd((P1i - m1).T @ (P0i - m0))
+    R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+    assert np.allclose(s.best_T[:3, :3], R, atol=1e-9) and np.allclose(s.best_T[:3, 3], m0 - R @ m1, atol=1e-9)
+    # a candidate 0.05 degrees off already holds all 40: the refit, as many inliers, replaces it
+    near = T.copy()
+    near[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(0.05)]).as_matrix() @ T[:3, :3]
+    s = _Search(P0, P1, thr, st.p)
+    s.accept(near, int(s.inliers(near).sum()))
+    assert s.best_n == 40 and np.allclose(s.best_T[:3, :3], R, atol=1e-9) and not np.allclose(s.best_T, near)
+
+
+def test_uniform_ransac_draws_exactly_max_iterations_without_a_model():
+    """Random correspondences (no rigid triple agrees within a tight thr): no model, the identity, and exactly
+    max_iterations hypotheses drawn in batches of 64 (64 + 36)."""
+    rng = np.random.default_rng(9)
+    P0, P1 = rng.uniform(0, 10, (50, 3)), rng.uniform(0, 10, (50, 3))
+    st = build_coarse("lo_ransac", distance_threshold=1e-4, distances="absolute", sampling="uniform", batch=64,
+                      min_iterations=1, max_iterations=100)
+    r = lo_ransac(P0, P1, None, None, 1e-4, st.p, st.p.seed)
+    assert r.hypotheses == 100 and not r.inliers.any() and np.array_equal(r.T_target_source, np.eye(4))
+    assert r.all_inlier_probability == 0.0
+
+
+def test_guided_sampling_stops_at_max_iterations_and_goes_on_past_barren_batches():
+    """Six exact inliers among 300 (thr 1e-3): many batches of 64 seeds hold no inlier seed and yield no
+    hypothesis; the search goes on past them, finds the pose, and since its all-inlier probability (w = 2 %)
+    asks for more hypotheses than max_iterations (1024, two batches of 512), it stops there."""
+    for seed in range(3):
+        rng = np.random.default_rng(20 + seed)
+        M = 300
+        T = random_pose(rng, 180, 5.0)
+        P1 = rng.uniform(0, 10, (M, 3))
+        P0 = rng.uniform(-5, 15, (M, 3))
+        P0[:6] = apply_T(T, P1[:6])
+        st = build_coarse("lo_ransac", distance_threshold=1e-3, distances="absolute", seed=seed, max_iterations=1024,
+                          min_iterations=1)
+        r = lo_ransac(P0, P1, None, None, 1e-3, st.p, st.p.seed)
+        assert r.inliers.sum() == 6 and np.allclose(r.T_target_source, T, atol=1e-9), seed
+        assert r.hypotheses == 1024 and 0 < r.all_inlier_probability <= 6 / M
