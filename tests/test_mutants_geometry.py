@@ -40,6 +40,9 @@ def test_vertex_normals_are_the_normalised_sums_of_the_faces_cross_products():
         want[f] += c
     want /= np.linalg.norm(want, axis=1, keepdims=True)
     assert np.allclose(vertex_normals(m), want, atol=1e-12)
+    # a triangle given twice with opposite windings: its corners' normals cancel to zero, not 0/0
+    twice = Mesh(m.vertices[:3], np.array([[0, 1, 2], [0, 2, 1]]))
+    assert np.array_equal(vertex_normals(twice), np.zeros((3, 3)))
 
 
 def test_triangle_areas_and_unit_normals_with_a_degenerate_face():
