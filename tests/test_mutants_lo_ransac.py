@@ -75,6 +75,17 @@ def moved_pair(n=400, seed=0):
     return Cloud(pts, nrm), Cloud(apply_T(T_back, pts), nrm @ T_back[:3, :3].T), T
 
 
+def aligned_or_refused(st, tgt, src, T, ok: bool, message: str):
+    """The stage's result when ``ok`` (its pose T to 1e-8), else None after checking it refuses with ``message``."""
+    if not ok:
+        with pytest.raises(StageError, match=message):
+            st.align(tgt, src, 1.0, RunContext(seed=0))
+        return None
+    res = st.align(tgt, src, 1.0, RunContext(seed=0))
+    assert np.allclose(res.T_target_source, T, atol=1e-8)
+    return res
+
+
 @pytest.mark.parametrize("n_target, n_source, ok", [(3, 3, True), (2, 3, False), (3, 2, False), (2, 2, False)])
 def test_three_keypoints_on_each_side_are_enough(n_target, n_source, ok):
     tgt, src, T = moved_pair()
@@ -86,26 +97,17 @@ def test_three_keypoints_on_each_side_are_enough(n_target, n_source, ok):
             Sides.calls += 1
             return np.arange(n_target if Sides.calls == 1 else n_source)
 
-    st = stage(Sides(), Coordinates(np.linalg.inv(T)), Pairs(), min_inliers=3)
-    if ok:
-        res = st.align(tgt, src, 1.0, RunContext(seed=0))
-        assert np.allclose(res.T_target_source, T, atol=1e-8) and res.metrics["coarse_inliers"] == 3
-    else:
-        with pytest.raises(StageError, match="too few keypoints"):
-            st.align(tgt, src, 1.0, RunContext(seed=0))
+    res = aligned_or_refused(stage(Sides(), Coordinates(np.linalg.inv(T)), Pairs(), min_inliers=3), tgt, src, T, ok,
+                             "too few keypoints")
+    assert res is None or res.metrics["coarse_inliers"] == 3
 
 
 @pytest.mark.parametrize("n_pairs, ok", [(3, True), (2, False)])
 def test_three_matches_are_enough(n_pairs, ok):
     tgt, src, T = moved_pair()
-    st = stage(EveryKth(), Coordinates(np.linalg.inv(T)), Pairs(n_pairs), min_inliers=3)
-    if ok:
-        res = st.align(tgt, src, 1.0, RunContext(seed=0))
-        assert np.allclose(res.T_target_source, T, atol=1e-8)
-        assert res.metrics["coarse_correspondences"] == 3 and res.metrics["coarse_inlier_ratio"] == 1.0
-    else:
-        with pytest.raises(StageError, match="only 2 descriptor matches"):
-            st.align(tgt, src, 1.0, RunContext(seed=0))
+    res = aligned_or_refused(stage(EveryKth(), Coordinates(np.linalg.inv(T)), Pairs(n_pairs), min_inliers=3), tgt,
+                             src, T, ok, "only 2 descriptor matches")
+    assert res is None or (res.metrics["coarse_correspondences"] == 3 and res.metrics["coarse_inlier_ratio"] == 1.0)
 
 
 @pytest.mark.parametrize("min_inliers, ok", [(58, True), (59, False)])
