@@ -345,3 +345,17 @@ def test_point_to_plane_uses_the_normals_the_target_has():
     assert res.iterations == 1
     assert np.allclose(res.T_target_source[:3, :3], R, atol=1e-10)
     assert np.allclose(res.T_target_source[:3, 3], x[3:] + c - R @ c, atol=1e-10)
+
+
+def test_anderson_started_at_its_fixed_point_converges_after_one_update():
+    """Source = target and the identity: the first update changes nothing, so the RMS change after it (0) is
+    below tau and the loop stops, converged, after exactly one update."""
+    from scanreg.geometry import ClosestPoints, Cloud
+    from scanreg.stages.icp.point import Anderson
+
+    target, _ = anderson_case(4)
+    st = Anderson(Anderson.Params(max_iterations=20, distances="absolute"))
+    res = st.iterate(Cloud(target), Cloud(target.copy()), np.eye(4), ClosestPoints(Cloud(target)), 1e-9,
+                     PairLimit(None, None))
+    assert res.converged and res.iterations == 1 and len(res.rms_history) == 2
+    assert np.allclose(res.T_target_source, np.eye(4), atol=1e-12)
