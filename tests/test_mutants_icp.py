@@ -359,3 +359,13 @@ def test_anderson_started_at_its_fixed_point_converges_after_one_update():
                      PairLimit(None, None))
     assert res.converged and res.iterations == 1 and len(res.rms_history) == 2
     assert np.allclose(res.T_target_source, np.eye(4), atol=1e-12)
+
+
+def test_kernel_weights_between_their_breakpoints():
+    """Huber below a scale under 1 (the weight scale / r, not scale / max(r, 1)), and Tukey's biweight just past
+    its scale (0, not (1 - (r / s)^2)^2)."""
+    from scanreg.stages.icp.base import kernel_weights
+
+    r = np.array([0.05, 0.1, 0.5, 0.8])
+    assert np.allclose(kernel_weights("huber", r, 0.1), [1.0, 1.0, 0.2, 0.125])
+    assert np.array_equal(kernel_weights("tukey", np.array([1.2, 1.0, 0.5]), 1.0), [0.0, 0.0, 0.5625])
