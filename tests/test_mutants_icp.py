@@ -345,3 +345,27 @@ def test_point_to_plane_uses_the_normals_the_target_has():
     assert res.iterations == 1
     assert np.allclose(res.T_target_source[:3, :3], R, atol=1e-10)
     assert np.allclose(res.T_target_source[:3, 3], x[3:] + c - R @ c, atol=1e-10)
+
+
+def test_anderson_started_at_its_fixed_point_converges_after_one_update():
+    """Source = target and the identity: the first update changes nothing, so the RMS change after it (0) is
+    below tau and the loop stops, converged, after exactly one update."""
+    from scanreg.geometry import ClosestPoints, Cloud
+    from scanreg.stages.icp.point import Anderson
+
+    target, _ = anderson_case(4)
+    st = Anderson(Anderson.Params(max_iterations=20, distances="absolute"))
+    res = st.iterate(Cloud(target), Cloud(target.copy()), np.eye(4), ClosestPoints(Cloud(target)), 1e-9,
+                     PairLimit(None, None))
+    assert res.converged and res.iterations == 1 and len(res.rms_history) == 2
+    assert np.allclose(res.T_target_source, np.eye(4), atol=1e-12)
+
+
+def test_kernel_weights_between_their_breakpoints():
+    """Huber below a scale under 1 (the weight scale / r, not scale / max(r, 1)), and Tukey's biweight just past
+    its scale (0, not (1 - (r / s)^2)^2)."""
+    from scanreg.stages.icp.base import kernel_weights
+
+    r = np.array([0.05, 0.1, 0.5, 0.8])
+    assert np.allclose(kernel_weights("huber", r, 0.1), [1.0, 1.0, 0.2, 0.125])
+    assert np.array_equal(kernel_weights("tukey", np.array([1.2, 1.0, 0.5]), 1.0), [0.0, 0.0, 0.5625])
