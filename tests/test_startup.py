@@ -227,6 +227,32 @@ def test_tracking_worker_errors_are_raised_and_an_unused_worker_is_dropped(tmp_p
     assert not (tmp_path / "m.db").exists()
 
 
+def test_the_worker_opens_the_default_store_early_only_when_it_exists(tmp_path, monkeypatch):
+    """The worker opens the default store (``outputs/mlflow.db`` under its working directory) before the run
+    ends only when it exists: a command that logs nothing creates no store; with the store there, the run is
+    logged into it as before."""
+    from mlflow.tracking import MlflowClient
+
+    from scanreg.app.tracking import MlflowTracking
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    idle = startup.TrackingWorker()
+    idle.proc.stdin.close()
+    assert idle.proc.wait(timeout=120) == 0
+    assert not (tmp_path / "outputs").exists()
+    uri = MlflowTracking(MlflowTracking.Params()).uri
+    assert uri == f"sqlite:///{tmp_path.resolve() / 'outputs' / 'mlflow.db'}"
+    ids = []
+    for _ in range(2):  # the first creates the store, the second finds it open
+        worker = startup.TrackingWorker()
+        ids.append(worker.log({**_request(uri, "scanreg", _record(tmp_path)), "uri": None}))
+        assert worker.proc.wait(timeout=60) == 0
+    client = MlflowClient(uri)
+    runs = client.search_runs([client.get_experiment_by_name("scanreg").experiment_id])
+    assert {r.info.run_id for r in runs} == set(ids) and len(set(ids)) == 2
+
+
 def test_a_single_cli_run_logs_through_the_worker(tmp_path):
     """``scanreg`` with a bad input file: the run ends FAILED with its reason, logged by the worker (the command's
     own process never imports MLflow), and exits 1 with one error line."""

@@ -253,8 +253,11 @@ def _log_record(client, eid: str, rec: RunRecord, tags: dict[str, str]) -> str:
 
 
 def _warm_mlflow() -> None:
-    """Import what opening a SQL store and logging into it will import (MLflow, its SQLAlchemy store, the
-    store's ORM mappers configured), so that the worker is ready when the run ends."""
+    """Do now what logging the run would otherwise do first when the run ends: import MLflow and its SQLAlchemy
+    store (the store's ORM mappers configured), and open the default store (:class:`MlflowTracking`'s URI
+    without ``tracking.uri``) when it exists already: MLflow keeps the opened store per URI, so the run finds it
+    open when its config names the same one. A store is never created here: a run that fails before it logs
+    leaves none behind."""
     import mlflow.tracking  # noqa: F401
 
     try:
@@ -262,7 +265,11 @@ def _warm_mlflow() -> None:
         import sqlalchemy.orm
 
         sqlalchemy.orm.configure_mappers()
-    except Exception:  # noqa: BLE001  # only a head start; opening the store reports any real problem
+        tr = MlflowTracking(MlflowTracking.Params())
+        if tr.uri.startswith("sqlite:///") and Path(tr.uri[len("sqlite:///"):]).is_file():
+            client = tr._client()
+            client.get_experiment_by_name(tr.p.experiment)
+    except Exception:  # noqa: BLE001  # only a head start; logging the run reports any real problem
         pass
 
 
@@ -271,12 +278,16 @@ def _worker() -> None:
     """``python -m scanreg.app.tracking``: import MLflow at once, then log the one run described on standard
     input (a JSON request, :meth:`MlflowTracking.log_run`) and answer its run id (or the error) on standard
     output. Ctrl-C is ignored, so that an interrupted run can still be logged KILLED."""
+    import gc
     import signal
     import sys
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _quiet_mlflow()
     _warm_mlflow()
+    # What is imported now lives until the worker exits: keep it out of the garbage collector's full passes,
+    # one of which would otherwise scan MLflow's whole module graph while the run waits for its answer.
+    gc.freeze()
     line = sys.stdin.readline()
     if not line:  # the command did not need it
         return
