@@ -86,8 +86,24 @@ def voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarr
 def voxel_count(points: np.ndarray, voxel: float) -> int:
     """How many cells of :func:`voxel_cells`' grid hold a point: the number of points
     :func:`voxel_representatives` keeps, without choosing them."""
-    flat, keys, _ = voxel_cells(points, voxel)
-    return len(np.unique(flat)) if flat is not None else len(np.unique(keys, axis=0))
+    flat, keys, span = voxel_cells(points, voxel)
+    if flat is None:
+        return len(np.unique(keys, axis=0))
+    cells = int(np.prod(span))
+    if cells <= 4 * len(flat):  # a grid of few cells: mark the occupied ones
+        occupied = np.zeros(cells, bool)
+        occupied[flat] = True
+        return int(np.count_nonzero(occupied))
+    return distinct_count(flat)
+
+
+def distinct_count(values: np.ndarray) -> int:
+    """How many distinct values the 1-D integer array ``values`` holds: ``len(np.unique(values))``, by a sort and
+    a count of changes (NumPy's hash-based unique is slower on a million cell numbers that are mostly distinct)."""
+    if len(values) == 0:
+        return 0
+    v = np.sort(values)
+    return int(np.count_nonzero(v[1:] != v[:-1])) + 1
 
 
 def voxel_occupancy(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -131,7 +147,8 @@ def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float, near: floa
     ox, oy, oz = (a.ravel() for a in np.meshgrid(o, o, o, indexing="ij"))
     nb = ((cx[:, None] + ox) * span[1] + cy[:, None] + oy) * span[2] + cz[:, None] + oz  # (sparse, 27)
     pos = np.minimum(np.searchsorted(cells, nb), len(cells) - 1)
-    block = np.where(cells[pos] == nb, counts[pos], 0).sum(axis=1)
+    occupied = cells[pos] == nb  # the neighbour cell holds points: it is cells[pos]
+    block = np.where(occupied, counts[pos], 0).sum(axis=1)
     drop = np.zeros(len(cells), bool)
     drop[sparse[block < 2 * full]] = True
     keep = ~drop[inv]
@@ -144,7 +161,9 @@ def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float, near: floa
 
             # every point within near of an asked one lies in its cell's 3 x 3 x 3 block when near <= voxel: the
             # tree holds those blocks' points only
-            pool = points[np.isin(cells, nb)[inv]] if near <= voxel else points
+            in_block = np.zeros(len(cells), bool)
+            in_block[pos[occupied]] = True  # np.isin(cells, nb), from the search above
+            pool = points[in_block[inv]] if near <= voxel else points
             tree = cKDTree(pool, leafsize=32, balanced_tree=False, compact_nodes=False)  # an unbalanced tree: quicker to build
             d = tree.query(points[ask], k=2, distance_upper_bound=near)[0][:, 1]  # inf beyond near
             keep[ask[d > near]] = False
@@ -159,7 +178,10 @@ def voxel_representatives(points: np.ndarray, voxel: float) -> np.ndarray:
     sums = np.stack([np.bincount(inv, weights=points[:, k], minlength=len(counts)) for k in range(3)], axis=1)
     centroids = sums / counts[:, None]
     d = np.linalg.norm(points - centroids[inv], axis=1)
-    order = np.lexsort((d, inv))  # by voxel, then by distance to the centroid
-    first = np.ones(len(order), bool)
-    first[1:] = inv[order][1:] != inv[order][:-1]
-    return np.sort(order[first])
+    # per voxel the point at the least distance, the lowest index among equals: the smallest index of a voxel
+    # among the points at its least distance (no sort of all the points by (voxel, distance))
+    least = np.full(len(counts), np.inf)
+    np.minimum.at(least, inv, d)
+    at_least = np.flatnonzero(d == least[inv])
+    _, first = np.unique(inv[at_least], return_index=True)
+    return np.sort(at_least[first])
