@@ -126,6 +126,24 @@ def test_voxel_count_is_the_number_of_representatives(voxel):
         len(voxel_representatives(pts, voxel)) > 1
 
 
+@pytest.mark.parametrize("voxel", [0.01, 0.3, 2.0])
+def test_occupied_cells_and_counts_equal_numpy_unique(voxel):
+    """occupied_cells marks a grid of few cells instead of sorting (and sorts a grid of many): both give what
+    np.unique gives, and voxel_count and distinct_count count what it counts."""
+    from scanreg.geometry.voxels import distinct_count, occupied_cells, voxel_cells, voxel_count
+
+    pts = np.random.default_rng(8).normal(size=(4000, 3)) * [1.0, 3.0, 0.2]
+    flat, _, span = voxel_cells(pts, voxel, margin=1)
+    want = np.unique(flat, return_inverse=True, return_counts=True)
+    dense = np.prod(span) <= 4 * len(flat)
+    assert dense == (voxel > 0.1)  # both paths taken
+    got = occupied_cells(flat, span)
+    assert all(np.array_equal(g, w) and g.dtype == w.dtype for g, w in zip(got, want))
+    assert voxel_count(pts, voxel) == len(np.unique(voxel_cells(pts, voxel)[0])) == \
+        distinct_count(voxel_cells(pts, voxel)[0])
+    assert distinct_count(np.array([3, 3, 1, 7, 1], np.int64)) == 3 and distinct_count(np.zeros(0, np.int64)) == 0
+
+
 def test_coarse_thinning_keeps_min_points_and_caps_max_points():
     """The coarse stage's voxel thinning (stages/coarse/thinning.py ``downsampled``): a sparse pair is left as it is, the
     thinner cloud keeps at least ``min_points`` (the voxel shrinks), and ``max_points`` bounds a dense one."""

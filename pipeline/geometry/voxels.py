@@ -72,14 +72,32 @@ def voxel_cells(points: np.ndarray, voxel: float, margin: int = 0) -> tuple[np.n
     return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2], keys, span
 
 
+def occupied_cells(flat: np.ndarray, span: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``np.unique(flat, return_inverse=True, return_counts=True)`` for the cell numbers ``flat`` of
+    :func:`voxel_cells` on a grid of ``span`` cells: the occupied cells in order, each point's position among
+    them, each one's point count. A grid of at most 4 cells per point is marked cell by cell instead of
+    sorting the points."""
+    n_cells = int(np.prod(span))
+    if n_cells > 4 * len(flat):
+        cells, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
+        return cells, inv.ravel(), counts
+    occupied = np.zeros(n_cells, bool)
+    occupied[flat] = True
+    cells = np.flatnonzero(occupied)
+    rank = np.zeros(n_cells, np.int64)
+    rank[cells] = np.arange(len(cells))
+    inv = rank[flat]
+    return cells, inv, np.bincount(inv, minlength=len(cells))
+
+
 def voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """The occupied cells of :func:`voxel_cells`' grid in key order: each point's cell number and each cell's
     point count, ``(inv (N,), counts (cells,))``."""
-    flat, keys, _ = voxel_cells(points, voxel)
+    flat, keys, span = voxel_cells(points, voxel)
     if flat is not None:
-        _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    else:
-        _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+        _, inv, counts = occupied_cells(flat, span)
+        return inv, counts
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     return inv.ravel(), counts
 
 
@@ -89,9 +107,9 @@ def voxel_count(points: np.ndarray, voxel: float) -> int:
     flat, keys, span = voxel_cells(points, voxel)
     if flat is None:
         return len(np.unique(keys, axis=0))
-    cells = int(np.prod(span))
-    if cells <= 4 * len(flat):  # a grid of few cells: mark the occupied ones
-        occupied = np.zeros(cells, bool)
+    n_cells = int(np.prod(span))
+    if n_cells <= 4 * len(flat):  # a grid of few cells: mark the occupied ones
+        occupied = np.zeros(n_cells, bool)
         occupied[flat] = True
         return int(np.count_nonzero(occupied))
     return distinct_count(flat)
@@ -134,8 +152,7 @@ def sparse_voxel_mask(points: np.ndarray, voxel: float, ratio: float, near: floa
     flat, _, span = voxel_cells(points, voxel, margin=1)  # a margin for the neighbours
     if flat is None:
         return keep
-    cells, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    cells, inv, counts = occupied_cells(flat, span)
     full = float(np.quantile(counts[inv], 0.9))  # voxel_occupancy's counts
     sparse = np.flatnonzero(counts < ratio * full)
     if not len(sparse):
