@@ -275,14 +275,14 @@ class IcpBase:
         order = morton_order(source.points)  # queries in Morton order; the result does not depend on the order
         moving = source.subset(order)
         start_limit = self.schedule(target, maxd, kscale).limit
-        try:
-            with blas_single_thread():
+        with blas_single_thread():  # the acceptance test's and final pairs' products too
+            try:
                 res = self.converge(target, moving, T_init, cp, tau, maxd, kscale)
                 if p.basin == "wide" or (p.basin == "auto" and not start_is_estimate):
                     res = self.widest(target, moving, T_init, cp, tau, maxd, kscale, spacing, res)
-        except (np.linalg.LinAlgError, ValueError) as e:
-            raise StageError(f"icp={self.name}: the update failed ({e}); the pairs are degenerate") from e
-        return self.finish(res, cp, moving, T_init, maxd, start_limit, spacing, source, target, target_mesh)
+            except (np.linalg.LinAlgError, ValueError) as e:
+                raise StageError(f"icp={self.name}: the update failed ({e}); the pairs are degenerate") from e
+            return self.finish(res, cp, moving, T_init, maxd, start_limit, spacing, source, target, target_mesh)
 
     def converge(self, target: Cloud, moving: Cloud, T_init: np.ndarray, cp: ClosestPoints, tau: float,
                  maxd: float | None, kscale: float | None) -> IcpResult:
