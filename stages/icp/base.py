@@ -282,7 +282,7 @@ class IcpBase:
                     res = self.widest(target, moving, T_init, cp, tau, maxd, kscale, spacing, res)
             except (np.linalg.LinAlgError, ValueError) as e:
                 raise StageError(f"icp={self.name}: the update failed ({e}); the pairs are degenerate") from e
-            return self.finish(res, cp, moving, T_init, maxd, start_limit, spacing, source, target, target_mesh)
+            return self.finish(res, cp, moving, T_init, maxd, start_limit, spacing, source)
 
     def converge(self, target: Cloud, moving: Cloud, T_init: np.ndarray, cp: ClosestPoints, tau: float,
                  maxd: float | None, kscale: float | None) -> IcpResult:
@@ -320,10 +320,11 @@ class IcpBase:
             return to_abs(self.p.accept_distance, self.p.distances, spacing)
         return maxd if maxd is not None else 3.0 * spacing
 
-    def finish(self, res: IcpResult, cp, moving: Cloud, T_init, maxd, start_limit, spacing: float,
-               source: Cloud, target: Cloud, target_mesh: Mesh | None) -> IcpResult:
+    def finish(self, res: IcpResult, cp: ClosestPoints, moving: Cloud, T_init, maxd, start_limit, spacing: float,
+               source: Cloud, pairs_cp: ClosestPoints | None = None) -> IcpResult:
         """Final metrics, the acceptance test against the start pose at ``accept_distance``, and the pairs kept
-        at the pose returned (``source``: the source as given, ``moving``: the same points as iterated)."""
+        at the pose returned (``source``: the source as given, ``moving``: the same points as iterated), found by
+        ``pairs_cp`` (default ``cp``)."""
         m = self.final_metrics(res.final_distances, maxd)
         acc_d = self.accept_distance(maxd, spacing)
         m0 = self.final_metrics(cp(apply_T(T_init, moving.points), acc_d)[1], acc_d)
@@ -339,15 +340,14 @@ class IcpBase:
         if start_limit is not None and spacing > 0:
             res.metrics["icp_pair_limit_start_spacings"] = start_limit / spacing
             res.metrics["icp_pair_limit_end_spacings"] = (res.final_limit or start_limit) / spacing
-        res.final_pairs = self.pairs_at(res.T_target_source, source, target, target_mesh, maxd)
+        res.final_pairs = self.pairs_at(res.T_target_source, source, pairs_cp or cp, maxd)
         return res
 
-    def pairs_at(self, T: np.ndarray, source: Cloud, target: Cloud, target_mesh: Mesh | None,
-                 maxd: float | None) -> Correspondences:
-        """The pairs the stage keeps with ``source`` at ``T`` (its closest-point search without a bound, then its
-        distance, normal and trim rejections at ``maxd``), in ``source``'s order."""
+    def pairs_at(self, T: np.ndarray, source: Cloud, cp: ClosestPoints, maxd: float | None) -> Correspondences:
+        """The pairs the stage keeps with ``source`` at ``T`` (the stage's closest-point search ``cp`` without a
+        bound, then its distance, normal and trim rejections at ``maxd``), in ``source``'s order."""
         moved = apply_T(T, source.points)
-        q, d, qn = self.closest(target, target_mesh)(moved)
+        q, d, qn = cp(moved)
         mn = rotate_normals(T, source.normals)
         ok = self.kept(d, mn, qn, maxd)
         return Correspondences(moved[ok], q[ok], None if qn is None else qn[ok], d[ok])

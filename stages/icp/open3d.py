@@ -97,4 +97,5 @@ class Open3dIcp(IcpBase):
         cp = ClosestPoints(target)
         d = cp(apply_T(T, source.points), maxd)[1]
         res = IcpResult(T, iterations, history, converged, final_distances=d, final_limit=limit.limit)
-        return self.finish(res, cp, source, T_init, maxd, start_limit, spacing, source, target, target_mesh)
+        return self.finish(res, cp, source, T_init, maxd, start_limit, spacing, source,
+                           pairs_cp=self.closest(target, target_mesh))  # the pairs on the target's triangles if any
