@@ -316,3 +316,32 @@ def test_coarse_none_tells_icp_that_the_start_is_the_inputs_own(tmp_path):
     res = scanreg.register(pts, apply_T(T, pts), overrides=["coarse=none"], run_dir=tmp_path)
     assert res.metrics["icp_basin_wide"] == 1.0
     assert transform_errors(res.T_target_source, T)[0] < 1e-6
+
+
+@pytest.mark.parametrize("variant", ["horn", "point_to_plane", "anderson", "gicp", "open3d"])
+@pytest.mark.parametrize("on_mesh", [False, True])
+def test_the_acceptance_test_measures_the_end_pose_as_a_fresh_search_does(variant, on_mesh):
+    """The acceptance test's end-pose numbers (``icp_accept_end_*``) reuse the last iterate's distances when they
+    were measured with the stage's own search at the same distance; they must equal a fresh search at the pose
+    returned, bit for bit (the source in the stage's Morton order, one BLAS thread, as the stage measures): on
+    points and on the target's triangles, where GICP still iterates on points and icp=open3d measures points."""
+    from scanreg.geometry import ClosestPoints
+    from scanreg.geometry.voxels import morton_order
+    from scanreg.process import blas_single_thread
+
+    m = read_mesh("pkg:pymeshlab/tests/sample_meshes/bunny.obj")
+    tgt, src = sampled(m, 4000, 1), sampled(m, 4000, 2)
+    T0 = moved_pose(src.points, 4.0, 0.01, 3)
+    source = Cloud(apply_T(np.linalg.inv(T0), src.points), src.normals @ np.linalg.inv(T0)[:3, :3].T)
+    sp = estimate_spacing(tgt.points, np.random.default_rng(0))
+    st = icp_stage(variant, **({"kernel": "none"} if variant in ("gicp", "open3d") else {}))
+    mesh = m if on_mesh else None
+    res = st.refine(tgt, source, np.eye(4), sp, CTX, mesh)
+    assert res.metrics["icp_accepted"] == 1.0 and transform_errors(res.T_target_source, T0)[0] < 0.5
+    acc_d = st.accept_distance(st.p.max_correspondence_distance * sp, sp)
+    search = ClosestPoints(tgt) if variant == "open3d" else st.closest(tgt, mesh)
+    moving = source.points if variant == "open3d" else source.points[morton_order(source.points)]
+    with blas_single_thread():
+        fresh = st.final_metrics(search(apply_T(res.T_target_source, moving), acc_d)[1], acc_d)
+    assert res.metrics["icp_accept_end_fitness"] == fresh["icp_fitness"] > 0.99
+    assert res.metrics["icp_accept_end_rms"] == fresh["icp_inlier_rms"]

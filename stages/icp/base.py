@@ -201,6 +201,9 @@ class IcpBase:
     own :meth:`iterate`."""
 
     p: IcpParams
+    searches_with_closest: bool = True
+    """Whether the iterations pair through the search :meth:`refine` hands them (:meth:`closest`): then the last
+    iterate's distances, measured at the pose returned, are the acceptance test's at that pose."""
 
     def __init__(self, params):
         self.p = params
@@ -328,7 +331,10 @@ class IcpBase:
         m = self.final_metrics(res.final_distances, maxd)
         acc_d = self.accept_distance(maxd, spacing)
         m0 = self.final_metrics(cp(apply_T(T_init, moving.points), acc_d)[1], acc_d)
-        m1 = self.final_metrics(cp(apply_T(res.T_target_source, moving.points), acc_d)[1], acc_d)
+        if acc_d == maxd and self.searches_with_closest:  # the last search's, at the pose returned, bounded by maxd
+            m1 = m
+        else:
+            m1 = self.final_metrics(cp(apply_T(res.T_target_source, moving.points), acc_d)[1], acc_d)
         accepted = self.accept(m0, m1, acc_d) if self.p.accept else True
         if not accepted:
             res.T_target_source = T_init.copy()
