@@ -7,9 +7,13 @@ same helpers: ``components``, ``boundary_edges``, ``boundary_loops``, ``non_mani
 ``non_manifold_vertices``, ``inconsistent_orientation_edges``, ``degenerate_faces``, ``sliver_faces``,
 ``unreferenced_vertices``. Beyond them the census finds duplicate vertices and faces, the components the repair
 removes (below ``min_component_share`` of the largest part's area), which boundary loops are an open scan's outer
-border (kept open by ``open_border=auto``) and which are holes, and the self-intersection *candidates*: pairs of
-faces sharing no vertex that a broad phase cannot prove apart (:func:`intersection_candidates`). The exact
-self-intersection test (:mod:`scanreg.mesh.intersect`) decides among them; the census does not run it.
+border (kept open by ``open_border=auto``) and which are holes, and where faces may intersect: the
+self-intersection *candidates*, pairs of faces sharing no vertex that a broad phase cannot prove apart
+(:func:`intersection_candidates`), and the *fold vertices*, where two faces sharing the vertex may meet beyond it
+(:func:`fold_vertices`). The exact self-intersection test (:mod:`scanreg.mesh.intersect`) decides among those; the
+census does not run it. On every mesh tested (tests/test_census.py; interpenetrating and jittered spheres, a
+triangle soup, two overlaid raw scans, pymeshfix's bunny) each pair the exact test finds is a candidate or shares
+a fold vertex.
 
 Lengths are in the mesh's units, areas in its units squared, angles in degrees. A pure function of the arrays:
 no processes, threads or files.
@@ -318,18 +322,19 @@ def intersection_candidates(vertices: np.ndarray, faces: np.ndarray, live: np.nd
     Space is cut into cubic cells (side ``cell``, by default :data:`CELL_EXTENTS` times the 90th percentile of
     the faces' largest box side); each face belongs to every cell its bounding box touches. In each cell the
     faces there are joined across their manifold, consistently oriented edges into sheets. A sheet whose faces'
-    normals all lie within 84 degrees of its mean normal (:data:`CONE_COS`) is a graph over its mean plane; two
-    of its faces cannot meet beyond a shared vertex (it would have to wind around an axis inside the cell to
-    cover itself, as a helicoid's turn at the scale of a few edges: taken not to happen). Two faces that meet at
-    a point have that point in a common cell, so only these pairs are looked at: in each cell, those between a
+    normals all lie within 84 degrees of its mean normal (:data:`CONE_COS`) and that has no fold vertex projects
+    onto its mean plane without folding, so two of its faces cannot meet beyond what they share unless the
+    sheet winds around an axis inside the cell without a fold, as a helicoid's turn at the scale of a few edges
+    (the one case taken not to happen). Two faces that meet at a point have that point in a common cell, so only
+    these pairs are looked at: in each cell, those between a
     sheet and its cell's other sheets (a second surface passing, or a fringe of faces whose box reaches into the
     cell while their neighbours' do not), and within a sheet that is not a graph (curved more than the cone
     within the cell, folded, inconsistently oriented, or with a face at one of the ``folds``: vertices whose fan
     is not a graph, :func:`fold_vertices`, by default computed here), whose faces are looked at again in cells of half the side,
     :data:`REFINE` times, then pair by pair. Of those pairs, the ones whose boxes overlap and that no face's plane
     separates (every corner of one face certainly on one side of the other's plane, by the exact predicates'
-    floating-point filter) are the candidates. Faces whose box touches more than :data:`MAX_CELLS` cells are
-    paired by their boxes with every face instead. ``table``: the faces' edge table when already made
+    floating-point filter) are the candidates. A face that spans several cells is in those its plane passes
+    through; one whose box touches more than :data:`MAX_CELLS` cells is paired by boxes with every face instead. ``table``: the faces' edge table when already made
     (:func:`~scanreg.mesh.topology._edge_table_sorted`)."""
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(faces, dtype=np.int64)
@@ -356,6 +361,7 @@ def intersection_candidates(vertices: np.ndarray, faces: np.ndarray, live: np.nd
     at_fold[folds] = True
     suspect = rows_any(at_fold[fl])
     org = col_min(lo)
+    p0 = np.stack([corner[0][k] for k in range(3)], axis=1)
     pos = np.full(len(f), -1, np.int64)
     pos[idx] = np.arange(len(idx))
     f1, f2 = (pos[x] for x in _manifold_neighbours(f, table))
@@ -379,7 +385,7 @@ def intersection_candidates(vertices: np.ndarray, faces: np.ndarray, live: np.nd
         local = np.full(len(fl), -1, np.int64)
         local[sel] = np.arange(len(sel))
         i, j, bad = _sheet_pairs(a, span, cnt, nrm[sel], suspect[sel], local[f1[link]], local[f2[link]],
-                                 level == REFINE)
+                                 level == REFINE, (org, cell, p0[sel]))
         ii.append(sel[i])
         jj.append(sel[j])
         if not len(bad):
@@ -389,8 +395,13 @@ def intersection_candidates(vertices: np.ndarray, faces: np.ndarray, live: np.nd
     if len(i):
         keep = _boxes_overlap(lo, hi, i, j)
         i, j = i[keep], j[keep]
-        keep = ~rows_any((fl[i][:, :, None] == fl[j][:, None, :]).reshape(len(i), 9))
-        key = np.unique(np.minimum(i[keep], j[keep]) * len(fl) + np.maximum(i[keep], j[keep]))
+        fc = [np.ascontiguousarray(fl[:, k]) for k in range(3)]
+        share = np.zeros(len(i), bool)
+        for x in range(3):
+            fi = fc[x][i]
+            for y in range(3):
+                share |= fi == fc[y][j]
+        key = np.unique(np.minimum(i[~share], j[~share]) * len(fl) + np.maximum(i[~share], j[~share]))
         i, j = key // len(fl), key % len(fl)
         Pi, Pj = v[fl[i]], v[fl[j]]
         keep = ~(_separated(Pi, Pj) | _separated(Pj, Pi))
@@ -422,17 +433,20 @@ def _separated(Pi: np.ndarray, Pj: np.ndarray) -> np.ndarray:
 
 
 def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarray, suspect: np.ndarray,
-                 f1: np.ndarray, f2: np.ndarray, last: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 f1: np.ndarray, f2: np.ndarray, last: bool, frame: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One level of :func:`intersection_candidates` on m faces: the pairs it looks at (face positions 0..m-1,
     repeats possible) and the faces of sheets that are not graphs, to be looked at in smaller cells (none when
     ``last``: their pairs are then among the pairs). ``a``: each face's first cell (integer coordinates),
     ``span``: its cells per axis, ``cnt``: its cells in all (0: the face takes no part), ``nrm``: normals (any
-    length), ``suspect``: faces whose sheet is not a graph whatever their normals, ``f1``, ``f2``: the faces joined across an edge (:func:`_manifold_neighbours`)."""
+    length), ``suspect``: faces whose sheet is not a graph whatever their normals, ``f1``, ``f2``: the faces
+    joined across an edge (:func:`_manifold_neighbours`), ``frame``: the grid's origin, the cell side and a corner
+    of each face (a face spanning several cells is in those its plane passes through)."""
     m = len(a)
     none = np.zeros(0, np.int64)
     if not cnt.any():
         return none, none, none
-    a = a - col_min(a)
+    base = col_min(a)
+    a = a - base
     dims = col_max(a) + col_max(span) + 1
     # one instance per (face, cell its box touches), face by face; cell keys ckey (a face in one cell: its own)
     start = np.cumsum(cnt) - cnt
@@ -441,9 +455,11 @@ def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarr
     fkey = (a[:, 0] * dims[1] + a[:, 1]) * dims[2] + a[:, 2]
     multi = np.flatnonzero(cnt > 1)
     ckey = fkey[face]
+    present = np.ones(n_inst, bool)
     if len(multi):
         at = _expand(start[multi], cnt[multi])
         ckey[at] += _block_offsets(span[multi], cnt[multi], dims)
+        present[at] = _on_plane(ckey[at], dims, base, frame, nrm, face[at])
     # sheets: instances in one cell joined across the faces' manifold, consistently oriented edges. Two faces in
     # one cell each: joined when it is the same cell. Otherwise each cell of f1 that f2's box touches too, f2's
     # instance there found by arithmetic (its cells are a block)
@@ -463,6 +479,8 @@ def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarr
     u.append(inst1[ok])
     w.append(start[g2[ok]] + ((rel[0][ok] * span[g2[ok], 1] + rel[1][ok]) * span[g2[ok], 2] + rel[2][ok]))
     u, w = np.concatenate(u), np.concatenate(w)
+    both = present[u] & present[w]
+    u, w = u[both], w[both]
     g = coo_matrix((np.ones(len(u), np.int8), (u, w)), shape=(n_inst, n_inst))
     n_sheets, sheet = connected_components(g, directed=True, connection="weak")
     # a sheet is a graph when each face's unit normal is within the cone around the sheet's mean normal
@@ -475,10 +493,17 @@ def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarr
     bad_face = np.zeros(m, bool)
     bad_face[face[bad_sheet[sheet]]] = True
     bad = none if last else np.flatnonzero(bad_face)
-    # each cell's largest sheet is its main one; the instances of the others are paired with every instance of
-    # their cell of another sheet (and, on the last level, those of a sheet that is not a graph with every one)
+    return (*_cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last), bad)
+
+
+def _cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of faces one level of :func:`_sheet_pairs` looks at: each cell's largest sheet is its main one;
+    the instances of the others are paired with every instance of their cell of another sheet (and, on the
+    ``last`` level, those of a sheet that is not a graph with every one). Per instance: its ``face``, its cell
+    key ``ckey``, whether it is ``present`` (in a cell its face's plane passes through), its ``sheet``."""
+    none = np.zeros(0, np.int64)
     cell_of = np.empty(n_sheets, np.int64)
-    cell_of[sheet] = ckey
+    cell_of[sheet] = np.where(present, ckey, -1)  # an instance left out: a sheet of its own, in no cell
     by_cell = np.lexsort((-np.bincount(sheet, minlength=n_sheets), cell_of))
     head = np.r_[True, cell_of[by_cell][1:] != cell_of[by_cell][:-1]]
     main = np.zeros(n_sheets, bool)
@@ -487,9 +512,9 @@ def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarr
     hot_cell = np.logical_or.reduceat(source[by_cell], np.flatnonzero(head))  # cells in by_cell's order
     hot_sheet = np.zeros(n_sheets, bool)
     hot_sheet[by_cell] = hot_cell[np.cumsum(head) - 1]
-    hot = np.flatnonzero(hot_sheet[sheet])
+    hot = np.flatnonzero(hot_sheet[sheet] & present)
     if not len(hot):
-        return none, none, bad
+        return none, none
     hot = hot[np.argsort(ckey[hot], kind="stable")]  # the instances of the hot cells, by cell
     hk, hs = ckey[hot], sheet[hot]
     first = np.r_[True, hk[1:] != hk[:-1]]
@@ -500,7 +525,25 @@ def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarr
     I = np.repeat(src, n[cid[src]])
     J = np.arange(len(I)) + np.repeat(begin[cid[src]] - (np.cumsum(n[cid[src]]) - n[cid[src]]), n[cid[src]])
     keep = (hs[I] != hs[J]) | (bad_sheet[hs[I]] & (I != J) & last)
-    return face[hot[I[keep]]], face[hot[J[keep]]], bad
+    return face[hot[I[keep]]], face[hot[J[keep]]]
+
+
+def _on_plane(ckey: np.ndarray, dims: np.ndarray, base: np.ndarray, frame: tuple, nrm: np.ndarray,
+              fm: np.ndarray) -> np.ndarray:
+    """Whether the plane of face ``fm`` passes through the cell ``ckey`` (keys in ``dims``, offset by ``base``
+    from the grid's ``frame``: origin, side, a corner per face), with a margin for rounding: the plane's
+    distance from the cell's centre is at most the cell's half-extent along the normal."""
+    org, cell, p0 = frame
+    cx, r = np.divmod(ckey, dims[1] * dims[2])
+    cy, cz = np.divmod(r, dims[2])
+    d, reach, size = 0.0, 0.0, 0.0
+    for k, ck in enumerate((cx, cy, cz)):
+        centre = org[k] + (ck + base[k] + 0.5) * cell
+        nk = nrm[fm, k]
+        d = d + nk * (centre - p0[fm, k])
+        reach = reach + np.abs(nk)
+        size = size + np.abs(nk) * (np.abs(centre) + np.abs(p0[fm, k]))
+    return np.abs(d) <= 0.5 * cell * reach * (1 + 1e-9) + 1e-12 * size
 
 
 def _expand(first: np.ndarray, count: np.ndarray) -> np.ndarray:
