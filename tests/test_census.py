@@ -171,6 +171,18 @@ def test_candidates_cover_every_intersecting_pair(case):
     assert set(map(tuple, apart.tolist())) <= found
     folds = set(c.fold_vertices.tolist())
     assert all(set(f[i]) & set(f[j]) & folds for i, j in sharing)
+    # the exact test run on the census's pairs only finds the same faces as on the whole mesh
+    assert_exact_on_census_pairs(v, f, c)
+
+
+def assert_exact_on_census_pairs(v, f, c):
+    from scanreg.mesh.intersect import _pair_hits, _welded
+
+    vw, fw, _ = _welded(np.asarray(v, float), f)
+    pairs = c.pairs_to_test(f)
+    assert len(np.unique(pairs, axis=0)) == len(pairs) and (pairs[:, 0] < pairs[:, 1]).all()
+    hit = _pair_hits(vw[fw], fw, pairs[:, 0], pairs[:, 1])
+    assert set(np.unique(pairs[hit]).tolist()) == set(np.flatnonzero(intersections(Mesh(v, f)).mask).tolist())
 
 
 def test_a_fan_that_covers_itself_is_a_fold_vertex():
@@ -181,6 +193,7 @@ def test_a_fan_that_covers_itself_is_a_fold_vertex():
     assert len(apart) == 0 and len(sharing) == 5
     folds = set(fold_vertices(m.vertices, m.faces).tolist())
     assert all(set(m.faces[i]) & set(m.faces[j]) & folds for i, j in sharing)
+    assert_exact_on_census_pairs(m.vertices, m.faces, census(m.vertices, m.faces))
 
 
 def assert_agrees_with_audit(mesh: Mesh, expect: dict | None = None):

@@ -10,10 +10,11 @@ removes (below ``min_component_share`` of the largest part's area), which bounda
 border (kept open by ``open_border=auto``) and which are holes, and where faces may intersect: the
 self-intersection *candidates*, pairs of faces sharing no vertex that a broad phase cannot prove apart
 (:func:`intersection_candidates`), and the *fold vertices*, where two faces sharing the vertex may meet beyond it
-(:func:`fold_vertices`). The exact self-intersection test (:mod:`scanreg.mesh.intersect`) decides among those; the
-census does not run it. On every mesh tested (tests/test_census.py; interpenetrating and jittered spheres, a
-triangle soup, two overlaid raw scans, pymeshfix's bunny) each pair the exact test finds is a candidate or shares
-a fold vertex.
+(:func:`fold_vertices`). The exact self-intersection test (:mod:`scanreg.mesh.intersect`) decides among those
+(:meth:`Census.pairs_to_test`); the census does not run it. On every mesh tested (tests/test_census.py:
+interpenetrating and jittered spheres, a triangle soup, pymeshfix's bunny; experiments/benchmarks/census.md: the
+raw Stanford scans, meshlab_defects, the dental meshes; also two overlaid raw scans) the exact test on those
+pairs finds the same faces as on the whole mesh.
 
 Lengths are in the mesh's units, areas in its units squared, angles in degrees. A pure function of the arrays:
 no processes, threads or files.
@@ -169,6 +170,29 @@ class Census:
             raise ValueError("defect_faces: pass the mesh's faces for a margin or for vertex defects")
         return np.flatnonzero(mask)
 
+    def pairs_to_test(self, faces: np.ndarray) -> np.ndarray:
+        """The face pairs (P, 2; smaller first, each once) the exact self-intersection test has to look at for
+        this mesh's full answer: the candidates, and every pair of faces at a fold vertex (``faces``: the
+        mesh's faces; degenerate faces, which the exact test leaves out, are left out)."""
+        f = np.asarray(faces, dtype=np.int64)
+        fold = np.zeros(max(self.n_vertices, int(f.max()) + 1 if len(f) else 0), bool)
+        fold[self.fold_vertices] = True
+        live = np.ones(len(f), bool)
+        live[self.degenerate_faces] = False
+        corner = np.flatnonzero(fold[f.ravel()] & np.repeat(live, 3))
+        vid, fid = f.ravel()[corner], corner // 3
+        order = np.argsort(vid, kind="stable")
+        vid, fid = vid[order], fid[order]
+        start = np.flatnonzero(np.r_[True, vid[1:] != vid[:-1]])
+        size = np.diff(np.r_[start, len(vid)])
+        # every pair within each vertex's group of faces: each face with the ones after it
+        after = np.repeat(start + size, size) - np.arange(len(vid)) - 1
+        i = np.repeat(np.arange(len(vid)), after)
+        j = i + 1 + np.arange(len(i)) - np.repeat(np.cumsum(after) - after, after)
+        a, b = fid[i], fid[j]
+        pairs = np.concatenate([self.intersection_candidates, np.stack([np.minimum(a, b), np.maximum(a, b)], 1)])
+        return np.unique(pairs, axis=0) if len(pairs) else pairs
+
     @property
     def clean(self) -> bool:
         """True when the census finds nothing the repair would change: no small component, no hole (an outer
@@ -219,7 +243,9 @@ def census(vertices: np.ndarray, faces: np.ndarray, *, sliver_angle_deg: float =
     degenerate = repeated | (areas <= 0)
     used = np.zeros(nv, bool)
     used[f.ravel()] = True
-    folds = fold_vertices(v, f, ~degenerate)
+    live = ~degenerate
+    geometry = face_geometry(v, f[live])
+    folds = fold_vertices(v, f, live, geometry)
     return Census(
         n_vertices=nv, n_faces=nf, component=lab, component_faces=np.bincount(lab), component_area=area,
         small_components=small, boundary_edges=bnd, boundary_faces=bf, boundary_loop=loop,
@@ -232,29 +258,28 @@ def census(vertices: np.ndarray, faces: np.ndarray, *, sliver_angle_deg: float =
         degenerate_faces=np.flatnonzero(degenerate),
         sliver_faces=np.flatnonzero(min_angles_deg(mesh) < sliver_angle_deg),
         duplicate_faces=_duplicate_faces(f),
-        intersection_candidates=intersection_candidates(v, f, ~degenerate, table=(directed, edge, counts, order),
-                                                        folds=folds),
+        intersection_candidates=intersection_candidates(v, f, live, table=(directed, edge, counts, order),
+                                                        folds=folds, geometry=geometry),
         fold_vertices=folds,
     )
 
 
-def fold_vertices(vertices: np.ndarray, faces: np.ndarray, live: np.ndarray | None = None) -> np.ndarray:
+def fold_vertices(vertices: np.ndarray, faces: np.ndarray, live: np.ndarray | None = None,
+                  geometry: tuple | None = None) -> np.ndarray:
     """Vertices around which two faces sharing the vertex may intersect: their (``live``) faces' unit normals are
     not all within 84 degrees (:data:`CONE_COS`) of their area-weighted mean (a flipped face, a crease sharper
     than 96 degrees), or they are, but the faces' corners projected onto the mean's plane add up to more than one
     turn (a fan that covers itself, as pymeshfix's bunny has five of). A fan within the cone that turns once,
     manifold and consistently oriented (the census reports the vertices and edges that are not), is a graph
-    over its mean plane: two of its faces meet only along what they share."""
+    over its mean plane: two of its faces meet only along what they share. ``geometry``: :func:`face_geometry`
+    of the live faces when already made."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     if live is not None:
         f = f[live]
     if not len(f):
         return np.zeros(0, np.int64)
-    cols = [np.ascontiguousarray(v[:, k]) for k in range(3)]
-    c = [[cols[k][f[:, i]] for k in range(3)] for i in range(3)]
-    e = [[c[(i + 1) % 3][k] - c[i][k] for k in range(3)] for i in range(3)]  # edge i: corner i to corner i + 1
-    n = _cross_columns(e[0], e[1])
+    _, e, n = geometry if geometry is not None else face_geometry(v, f)
     nv = max(len(v), int(f.max()) + 1)
     vid = f.T.ravel()  # corner 0 of every face, then corner 1, then corner 2
     mean = [np.bincount(vid, np.tile(nk, 3), minlength=nv) for nk in n]
@@ -273,6 +298,15 @@ def fold_vertices(vertices: np.ndarray, faces: np.ndarray, live: np.ndarray | No
         back[k] * u[k] for k in range(3))
     turns = np.bincount(vid, np.arctan2(sin, cos), minlength=nv)
     return np.flatnonzero(folded | (turns > 2 * np.pi + 1e-6))
+
+
+def face_geometry(v: np.ndarray, f: np.ndarray) -> tuple[list, list, list]:
+    """Per face, as contiguous columns: the corners ``c[i][k]`` (coordinate k of corner i), the edges
+    ``e[i][k]`` (corner i to corner i + 1) and the normal ``n[k]`` (edge 0 x edge 1: twice the area long)."""
+    cols = [np.ascontiguousarray(v[:, k]) for k in range(3)]
+    c = [[cols[k][f[:, i]] for k in range(3)] for i in range(3)]
+    e = [[c[(i + 1) % 3][k] - c[i][k] for k in range(3)] for i in range(3)]
+    return c, e, _cross_columns(e[0], e[1])
 
 
 def _edge_pairs(directed: np.ndarray) -> np.ndarray:
@@ -315,27 +349,27 @@ def _duplicate_faces(f: np.ndarray) -> np.ndarray:
 
 def intersection_candidates(vertices: np.ndarray, faces: np.ndarray, live: np.ndarray | None = None,
                             cell: float | None = None, table: tuple | None = None,
-                            folds: np.ndarray | None = None) -> np.ndarray:
+                            folds: np.ndarray | None = None, geometry: tuple | None = None) -> np.ndarray:
     """Pairs of faces sharing no vertex index that may intersect: a conservative broad phase for the exact test
     of :mod:`scanreg.mesh.intersect` (``live``: the faces that take part, e.g. the non-degenerate ones).
 
     Space is cut into cubic cells (side ``cell``, by default :data:`CELL_EXTENTS` times the 90th percentile of
-    the faces' largest box side); each face belongs to every cell its bounding box touches. In each cell the
-    faces there are joined across their manifold, consistently oriented edges into sheets. A sheet whose faces'
-    normals all lie within 84 degrees of its mean normal (:data:`CONE_COS`) and that has no fold vertex projects
-    onto its mean plane without folding, so two of its faces cannot meet beyond what they share unless the
-    sheet winds around an axis inside the cell without a fold, as a helicoid's turn at the scale of a few edges
-    (the one case taken not to happen). Two faces that meet at a point have that point in a common cell, so only
-    these pairs are looked at: in each cell, those between a
-    sheet and its cell's other sheets (a second surface passing, or a fringe of faces whose box reaches into the
-    cell while their neighbours' do not), and within a sheet that is not a graph (curved more than the cone
-    within the cell, folded, inconsistently oriented, or with a face at one of the ``folds``: vertices whose fan
-    is not a graph, :func:`fold_vertices`, by default computed here), whose faces are looked at again in cells of half the side,
-    :data:`REFINE` times, then pair by pair. Of those pairs, the ones whose boxes overlap and that no face's plane
-    separates (every corner of one face certainly on one side of the other's plane, by the exact predicates'
-    floating-point filter) are the candidates. A face that spans several cells is in those its plane passes
-    through; one whose box touches more than :data:`MAX_CELLS` cells is paired by boxes with every face instead. ``table``: the faces' edge table when already made
-    (:func:`~scanreg.mesh.topology._edge_table_sorted`)."""
+    the faces' largest box side); each face belongs to every cell its bounding box touches (of several, those
+    its plane passes through). In each cell the faces there are joined across their manifold, consistently
+    oriented edges into sheets. A sheet whose faces' normals all lie within 84 degrees of its mean normal
+    (:data:`CONE_COS`) and that has no fold vertex projects onto its mean plane without folding, so two of its
+    faces cannot meet beyond what they share unless the sheet winds around an axis inside the cell without a
+    fold, as a helicoid's turn at the scale of a few edges (the one case taken not to happen). Two faces that
+    meet at a point have that point in a common cell, so only these pairs are looked at: in each cell, those
+    between a sheet and its cell's other sheets (a second surface passing, or a fringe of faces whose box
+    reaches into the cell while their neighbours' do not), and within a sheet that is not a graph (curved more
+    than the cone within the cell, folded, inconsistently oriented, or with a face at one of the ``folds``,
+    :func:`fold_vertices`), whose faces are looked at again in cells of half the side, :data:`REFINE` times,
+    then pair by pair. Of those pairs, the ones whose boxes overlap and that no face's plane separates (every
+    corner of one face certainly on one side of the other's plane, by the exact predicates' floating-point
+    filter) are the candidates. A face whose box touches more than :data:`MAX_CELLS` cells is paired by boxes
+    with every face instead. ``table`` (the faces' edge table, :func:`~scanreg.mesh.topology._edge_table_sorted`),
+    ``folds`` and ``geometry`` (:func:`face_geometry` of the live faces): when already made."""
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(faces, dtype=np.int64)
     idx = np.arange(len(f)) if live is None else np.flatnonzero(live)
@@ -343,8 +377,9 @@ def intersection_candidates(vertices: np.ndarray, faces: np.ndarray, live: np.nd
         return np.zeros((0, 2), np.int64)
     fl = f[idx]
     # corner columns: coordinate k of corner i of each face, contiguous (quicker than (m, 3, 3) rows)
-    cols = [np.ascontiguousarray(v[:, k]) for k in range(3)]
-    corner = [[cols[k][fl[:, i]] for k in range(3)] for i in range(3)]
+    if geometry is None:
+        geometry = face_geometry(v, fl)
+    corner = geometry[0]
     lo = np.stack([np.minimum(np.minimum(corner[0][k], corner[1][k]), corner[2][k]) for k in range(3)], axis=1)
     hi = np.stack([np.maximum(np.maximum(corner[0][k], corner[1][k]), corner[2][k]) for k in range(3)], axis=1)
     if cell is None:
@@ -352,11 +387,9 @@ def intersection_candidates(vertices: np.ndarray, faces: np.ndarray, live: np.nd
         cell = CELL_EXTENTS * float(np.quantile(np.maximum(np.maximum(ext[:, 0], ext[:, 1]), ext[:, 2]), 0.9))
     if not cell > 0:  # every face a point
         cell = 1.0
-    e1 = [corner[1][k] - corner[0][k] for k in range(3)]
-    e2 = [corner[2][k] - corner[0][k] for k in range(3)]
-    nrm = np.stack(_cross_columns(e1, e2), axis=1)
+    nrm = np.stack(geometry[2], axis=1)
     if folds is None:
-        folds = fold_vertices(v, f, live)
+        folds = fold_vertices(v, f, live, geometry)
     at_fold = np.zeros(max(len(v), int(fl.max()) + 1), bool)
     at_fold[folds] = True
     suspect = rows_any(at_fold[fl])
@@ -459,7 +492,8 @@ def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarr
     if len(multi):
         at = _expand(start[multi], cnt[multi])
         ckey[at] += _block_offsets(span[multi], cnt[multi], dims)
-        present[at] = _on_plane(ckey[at], dims, base, frame, nrm, face[at])
+        wide = at[cnt[face[at]] > 2]  # a face whose box spans cells along more than one axis
+        present[wide] = _on_plane(ckey[wide], dims, base, frame, nrm, face[wide])
     # sheets: instances in one cell joined across the faces' manifold, consistently oriented edges. Two faces in
     # one cell each: joined when it is the same cell. Otherwise each cell of f1 that f2's box touches too, f2's
     # instance there found by arithmetic (its cells are a block)
