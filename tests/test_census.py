@@ -130,6 +130,15 @@ def test_two_crossing_triangles_are_one_candidate_pair_and_adjacent_faces_never(
     assert len(census(v, g).intersection_candidates) == 0
     assert intersections(Mesh(v, g)).count > 0  # (the exact test counts the fold ...)
     assert 0 in census(v, g).fold_vertices  # (... and the census reports where: a fold vertex)
+    # a face folded onto its neighbour across an edge they traverse the same way, and a duplicated face: the
+    # exact test counts both; the census gives their pairs to test
+    h = np.array([[0, 1, 2], [0, 1, 5], [6, 7, 8], [6, 7, 8]])
+    w = v.copy()
+    w[5] = [1.0, 1.5, 0.0]
+    for g in (h[:2], h[2:]):
+        assert intersections(Mesh(w, g)).count == 2
+        assert_exact_on_census_pairs(w, g, census(w, g))
+        assert len(census(w, g).pairs_to_test(g)) == 1
     # apart: no candidate; a plane between them: none either, though their boxes overlap
     far = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0.1], [1, 0, 0.1], [0, 1, 0.1]], float)
     assert len(intersection_candidates(far, np.array([[0, 1, 2], [3, 4, 5]]))) == 0

@@ -172,11 +172,15 @@ class Census:
 
     def pairs_to_test(self, faces: np.ndarray) -> np.ndarray:
         """The face pairs (P, 2; smaller first, each once) the exact self-intersection test has to look at for
-        this mesh's full answer: the candidates, and every pair of faces at a fold vertex (``faces``: the
-        mesh's faces; degenerate faces, which the exact test leaves out, are left out)."""
+        this mesh's full answer: the candidates, and every pair of faces at a vertex whose fan is not a graph (a
+        fold vertex, a non-manifold vertex, a vertex of a non-manifold or inconsistently oriented edge: there
+        faces that share the vertex can cross, or lie folded onto each other) (``faces``: the mesh's faces;
+        degenerate faces, which the exact test leaves out, are left out)."""
         f = np.asarray(faces, dtype=np.int64)
         fold = np.zeros(max(self.n_vertices, int(f.max()) + 1 if len(f) else 0), bool)
-        fold[self.fold_vertices] = True
+        for at in (self.fold_vertices, self.non_manifold_vertices, self.non_manifold_edges.ravel(),
+                   self.inconsistent_edges.ravel()):
+            fold[at] = True
         live = np.ones(len(f), bool)
         live[self.degenerate_faces] = False
         corner = np.flatnonzero(fold[f.ravel()] & np.repeat(live, 3))
