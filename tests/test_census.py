@@ -35,6 +35,7 @@ def test_closed_cube_is_clean():
     c = census(CUBE_V, CUBE_F)
     assert c.clean and nonzero(c) == {} and c.counts()["components"] == 1
     assert len(c.defect_faces(margin_rings=2, faces=CUBE_F)) == 0
+    assert not census(CUBE_V, CUBE_F, broad_phase=False).clean  # intersections not looked for: not known clean
 
 
 def test_cube_with_one_side_removed_has_one_hole_of_four_edges():
@@ -207,6 +208,8 @@ def test_a_fan_that_covers_itself_is_a_fold_vertex():
 
 def assert_agrees_with_audit(mesh: Mesh, expect: dict | None = None):
     c = census(mesh.vertices, mesh.faces).counts()
+    quick = census(mesh.vertices, mesh.faces, broad_phase=False).counts()
+    assert {k: quick[k] for k in AUDITED} == {k: c[k] for k in AUDITED}
     a = audit_mesh(Mesh(mesh.vertices.copy(), mesh.faces.copy()), self_intersections=False)
     assert {k: c[k] for k in AUDITED} == {k: a[k] for k in AUDITED}
     for k, value in (expect or {}).items():

@@ -14,9 +14,10 @@ Per mesh, in rounds (each round: every mesh's census, then every mesh's repair, 
 shared machine hits both): the census (:func:`scanreg.mesh.census.census`) ``--repeat`` times, its median wall
 time and CPU time; the default repair (``scanreg.build_stage("repair", "meshfix", cache="off")``: MeshFix in a
 child process, the audit and the guard, no override but the cache) ``--repair-repeat`` times on a fresh copy,
-its median wall time. The census's counts per mesh; the repair's audit before and after. The exact
-self-intersection test on the census's pairs only (:meth:`~scanreg.mesh.census.Census.pairs_to_test`) against the
-full test of the mesh, once per round each, CPU time.
+its median wall time; the census without its broad phase as often, CPU time. The census's counts per mesh; the
+repair's audit before and after. The exact self-intersection test on the census's pairs only
+(:meth:`~scanreg.mesh.census.Census.pairs_to_test`) against the full test of the mesh, once per round each, CPU
+time.
 
 Where the repair works: the input faces that are not in the output (their corners matched to the output's
 vertices within 1e-6 of the diagonal, :func:`where`) are the faces it changed; the table gives their share of the mesh
@@ -102,7 +103,7 @@ def main() -> None:
         repair.repair(read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj"), ctx)
     census(*(lambda m: (m.vertices, m.faces))(todo[0][1]))
     rows = {name: {"census_wall": [], "census_cpu": [], "repair_wall": [], "exact_pairs_cpu": [],
-                   "exact_full_cpu": []} for name, _ in todo}
+                   "exact_full_cpu": [], "topology_cpu": []} for name, _ in todo}
     for _ in range(args.repair_repeat):
         for name, m in todo:
             measure(m, rows[name], args.repeat)
@@ -125,6 +126,7 @@ def main() -> None:
         Path(args.out).with_suffix(".json").write_text(json.dumps(
             {name: {"census_wall_s": r["census_wall"], "census_cpu_s": r["census_cpu"],
                     "exact_pairs_cpu_s": r["exact_pairs_cpu"], "exact_full_cpu_s": r["exact_full_cpu"],
+                    "topology_cpu_s": r["topology_cpu"],
                     "exact": list(r["exact"]),
                     "repair_wall_s": r["repair_wall"], "counts": r["census"].counts(),
                     "repair": {k: v for k, v in r["repaired"].metrics.items() if isinstance(v, (int, float))},
@@ -140,6 +142,10 @@ def measure(m: Mesh, r: dict, repeat: int) -> None:
         r["census_wall"].append(time.perf_counter() - t0)
         r["census_cpu"].append(time.process_time() - c0)
     r["census"] = c
+    for _ in range(repeat):
+        c0 = time.process_time()
+        census(m.vertices, m.faces, broad_phase=False)
+        r["topology_cpu"].append(time.process_time() - c0)
     t0 = time.process_time()
     pairs, hits = exact_on(m, c)
     r["exact_pairs_cpu"].append(time.process_time() - t0)
@@ -200,15 +206,18 @@ def report(todo, rows, args, load0: float, load1: float) -> list[str]:
         "",
         "## Time",
         "",
-        "| mesh | faces | census wall (ms) | census CPU (ms) | CPU per 100k faces (ms) | repair wall (s) "
-        "| census / repair |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "Without broad phase: `census(..., broad_phase=False)`, the topology and the faces' shapes only (no "
+        "self-intersection candidates or fold vertices), CPU.",
+        "",
+        "| mesh | faces | census wall (ms) | census CPU (ms) | CPU per 100k faces (ms) | without broad phase, CPU "
+        "(ms) | repair wall (s) | census / repair |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for name, m in todo:
         r = rows[name]
         cw, cc, rw = (float(np.median(r[k])) for k in ("census_wall", "census_cpu", "repair_wall"))
         lines.append(f"| {name} | {len(m.faces)} | {1e3 * cw:.0f} | {1e3 * cc:.0f} | {1e8 * cc / len(m.faces):.0f} "
-                     f"| {rw:.2f} | {cw / rw:.1%} |")
+                     f"| {1e3 * np.median(r['topology_cpu']):.0f} | {rw:.2f} | {cw / rw:.1%} |")
     lines += ["", "## The exact self-intersection test on the census's pairs", "",
               "The exact test (`scanreg.mesh.intersect`) run on the census's pairs only (`Census.pairs_to_test`: "
               "the candidates and every pair of faces at a fold vertex) beside the full test of the whole mesh "

@@ -102,6 +102,9 @@ class Census:
     fold_vertices: np.ndarray
     """Vertices around which two faces sharing the vertex may intersect (:func:`fold_vertices`); the exact test
     decides."""
+    broad_phase: bool = True
+    """Whether the self-intersection candidates and fold vertices were looked for (``census(..., broad_phase=
+    False)`` leaves both empty, and the census then never calls a mesh clean)."""
 
     @property
     def holes(self) -> np.ndarray:
@@ -201,21 +204,23 @@ class Census:
     def clean(self) -> bool:
         """True when the census finds nothing the repair would change: no small component, no hole (an outer
         border is kept), no non-manifold edge or vertex, no inconsistent orientation, no unreferenced or
-        duplicate vertex, no degenerate, sliver or duplicate face, no self-intersection candidate."""
+        duplicate vertex, no degenerate, sliver or duplicate face, no self-intersection candidate or fold vertex
+        (never without the broad phase)."""
         c = self.counts()
-        return not any(c[k] for k in ("small_components", "holes", "non_manifold_edges", "non_manifold_vertices",
-                                      "inconsistent_orientation_edges", "unreferenced_vertices",
-                                      "duplicate_vertices", "degenerate_faces", "sliver_faces",
-                                      "duplicate_faces", "intersection_candidate_pairs", "fold_vertices"))
+        return self.broad_phase and not any(c[k] for k in (
+            "small_components", "holes", "non_manifold_edges", "non_manifold_vertices",
+            "inconsistent_orientation_edges", "unreferenced_vertices", "duplicate_vertices", "degenerate_faces",
+            "sliver_faces", "duplicate_faces", "intersection_candidate_pairs", "fold_vertices"))
 
 
 def census(vertices: np.ndarray, faces: np.ndarray, *, sliver_angle_deg: float = SLIVER_ANGLE_DEG,
            min_component_share: float = MIN_COMPONENT_SHARE,
-           open_border_ratio: float = OPEN_BORDER_RATIO) -> Census:
+           open_border_ratio: float = OPEN_BORDER_RATIO, broad_phase: bool = True) -> Census:
     """The defect census of the mesh ``vertices`` (N, 3), ``faces`` (M, 3) (module docstring). The thresholds
     are the repair's (:class:`scanreg.stages.repair.audit.GuardParams`): ``sliver_angle_deg`` (degrees),
     ``min_component_share`` (of the largest component's area), ``open_border_ratio`` (loop length over the
-    square root of its component's area)."""
+    square root of its component's area). ``broad_phase=False``: the topology and the faces' shapes only, no
+    self-intersection candidates or fold vertices (for a caller that runs the exact test anyway)."""
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
     mesh = Mesh(v, f)
@@ -248,8 +253,13 @@ def census(vertices: np.ndarray, faces: np.ndarray, *, sliver_angle_deg: float =
     used = np.zeros(nv, bool)
     used[f.ravel()] = True
     live = ~degenerate
-    geometry = face_geometry(v, f[live])
-    folds = fold_vertices(v, f, live, geometry)
+    if broad_phase:
+        geometry = face_geometry(v, f[live])
+        folds = fold_vertices(v, f, live, geometry)
+        candidates = intersection_candidates(v, f, live, table=(directed, edge, counts, order), folds=folds,
+                                             geometry=geometry)
+    else:
+        folds, candidates = none_i, none_e
     return Census(
         n_vertices=nv, n_faces=nf, component=lab, component_faces=np.bincount(lab), component_area=area,
         small_components=small, boundary_edges=bnd, boundary_faces=bf, boundary_loop=loop,
@@ -262,9 +272,7 @@ def census(vertices: np.ndarray, faces: np.ndarray, *, sliver_angle_deg: float =
         degenerate_faces=np.flatnonzero(degenerate),
         sliver_faces=np.flatnonzero(min_angles_deg(mesh) < sliver_angle_deg),
         duplicate_faces=_duplicate_faces(f),
-        intersection_candidates=intersection_candidates(v, f, live, table=(directed, edge, counts, order),
-                                                        folds=folds, geometry=geometry),
-        fold_vertices=folds,
+        intersection_candidates=candidates, fold_vertices=folds, broad_phase=broad_phase,
     )
 
 
