@@ -220,8 +220,9 @@ def report(todo, rows, args, load0: float, load1: float) -> list[str]:
                      f"| {1e3 * np.median(r['topology_cpu']):.0f} | {rw:.2f} | {cw / rw:.1%} |")
     lines += ["", "## The exact self-intersection test on the census's pairs", "",
               "The exact test (`scanreg.mesh.intersect`) run on the census's pairs only (`Census.pairs_to_test`: "
-              "the candidates and every pair of faces at a fold vertex) beside the full test of the whole mesh "
-              "(`self_intersections`, what the audit runs on the input), CPU time, median of the rounds; same: "
+              "the candidates and every pair of faces at a vertex whose fan is not a graph) beside the full test "
+              "of the whole mesh (`self_intersections`, what the audit runs on the input), CPU time, median of the "
+              "rounds; same: "
               "both find the same self-intersecting faces.", "",
               "| mesh | pairs tested | faces found | full test: faces | same | on the pairs (ms) | full test (ms) |",
               "| --- | ---: | ---: | ---: | --- | ---: | ---: |"]

@@ -2,10 +2,10 @@
 reports, counts it as the audit counts it, and says where it is (vertex and face indices per class), so that a
 repair can work on the defective regions only and pass a clean mesh untouched.
 
-Counts are the audit's quantities (:func:`scanreg.mesh.topology.mesh_stats`, :func:`audit_mesh`), computed by the
-same helpers: ``components``, ``boundary_edges``, ``boundary_loops``, ``non_manifold_edges``,
-``non_manifold_vertices``, ``inconsistent_orientation_edges``, ``degenerate_faces``, ``sliver_faces``,
-``unreferenced_vertices``. Beyond them the census finds duplicate vertices and faces, the components the repair
+Counts are the audit's quantities (:func:`scanreg.mesh.topology.mesh_stats`,
+:func:`~scanreg.mesh.topology.audit_mesh`), computed by the same helpers: ``components``, ``boundary_edges``,
+``boundary_loops``, ``non_manifold_edges``, ``non_manifold_vertices``, ``inconsistent_orientation_edges``,
+``degenerate_faces``, ``sliver_faces``, ``unreferenced_vertices``. Beyond them the census finds duplicate vertices and faces, the components the repair
 removes (below ``min_component_share`` of the largest part's area), which boundary loops are an open scan's outer
 border (kept open by ``open_border=auto``) and which are holes, and where faces may intersect: the
 self-intersection *candidates*, pairs of faces sharing no vertex that a broad phase cannot prove apart
