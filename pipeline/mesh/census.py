@@ -5,12 +5,12 @@ repair can work on the defective regions only and pass a clean mesh untouched.
 Counts are the audit's quantities (:func:`scanreg.mesh.topology.mesh_stats`,
 :func:`~scanreg.mesh.topology.audit_mesh`), computed by the same helpers: ``components``, ``boundary_edges``,
 ``boundary_loops``, ``non_manifold_edges``, ``non_manifold_vertices``, ``inconsistent_orientation_edges``,
-``degenerate_faces``, ``sliver_faces``, ``unreferenced_vertices``. Beyond them the census finds duplicate vertices and faces, the components the repair
-removes (below ``min_component_share`` of the largest part's area), which boundary loops are an open scan's outer
-border (kept open by ``open_border=auto``) and which are holes, and where faces may intersect: the
-self-intersection *candidates*, pairs of faces sharing no vertex that a broad phase cannot prove apart
-(:func:`intersection_candidates`), and the *fold vertices*, where two faces sharing the vertex may meet beyond it
-(:func:`fold_vertices`). The exact self-intersection test (:mod:`scanreg.mesh.intersect`) decides among those
+``degenerate_faces``, ``sliver_faces``, ``unreferenced_vertices``. Beyond them the census finds duplicate
+vertices and faces, the components the repair removes (below ``min_component_share`` of the largest part's
+area), which boundary loops are an open scan's outer border (kept open by ``open_border=auto``) and which are
+holes, and where faces may intersect: the self-intersection *candidates*, pairs of faces sharing no vertex that
+a broad phase cannot prove apart (:func:`intersection_candidates`), and the *fold vertices*, where two faces
+sharing the vertex may meet beyond it (:func:`fold_vertices`). The exact self-intersection test (:mod:`scanreg.mesh.intersect`) decides among those
 (:meth:`Census.pairs_to_test`); the census does not run it. On every mesh tested (tests/test_census.py:
 interpenetrating and jittered spheres, a triangle soup, pymeshfix's bunny; experiments/benchmarks/census.md: the
 raw Stanford scans, meshlab_defects, the dental meshes; also two overlaid raw scans) the exact test on those
