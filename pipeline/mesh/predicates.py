@@ -45,17 +45,7 @@ def orient3d(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.n
     """Exact sign (+1, 0, -1, int8) of ``det[a - d; b - d; c - d]`` for rows of (n, 3) float64 arrays: positive
     when ``d`` lies below the plane through ``a, b, c`` seen counter-clockwise from above (Shewchuk's
     convention), zero when the four points are coplanar."""
-    adx, ady, adz = (a - d).T
-    bdx, bdy, bdz = (b - d).T
-    cdx, cdy, cdz = (c - d).T
-    bc, cb = bdx * cdy, cdx * bdy
-    ca, ac = cdx * ady, adx * cdy
-    ab, ba = adx * bdy, bdx * ady
-    det = adz * (bc - cb) + bdz * (ca - ac) + cdz * (ab - ba)
-    perm = (np.abs(bc) + np.abs(cb)) * np.abs(adz) + (np.abs(ca) + np.abs(ac)) * np.abs(bdz) \
-        + (np.abs(ab) + np.abs(ba)) * np.abs(cdz)
-    sign = np.sign(det).astype(np.int8)
-    unsure = np.flatnonzero(np.abs(det) <= _O3_BOUND * perm)
+    sign, unsure, perm = _orient3d_filtered(a, b, c, d)
     if len(unsure):
         a, b, c, d = a[unsure], b[unsure], c[unsure], d[unsure]
         # every product zero (axis-aligned coplanar points): the determinant is exactly zero, unless a product
@@ -66,6 +56,31 @@ def orient3d(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.n
         if rest.any():
             sign[unsure[rest]] = _orient3d_exact(a[rest], b[rest], c[rest], d[rest])
     return sign
+
+
+def orient3d_filter(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """:func:`orient3d`'s sign where the floating-point filter alone certifies it, 0 where it cannot (no exact
+    arithmetic): a nonzero sign is exact, a zero one may hide either sign. For conservative tests that only
+    need to know when a point is certainly off a plane."""
+    sign, unsure, _ = _orient3d_filtered(a, b, c, d)
+    sign[unsure] = 0
+    return sign
+
+
+def _orient3d_filtered(a, b, c, d) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The floating-point sign of :func:`orient3d`'s determinant, the rows where Shewchuk's bound cannot
+    certify it, and the permanent the bound scales."""
+    adx, ady, adz = (a - d).T
+    bdx, bdy, bdz = (b - d).T
+    cdx, cdy, cdz = (c - d).T
+    bc, cb = bdx * cdy, cdx * bdy
+    ca, ac = cdx * ady, adx * cdy
+    ab, ba = adx * bdy, bdx * ady
+    det = adz * (bc - cb) + bdz * (ca - ac) + cdz * (ab - ba)
+    perm = (np.abs(bc) + np.abs(cb)) * np.abs(adz) + (np.abs(ca) + np.abs(ac)) * np.abs(bdz) \
+        + (np.abs(ab) + np.abs(ba)) * np.abs(cdz)
+    sign = np.sign(det).astype(np.int8)
+    return sign, np.flatnonzero(np.abs(det) <= _O3_BOUND * perm), perm
 
 
 def _no_underflow(pts: tuple[np.ndarray, ...], base: np.ndarray, floor: float) -> np.ndarray:

@@ -191,14 +191,19 @@ def dilate_faces(faces: np.ndarray, mask: np.ndarray, rings: int = 1) -> np.ndar
 
 
 def non_manifold_vertices(mesh: Mesh) -> int:
-    """Vertices whose faces do not form one fan (two cones meeting at a point), not counting the vertices of
+    """The number of vertices whose faces do not form one fan (:func:`non_manifold_vertex_mask`)."""
+    return int(non_manifold_vertex_mask(mesh).sum())
+
+
+def non_manifold_vertex_mask(mesh: Mesh) -> np.ndarray:
+    """Which vertices' faces do not form one fan (two cones meeting at a point), not counting the vertices of
     non-manifold edges: MeshLab's ``non_two_manifold_vertices`` (vcg's CountNonManifoldVertexFF), in NumPy.
     The corners of a vertex are joined across each edge with two faces; a vertex whose corners fall into
-    more than one group is non-manifold."""
+    more than one group is non-manifold. One entry per vertex (at least ``len(mesh.vertices)``)."""
     f = mesh.faces
     nf = len(f)
     if not nf:
-        return 0
+        return np.zeros(len(mesh.vertices), bool)
     directed, edge, counts, order = _mesh_edges_sorted(mesh)
     rows = order[counts[edge[order]] == 2]  # grouped by edge (the pair's order does not matter: links are symmetric)
     r1, r2 = rows[0::2], rows[1::2]  # the two faces' directed copies of each two-face edge
@@ -222,7 +227,7 @@ def non_manifold_vertices(mesh: Mesh) -> int:
     several = np.zeros(nv, bool)
     several[vert[fan != one[vert]]] = True
     several[directed[counts[edge] > 2].ravel()] = False
-    return int(several.sum())
+    return several
 
 
 def _fans_turning(nf: int, vert: np.ndarray, c1s, c1e, c2s, c2e) -> np.ndarray:
@@ -327,13 +332,18 @@ def _edge_keys(e: np.ndarray) -> np.ndarray:
 
 def _loop_sizes(bnd: np.ndarray) -> np.ndarray:
     """Number of edges of each boundary loop (connected chain) of the boundary edges ``bnd`` (E, 2)."""
+    return np.bincount(loop_labels(bnd)) if len(bnd) else np.zeros(0, np.int64)
+
+
+def loop_labels(bnd: np.ndarray) -> np.ndarray:
+    """The boundary loop (connected chain of edges sharing a vertex) of each boundary edge ``bnd`` (E, 2),
+    labelled from 0."""
     if not len(bnd):
         return np.zeros(0, np.int64)
     bv, binv = np.unique(bnd, return_inverse=True)
     binv = binv.reshape(-1, 2)
     g = coo_matrix((np.ones(len(bnd)), (binv[:, 0], binv[:, 1])), shape=(len(bv), len(bv)))
-    lab = connected_components(g, directed=False)[1]
-    return np.bincount(lab[binv[:, 0]])
+    return connected_components(g, directed=False)[1][binv[:, 0]]
 
 
 def boundary_edges(mesh: Mesh, with_faces: bool = False):
@@ -401,10 +411,7 @@ def border_loops(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not len(bnd):
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64)
     v = mesh.vertices
-    bv, binv = np.unique(bnd, return_inverse=True)
-    binv = binv.reshape(-1, 2)
-    g = coo_matrix((np.ones(len(bnd)), (binv[:, 0], binv[:, 1])), shape=(len(bv), len(bv)))
-    loop = connected_components(g, directed=False)[1][binv[:, 0]]
+    loop = loop_labels(bnd)
     length = np.bincount(loop, np.linalg.norm(v[bnd[:, 0]] - v[bnd[:, 1]], axis=1))
     lab, ca = component_areas(mesh)
     comp = np.zeros(len(length), np.int64)
