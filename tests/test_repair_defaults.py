@@ -150,7 +150,7 @@ def test_meshfix_repairs_one_part_whole_and_several_part_by_part(monkeypatch):
              (speck, [len(bunny.faces)], 1)]  # the spheres: each on its own
     for mesh, faces, parts in cases:
         calls.clear()
-        _, metrics = audited(stage("meshfix"), mesh)
+        _, metrics = audited(stage("meshfix", scope="whole"), mesh)  # the two clean spheres too
         assert [c[0] for c in calls] == ["_meshfix_session"] * len(faces)
         assert sorted(len(c[2]) for c in calls) == sorted(faces)
         assert metrics["after_components"] == parts and metrics["guard_ok"] == 1

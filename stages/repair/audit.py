@@ -55,6 +55,11 @@ class GuardParams:
     apply_to: str = "both"
     """Which input meshes are repaired: ``source``, ``target`` or ``both`` (a CT surface made of separate
     teeth must not lose all but its largest component, so the dental case repairs the source only)."""
+    scope: str = "defects"
+    """What the backend works on. ``defects``: a mesh in which the census of its topology and face shapes and
+    the exact self-intersection test find no defect the backend repairs passes untouched (a backend that only
+    repairs defects, MeshFix; reported as ``untouched`` 1, with the audit of a repair); ``whole``: the backend
+    always runs on the whole mesh, as the paper's procedure does."""
     check_only: bool = False
     """Audit what the repair would do (the before/after table and the guard) but go on with the unrepaired
     mesh; a guard violation is then reported, not fatal."""
@@ -128,6 +133,8 @@ class GuardParams:
             raise ValueError(f"cache must be auto, on or off, got '{self.cache}'")
         if self.apply_to not in ("source", "target", "both"):
             raise ValueError(f"apply_to must be source, target or both, got '{self.apply_to}'")
+        if self.scope not in ("defects", "whole"):
+            raise ValueError(f"scope must be defects or whole, got '{self.scope}'")
         if self.open_border not in ("auto", "cap", "open", "shell"):
             raise ValueError(f"open_border must be auto, cap, open or shell, got '{self.open_border}'")
         if not self.shell_thickness > 0:
@@ -238,9 +245,16 @@ def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, seed: int
     probe, part = ins["probe"], ins["probe_part"]
     d = point_distances(scene_out, np.concatenate([mesh.vertices[probe], ins["samples"]]))  # one query
     far = np.bincount(part, d[:len(probe)] > tol, minlength=len(ca)) / np.bincount(part, minlength=len(ca))
-    gone = far > 0.5
-    d_in = d[len(probe):]
     d_out = distances_to(mesh)(area_samples(out, p.audit_samples, seed))
+    return _distance_report(p, ca, large, diag, edge, far > 0.5, d[len(probe):], d_out)
+
+
+def _distance_report(p: GuardParams, ca, large, diag: float, edge: float, gone: np.ndarray, d_in: np.ndarray,
+                     d_out: np.ndarray) -> dict[str, float]:
+    """The audit's distance metrics from the parts' areas ``ca``, which are to be kept (``large``) and which are
+    gone, the kept parts' diagonal and median edge, and the distances input -> output (``d_in``, from the kept
+    input surface's samples) and output -> input (``d_out``)."""
+    tol = p.removed_tolerance * diag
     limit = max(p.max_hausdorff * diag, p.max_hausdorff_edges * edge)
     return {
         "components_kept": float((~gone).sum()),
@@ -274,6 +288,10 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
         raise StageError(f"{where}: the repair's audit needs libigl ({_first_line(e)}): pip install libigl") from e
     t0 = time.perf_counter()
     planned = _planned(stage, mesh, where)
+    if _nothing_to_repair(stage, planned, mesh):
+        print(f"note: {where}: no defect the repair would change (census and exact self-intersection test): "
+              "left untouched")
+        return _untouched(planned, mesh, t0, where)
     # the input's exact self-intersection test (the audit's costliest part) runs beside the backend, in a child
     # process; the first test that starts from it (the output's, or a backend's own loop) waits for it. (Without
     # forking it is made first, here.)
@@ -317,7 +335,53 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
         if not p.check_only:
             raise StageError(problems, metrics=m)
         print(f"warning: {problems}")
+    m["untouched"] = 0.0
     return Repaired(mesh if p.check_only else out, m)
+
+
+def _nothing_to_repair(stage, p: GuardParams, mesh: Mesh) -> bool:
+    """Whether the backend would change nothing (``p``: its planned parameters): a backend that only repairs
+    defects (``repairs_only_defects``), ``scope: defects``, and a mesh without any defect it repairs: by the
+    census of its topology and face shapes (:func:`~scanreg.mesh.census.census`: no part to remove, no hole,
+    no outer border to cap, no non-manifold edge or vertex, no inconsistent orientation, no unreferenced or
+    duplicate vertex, no degenerate, sliver or duplicate face; parts to join count too), then by the exact
+    self-intersection test (the audit's own, remembered for it)."""
+    from scanreg.mesh.census import census
+
+    if p.scope == "whole" or not getattr(stage, "repairs_only_defects", False) or p.check_only or \
+            p.open_border == "shell":
+        return False
+    share = 1.0 if getattr(p, "keep_largest", False) else p.min_component_share
+    c = census(mesh.vertices, mesh.faces, sliver_angle_deg=p.sliver_angle_deg, min_component_share=share,
+               open_border_ratio=p.open_border_ratio, broad_phase=False).counts()
+    holes = c["boundary_loops"] if p.open_border == "cap" else c["holes"]
+    if holes or (getattr(p, "join_components", False) and c["components"] > 1) or any(c[k] for k in (
+            "small_components", "non_manifold_edges", "non_manifold_vertices", "inconsistent_orientation_edges",
+            "unreferenced_vertices", "duplicate_vertices", "degenerate_faces", "sliver_faces", "duplicate_faces")):
+        return False
+    return self_intersecting_count(mesh) == 0
+
+
+def _untouched(p: GuardParams, mesh: Mesh, t0: float, where: str) -> Repaired:
+    """The input as the repair's result, with the audit a repair reports: the counts before and after (the
+    same), every part kept and no distance between the input and itself, the guard's verdict; ``untouched``
+    1."""
+    before = audit_mesh(mesh)
+    m = {f"before_{k}": v for k, v in before.items()}
+    m.update({f"after_{k}": v for k, v in before.items()})
+    m["open_border_open"] = float(p.open_border == "open")
+    ca = component_areas(mesh)[1]  # every part kept (none below min_component_share), none moved
+    zero = np.zeros(1)
+    m.update(_distance_report(p, ca, np.ones(len(ca), bool), bbox_diagonal(mesh.vertices), _median_edge(mesh),
+                              np.zeros(len(ca), bool), zero, zero))
+    m["backend_time_s"] = 0.0
+    m["audit_time_s"] = time.perf_counter() - t0
+    problems = guard_problems(p, m, p.open_border, mesh, where)
+    m["guard_ok"] = float(not problems)
+    if problems:  # the input measured against itself: no guard can fail, unless the audit is broken
+        raise StageError(problems, metrics=m)
+    m["untouched"] = 1.0
+    return Repaired(mesh, m)
 
 
 def _planned(stage, mesh: Mesh, where: str) -> GuardParams:

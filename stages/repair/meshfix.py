@@ -32,6 +32,10 @@ class MeshFix(AuditedRepair):
     parts only (:func:`~scanreg.mesh.intersect.intersecting_across`). (MeshFix's verdict and the exact test agree on
     the bunny and the cow: tests/test_repair.py.)"""
 
+    repairs_only_defects = True
+    """MeshFix changes a mesh only where it finds a defect: a mesh without any passes untouched, without
+    MeshFix (:func:`~scanreg.stages.repair.audit.repair_with_audit`)."""
+
     @dataclass
     class Params(GuardParams):
         keep_largest: bool = False
