@@ -9,7 +9,7 @@ import pytest
 
 from conftest import build_coarse
 from scanreg.geometry import apply_T, random_pose
-from scanreg.stages.coarse.ransac import PER_SEED, _Search, lo_ransac
+from scanreg.stages.coarse.ransac import PER_SEED, _Search, inliers_at, lo_ransac
 
 
 def fit_points_normals(P0, P1, N0, N1, w):
@@ -175,8 +175,8 @@ def test_local_optimisation_refits_a_candidate_until_its_inliers_settle():
     cand[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(0.8)]).as_matrix() @ T[:3, :3]
     st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
     s = _Search(P0, P1, thr, st.p)
-    n_cand = int(s.inliers(cand).sum())
-    s.accept(cand, n_cand)
+    n_cand = int(inliers_at(cand, P0, P1, thr).sum())
+    s.accept(cand)
     assert n_cand < 40 and s.best_n == 40 and s.best_inl[:40].all()
     P0i, P1i = P0[s.best_inl], P1[s.best_inl]
     m1, m0 = P1i.mean(axis=0), P0i.mean(axis=0)
@@ -187,7 +187,7 @@ def test_local_optimisation_refits_a_candidate_until_its_inliers_settle():
     near = T.copy()
     near[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(0.05)]).as_matrix() @ T[:3, :3]
     s = _Search(P0, P1, thr, st.p)
-    s.accept(near, int(s.inliers(near).sum()))
+    s.accept(near)
     assert s.best_n == 40 and np.allclose(s.best_T[:3, :3], R, atol=1e-9) and not np.allclose(s.best_T, near)
 
 
@@ -219,3 +219,47 @@ def test_guided_sampling_stops_at_max_iterations_and_goes_on_past_barren_batches
         r = lo_ransac(P0, P1, None, None, 1e-3, st.p, st.p.seed)
         assert r.inliers.sum() == 6 and np.allclose(r.T_target_source, T, atol=1e-9), seed
         assert r.hypotheses == 1024 and 0 < r.all_inlier_probability <= 6 / M
+
+
+def exact_case(seed, n_in=150, n_out=50):
+    """n_in exact correspondences of a pose about 120 degrees from the identity, then n_out random ones."""
+    rng = np.random.default_rng(seed)
+    T = random_pose(rng, 180, 5.0)
+    P1 = rng.uniform(-3, 3, (n_in + n_out, 3))
+    P0 = apply_T(T, P1)
+    P0[n_in:] = rng.uniform(-20, 20, (n_out, 3))
+    return P0, P1, T
+
+
+@pytest.mark.parametrize("estimator, sampling", [("ransac", "guided"), ("ransac", "uniform"), ("sc2", "guided")])
+def test_without_local_optimisation_the_pose_is_the_best_candidates(estimator, sampling):
+    """coarse.lo_iterations=0 (LO-RANSAC without its local optimisation): the pose of 150 exact inliers among 200
+    matches, not the identity with the inliers of the pose (what local optimisation starting from the identity
+    returned when its loop did not run: a pose 121 degrees off reported with all 150 inliers)."""
+    from scanreg.geometry import rotation_angle_deg
+    from scanreg.stages.coarse.sc2 import sc2_pcr
+
+    thr = 0.05
+    P0, P1, T = exact_case(31)
+    assert rotation_angle_deg(T[:3, :3]) > 60  # the identity is far from the pose
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute", sampling=sampling,
+                      estimator=estimator, lo_iterations=0)
+    r = (lo_ransac(P0, P1, None, None, thr, st.p, st.p.seed) if estimator == "ransac"
+         else sc2_pcr(P0, P1, None, None, thr, st.p))
+    assert r.inliers[:150].all() and r.inliers.sum() == 150
+    assert np.allclose(r.T_target_source, T, atol=1e-9)
+
+
+def test_a_candidate_with_fewer_than_three_inliers_is_kept_as_it_is():
+    """A first candidate that holds only 2 correspondences cannot be refitted (3 are needed): the best model is
+    that candidate and its 2 inliers, not the identity with them."""
+    rng = np.random.default_rng(4)
+    T = random_pose(rng, 180, 5.0)
+    P1 = rng.uniform(-3, 3, (20, 3))
+    P0 = rng.uniform(-20, 20, (20, 3))
+    P0[:2] = apply_T(T, P1[:2])
+    st = build_coarse("lo_ransac", distance_threshold=0.05, distances="absolute")
+    s = _Search(P0, P1, 0.05, st.p)
+    assert not inliers_at(np.eye(4), P0, P1, 0.05).any()
+    s.accept(T)
+    assert s.best_n == 2 and s.best_inl[:2].all() and np.array_equal(s.best_T, T)

@@ -69,18 +69,10 @@ class _Search:
         ``max_iterations``)."""
         return self.drawn < max(self.needed, self.p.min_iterations) and self.drawn < self.p.max_iterations
 
-    def inliers(self, T: np.ndarray) -> np.ndarray:
-        return inliers_at(T, self.P0, self.P1, self.thr)
-
-    def local_opt(self, inl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return local_opt(self.P0, self.P1, self.thr, inl, self.p.lo_iterations)
-
-    def accept(self, T_cand: np.ndarray, count: int) -> None:
-        """Local optimisation of a candidate that beats the best; it becomes the best model."""
-        T_lo, inl_lo = self.local_opt(self.inliers(T_cand))
-        if inl_lo.sum() < count:
-            T_lo, inl_lo = T_cand, self.inliers(T_cand)
-        self.best_T, self.best_inl, self.best_n = T_lo, inl_lo, int(inl_lo.sum())
+    def accept(self, T_cand: np.ndarray) -> None:
+        """A candidate that beats the best, locally optimised (:func:`refine`), becomes the best model."""
+        self.best_T, self.best_inl = refine(self.P0, self.P1, self.thr, T_cand, self.p.lo_iterations)
+        self.best_n = int(self.best_inl.sum())
 
     def needed_for(self, q: float) -> int:
         """Hypotheses needed to draw one all-inlier sample with probability 1 - ``miss_probability`` when each
@@ -118,7 +110,7 @@ class _Search:
             counts = (np.linalg.norm(moved - P0[None], axis=2) < thr).sum(axis=1)
             k = int(np.argmax(counts))
             if counts[k] > self.best_n:
-                self.accept(Ts[k], counts[k])
+                self.accept(Ts[k])
                 self.q = (self.best_n / M) ** 3
                 self.needed = self.needed_for(self.q)
 
@@ -140,7 +132,7 @@ class _Search:
             Ts, counts = hypotheses
             k = int(np.argmax(counts))
             if counts[k] > self.best_n:
-                self.accept(Ts[k], counts[k])
+                self.accept(Ts[k])
                 I = np.flatnonzero(self.best_inl)
                 if len(I) >= 3:  # r: inlier share of the compatible sets of the best model's inliers
                     sub = I[rng.permutation(len(I))[:32]]
@@ -211,11 +203,11 @@ def inliers_at(T: np.ndarray, P0: np.ndarray, P1: np.ndarray, thr: float) -> np.
     return np.linalg.norm(apply_T(T, P1) - P0, axis=1) < thr
 
 
-def local_opt(P0: np.ndarray, P1: np.ndarray, thr: float, inl: np.ndarray,
+def local_opt(P0: np.ndarray, P1: np.ndarray, thr: float, T: np.ndarray, inl: np.ndarray,
               rounds: int) -> tuple[np.ndarray, np.ndarray]:
-    """Least squares on the inliers ``inl``, re-selected, until they stop changing (``rounds`` at most): the
-    local optimisation of LO-RANSAC. Returns the last fit and its inliers (the identity when never fitted)."""
-    T = np.eye(4)
+    """Least squares on the inliers ``inl`` of the model ``T``, re-selected, until they stop changing (``rounds``
+    at most): the local optimisation of LO-RANSAC. Returns the last fit and its inliers (``T`` and ``inl`` when
+    never fitted: no rounds, or fewer than 3 inliers)."""
     for _ in range(rounds):
         if inl.sum() < 3:
             break
@@ -225,6 +217,17 @@ def local_opt(P0: np.ndarray, P1: np.ndarray, thr: float, inl: np.ndarray,
             break
         inl = new
     return T, inl
+
+
+def refine(P0: np.ndarray, P1: np.ndarray, thr: float, T: np.ndarray,
+           rounds: int) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate model ``T`` locally optimised (:func:`local_opt`, ``rounds`` at most) and its inliers; the
+    candidate and its own inliers when the optimisation ends with fewer inliers."""
+    inl = inliers_at(T, P0, P1, thr)
+    T_lo, inl_lo = local_opt(P0, P1, thr, T, inl, rounds)
+    if inl_lo.sum() < inl.sum():
+        return T, inl
+    return T_lo, inl_lo
 
 
 def final_fit(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndarray | None, thr: float,

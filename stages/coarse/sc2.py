@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 from scanreg.geometry import kabsch_batch
-from scanreg.stages.coarse.ransac import RansacResult, final_fit, local_opt
+from scanreg.stages.coarse.ransac import RansacResult, final_fit, refine
 
 
 def sc2_pcr(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndarray | None, thr: float,
@@ -45,9 +45,7 @@ def sc2_pcr(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndarra
     Ts = weighted_kabsch_batch(P0[sets], P1[sets], W)
     T, inl = best_hypothesis(Ts, P0, P1, thr)
     if inl.sum() >= 3:
-        T_lo, inl_lo = local_opt(P0, P1, thr, inl, p.lo_iterations)
-        if inl_lo.sum() >= inl.sum():
-            T, inl = T_lo, inl_lo
+        T, inl = refine(P0, P1, thr, T, p.lo_iterations)
         T, inl = final_fit(P0, P1, N0, N1, thr, p.normal_weight, T, inl)
     return RansacResult(T, inl, len(seeds))
 
