@@ -263,3 +263,70 @@ def test_a_candidate_with_fewer_than_three_inliers_is_kept_as_it_is():
     assert not inliers_at(np.eye(4), P0, P1, 0.05).any()
     s.accept(T)
     assert s.best_n == 2 and s.best_inl[:2].all() and np.array_equal(s.best_T, T)
+
+
+def test_inliers_are_strictly_within_the_threshold():
+    """Residuals 0.25, 0.5 and 0.75 at thr 0.5, exact in binary: a residual equal to thr is not an inlier."""
+    P1 = np.zeros((3, 3))
+    P0 = np.array([[0.25, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.75]])
+    assert inliers_at(np.eye(4), P0, P1, 0.5).tolist() == [True, False, False]
+
+
+def test_a_sample_of_area_exactly_half_thr_squared_is_near_collinear():
+    """The area test is strict: legs 1 and 0.5 (thr 1) give a cross product of exactly 0.5 = thr^2 / 2: rejected;
+    legs 1 and 0.5 + 2^-20 pass."""
+    st = build_coarse("lo_ransac")
+    s = _Search(np.zeros((3, 3)), np.zeros((3, 3)), 1.0, st.p)
+    a = np.array([[[0.0, 0, 0], [1.0, 0, 0], [0, h, 0]] for h in (0.5, 0.5 + 2.0 ** -20)]) + [3.0, 2.0, 1.0]
+    assert s.valid(a, a + [10.0, 0, 0]).tolist() == [False, True]
+
+
+def test_every_guided_sample_of_exact_correspondences_is_a_hypothesis():
+    """40 exact correspondences of a pose (every pair compatible, none near-collinear at thr 0.01): each of the
+    64 seeds x 8 samples draws j and k among the others and yields a valid sample, so there are exactly 512
+    hypotheses, each the pose with all 40 correspondences counted. A sample that repeats a correspondence (the
+    seed drawn as j, or j as k) has no area and would be dropped."""
+    rng = np.random.default_rng(12)
+    M, thr = 40, 0.01
+    T = random_pose(rng, 180, 5.0)
+    P1 = rng.uniform(0, 10, (M, 3))
+    P0 = apply_T(T, P1)
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
+    s = _Search(P0, P1, thr, st.p)
+    seeds = rng.integers(0, M, size=64)
+    diff = np.abs(s._d1(seeds) - s._d0(seeds))
+    Ts, counts = s._guided_batch(np.random.default_rng(1), seeds, diff)
+    assert len(Ts) == 64 * PER_SEED and (counts == M).all()
+    assert np.allclose(Ts, T, atol=1e-9)
+
+
+def test_uniform_sampling_of_three_correspondences():
+    """Three exact correspondences with uniform sampling (fewer than 8: drawn without repeats): the pose and all
+    three inliers."""
+    rng = np.random.default_rng(6)
+    T = random_pose(rng, 180, 5.0)
+    P1 = np.array([[0.0, 0, 0], [2.0, 0, 0], [0, 3.0, 0]])
+    st = build_coarse("lo_ransac", distance_threshold=0.1, distances="absolute", sampling="uniform", seed=0)
+    r = lo_ransac(apply_T(T, P1), P1, None, None, 0.1, st.p, st.p.seed)
+    assert r.inliers.all() and np.allclose(r.T_target_source, T, atol=1e-9)
+
+
+def test_the_final_fit_keeps_a_normal_exactly_perpendicular_to_its_target_as_given():
+    """Five exact correspondences at the identity, their normals equal but one: a source normal x against a
+    target normal y, perpendicular at the start (a dot product of exactly 0). Only a negative dot product
+    turns a normal round, so x pulls towards y in every round: the fit is the closed form with x as given (the
+    other sign pulls -x towards y, a rotation the other way)."""
+    from scanreg.stages.coarse.ransac import final_fit
+
+    P1 = np.array([[0.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 1.0, 1.0]])
+    N1 = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0, 1.0]])
+    N0 = N1.copy()
+    N0[0] = [0.0, 1.0, 0.0]
+    thr, weight = 0.1, 1.0
+    T, inl = final_fit(P1, P1, N0, N1, thr, weight, np.eye(4), np.ones(5, bool))
+    want = fit_points_normals(P1, P1, N0, N1, weight * thr * thr)
+    flipped = N1.copy()
+    flipped[0] *= -1
+    other = fit_points_normals(P1, P1, N0, flipped, weight * thr * thr)
+    assert inl.all() and np.allclose(T, want, atol=1e-12)
+    assert np.abs(want - other).max() > 1e-4  # the sign matters (measured 8e-3)

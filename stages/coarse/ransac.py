@@ -97,12 +97,8 @@ class _Search:
             idx = np.stack([rng.choice(M, 3, replace=False) for _ in range(B)]) if M < 8 else \
                 rng.integers(0, M, size=(B, 3))
             self.drawn += B
-            ok = (idx[:, 0] != idx[:, 1]) & (idx[:, 1] != idx[:, 2]) & (idx[:, 0] != idx[:, 2])
-            idx = idx[ok]
-            if not len(idx):
-                continue
             a, b = P1[idx], P0[idx]
-            good = self.valid(a, b)
+            good = self.valid(a, b)  # a sample that repeats a correspondence has no area: not valid
             if not good.any():
                 continue
             Ts = kabsch_batch(b[good], a[good])
@@ -137,7 +133,7 @@ class _Search:
                 if len(I) >= 3:  # r: inlier share of the compatible sets of the best model's inliers
                     sub = I[rng.permutation(len(I))[:32]]
                     Cs = np.abs(self._d1(sub) - self._d0(sub)) < 2 * thr
-                    r_est = float((Cs[:, I].sum(axis=1) / np.maximum(Cs.sum(axis=1), 1)).mean())
+                    r_est = float((Cs[:, I].sum(axis=1) / Cs.sum(axis=1)).mean())  # each row holds its own
                 self.q = self.best_n / M * (1 - (1 - r_est ** 2) ** PER_SEED)
                 self.needed = self.needed_for(self.q) * PER_SEED
 
@@ -160,16 +156,14 @@ class _Search:
         close_idx, member, n_close = _padded_members(close)
         if n_close.max() < 2:
             return None
-        L = close_idx.shape[1]
-        jpos = np.minimum((rng.random((S, PER_SEED)) * n_close[:, None]).astype(np.int64), L - 1)
+        jpos = (rng.random((S, PER_SEED)) * n_close[:, None]).astype(np.int64)  # < n_close: random() < 1
         js = np.take_along_axis(close_idx, jpos, axis=1)  # (S, PER_SEED)
         # k compatible with j as well (and not j)
         e1 = row_norms(P1[js][:, :, None, :] - P1[close_idx][:, None, :, :])
         e0 = row_norms(P0[js][:, :, None, :] - P0[close_idx][:, None, :, :])
         ck = (np.abs(e1 - e0) < thr) & member[:, None, :] & (close_idx[:, None, :] != js[:, :, None])
-        r = np.where(ck, rng.random(ck.shape), -1.0)
-        kpos = np.argmax(r, axis=2)
-        ok = (np.take_along_axis(r, kpos[..., None], axis=2)[..., 0] >= 0) & (n_close >= 2)[:, None]
+        kpos = np.argmax(np.where(ck, rng.random(ck.shape), -np.inf), axis=2)
+        ok = ck.any(axis=2)
         if not ok.any():
             return None
         ks = np.take_along_axis(close_idx, kpos, axis=1)
@@ -256,5 +250,5 @@ def _padded_members(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     """For each row of a boolean (S, M) mask: the column indices where it holds, in order, padded to the
     longest row (S, L); which of those are real members; and how many each row has."""
     n = mask.sum(axis=1)
-    L = max(int(n.max()), 1)
+    L = int(n.max())
     return np.argsort(~mask, axis=1, kind="stable")[:, :L], np.arange(L)[None, :] < n[:, None], n
