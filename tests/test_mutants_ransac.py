@@ -330,3 +330,94 @@ def test_the_final_fit_keeps_a_normal_exactly_perpendicular_to_its_target_as_giv
     other = fit_points_normals(P1, P1, N0, flipped, weight * thr * thr)
     assert inl.all() and np.allclose(T, want, atol=1e-12)
     assert np.abs(want - other).max() > 1e-4  # the sign matters (measured 8e-3)
+
+
+def test_local_optimisation_refits_three_inliers():
+    """40 exact correspondences of a pose and a candidate far off that holds exactly 3 of them: local
+    optimisation fits those 3 (the pose exactly), which then holds all 40."""
+    from scanreg.stages.coarse.ransac import local_opt
+
+    P0, P1, T = exact_case(13, n_in=40, n_out=20)
+    inl = np.zeros(60, bool)
+    inl[[3, 17, 29]] = True
+    T_lo, inl_lo = local_opt(P0, P1, 0.05, np.eye(4), inl, 10)
+    assert inl_lo[:40].all() and inl_lo.sum() == 40 and np.allclose(T_lo, T, atol=1e-9)
+
+
+def test_the_final_fit_does_not_refit_fewer_than_three_inliers():
+    """A model holding 2 correspondences: too few to fit, returned as it is with those 2."""
+    from scanreg.stages.coarse.ransac import final_fit
+
+    P0, P1, T = exact_case(14, n_in=2, n_out=10)
+    got, inl = final_fit(P0, P1, None, None, 0.05, 1.0, T, inliers_at(T, P0, P1, 0.05))
+    assert np.array_equal(got, T) and inl.tolist() == [True, True] + [False] * 10
+
+
+def test_the_final_fit_uses_normals_only_when_both_sides_have_them():
+    """Target normals without source normals: the points-only least squares over the inliers (SVD here)."""
+    from scanreg.stages.coarse.ransac import final_fit
+
+    P0, P1, N0, _, T = noisy_case(30, 30, 7)
+    inl = inliers_at(T, P0, P1, 0.1)
+    got, got_inl = final_fit(P0, P1, N0, None, 0.1, 1.0, T, inl)
+    assert got_inl[:30].all() and not got_inl[30:].any()
+    assert np.allclose(got, fit_points_normals(P0[:30], P1[:30], N0[:30], N0[:30], 0.0), atol=1e-9)
+
+
+def tie_case():
+    """Exact correspondences at the identity on integer points (every distance exact in binary; thr 0.5), and
+    three built to tie: seen from the seed S, X's distance agrees to 0.03 (compatible) but from J it is 4 against
+    4.5 (exactly thr off); Z's distance from S is 4 against 4.5 (exactly thr off)."""
+    rng = np.random.default_rng(15)
+    S, J = np.array([10.0, 10, 10]), np.array([6.0, 14, 10])
+    X1, Z1 = S + [0, 4, 0], S + [0, 0, 4]
+    P1 = np.vstack([S, J, X1, Z1, rng.integers(0, 21, size=(12, 3)).astype(float)])
+    P0 = P1.copy()
+    P0[2] += [0.5, 0, 0]
+    P0[3] += [0, 0, 0.5]
+    return P0, P1
+
+
+def test_guided_compatibility_is_strict_at_thr():
+    """The tie case with every seed S: X may be j or k, but never with J (their distances differ by exactly thr),
+    and Z is never drawn (exactly thr off from S). Every sample drawn is then valid (all sides agree within thr,
+    no three source points collinear): exactly 64 x 8 hypotheses. Drawing J with X, or Z, would give samples
+    with a side exactly thr off, which valid() rejects."""
+    P0, P1 = tie_case()
+    thr = 0.5
+    d1 = np.linalg.norm(P1[:, None] - P1[None], axis=2)
+    d0 = np.linalg.norm(P0[:, None] - P0[None], axis=2)
+    diff = np.abs(d1 - d0)
+    assert diff[1, 2] == thr and diff[0, 3] == thr and diff[0, 2] < thr  # the ties, exact
+    close = np.flatnonzero(diff[0] < thr)[1:]
+    assert all((diff[i, close] < thr).sum() >= 2 for i in close)  # each j has a k (itself included in the count)
+    tri = [np.linalg.norm(np.cross(P1[b] - P1[a], P1[c] - P1[a])) for a in range(16) for b in range(a) for c in
+           range(b)]
+    assert min(tri) > thr * thr / 2  # no near-collinear triple
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
+    s = _Search(P0, P1, thr, st.p)
+    seeds = np.zeros(64, np.int64)
+    Ts, _ = s._guided_batch(np.random.default_rng(2), seeds, np.abs(s._d1(seeds) - s._d0(seeds)))
+    assert len(Ts) == 64 * PER_SEED
+
+
+def test_guided_all_inlier_probability_is_strict_at_twice_thr():
+    """q = w (1 - (1 - r^2)^8) by brute force (as above) with a correspondence W whose distance to the inlier S
+    is 3 against 4 (exactly 2 thr off): outside S's compatible set."""
+    rng = np.random.default_rng(16)
+    thr, n_in = 0.5, 20
+    P1 = np.vstack([[10.0, 10, 10], rng.integers(0, 21, size=(n_in - 1, 3)), [10.0, 10, 13],
+                    rng.uniform(0, 20, (40, 3))])
+    P0 = P1.copy()
+    P0[n_in] = [10.0, 10, 14]
+    P0[n_in + 1:] = rng.uniform(-20, 40, (40, 3))
+    d1 = np.linalg.norm(P1[:, None] - P1[None], axis=2)
+    d0 = np.linalg.norm(P0[:, None] - P0[None], axis=2)
+    assert np.abs(d1 - d0)[0, n_in] == 2 * thr
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute", seed=3)
+    r = lo_ransac(P0, P1, None, None, thr, st.p, st.p.seed)
+    assert r.inliers[:n_in].all() and r.inliers.sum() == n_in
+    C = np.abs(d1 - d0)[:n_in] < 2 * thr
+    r_share = np.mean(C[:, :n_in].sum(axis=1) / C.sum(axis=1))
+    assert r.all_inlier_probability == pytest.approx(n_in / len(P0) * (1 - (1 - r_share ** 2) ** PER_SEED),
+                                                     rel=1e-12)

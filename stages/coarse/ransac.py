@@ -235,7 +235,7 @@ def final_fit(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndar
         if cur.sum() < 3:
             break
         n0 = n1 = None
-        if N0 is not None and N1 is not None and normal_weight > 0:
+        if N0 is not None and N1 is not None:  # (rigid_points_normals leaves them out at weight 0)
             n0, n1 = N0[cur], N1[cur]
             flip = np.einsum("ij,ij->i", n1 @ T[:3, :3].T, n0) < 0
             n1 = np.where(flip[:, None], -n1, n1)

@@ -37,7 +37,7 @@ def sc2_pcr(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndarra
     d1 = cdist(P1, P1)
     C = (np.abs(d1 - cdist(P0, P0)) < thr).astype(np.float32)
     np.fill_diagonal(C, 0.0)
-    seeds = spread_seeds(leading_eigenvector(C), d1, thr, max(1, int(np.ceil(p.seed_share * M))))
+    seeds = spread_seeds(leading_eigenvector(C), d1, thr, int(np.ceil(p.seed_share * M)))  # >= 1: share > 0
     sets = consensus_sets(C, seeds, min(p.sc2_k1, M - 1), min(p.sc2_k2, M - 1))
     # the weights of each set: the leading eigenvector of its own SC2 matrix
     Cl = C[sets[:, :, None], sets[:, None, :]]
@@ -104,16 +104,13 @@ def best_hypothesis(Ts: np.ndarray, P0: np.ndarray, P1: np.ndarray, thr: float,
                     chunk: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """The hypothesis with the most correspondences within ``thr`` (ties: the lower sum of squared residuals
     truncated at ``thr``) and its inlier mask."""
-    best = (-1, np.inf, 0)
+    counts, cost = np.zeros(len(Ts), np.int64), np.zeros(len(Ts))
     for c0 in range(0, len(Ts), chunk):
         T = Ts[c0:c0 + chunk]
         r = P1 @ T[:, :3, :3].transpose(0, 2, 1) + (T[:, None, :3, 3] - P0)
         sq = np.einsum("bmi,bmi->bm", r, r)
-        counts = (sq < thr * thr).sum(axis=1)
-        cost = np.minimum(sq, thr * thr).sum(axis=1)
-        for b in range(len(T)):
-            if counts[b] > best[0] or (counts[b] == best[0] and cost[b] < best[1]):
-                best = (int(counts[b]), float(cost[b]), c0 + b)
-    T = Ts[best[2]]
+        counts[c0:c0 + chunk] = (sq < thr * thr).sum(axis=1)
+        cost[c0:c0 + chunk] = np.minimum(sq, thr * thr).sum(axis=1)
+    T = Ts[np.lexsort((cost, -counts))[0]]  # the most inliers, then the lowest cost, then the first
     d = P1 @ T[:3, :3].T + T[:3, 3] - P0
     return T, np.einsum("ij,ij->i", d, d) < thr * thr
