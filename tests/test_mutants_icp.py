@@ -396,6 +396,8 @@ def test_the_accept_rule_counts_no_inlier_term_without_inliers():
     assert IcpBase.accept(none, {"icp_fitness": 0.5, "icp_inlier_rms": 1.8}, 2.0)
     assert not IcpBase.accept(none, {"icp_fitness": 0.5, "icp_inlier_rms": np.sqrt(4.16)}, 2.0)
     assert IcpBase.accept(none, none, 2.0)
+    perfect = {"icp_fitness": 1.0, "icp_inlier_rms": 0.0}
+    assert IcpBase.accept(perfect, perfect, 2.0)  # cost 0 against 1.01 x 0: not clearly higher
 
 
 def test_pair_limit_defaults_halve_the_limit_once_the_rms_changes_by_less_than_one_percent():
@@ -428,3 +430,25 @@ def test_besl_mckay_stops_on_the_rms_change_and_records_the_rms_of_every_pair():
     changes = np.abs(np.diff(res.rms_history))
     assert res.converged and changes[-1] < tau and (changes[:-1] >= tau).all()
     assert 0.02 < res.rms_history[-1] < 0.05  # measured 0.034
+    again = besl_mckay(ClosestPoints(Cloud(tgt)), pts, res.T_target_source, tau, 100)  # from its end point
+    assert again.converged and again.iterations == 1
+
+
+@pytest.mark.parametrize("n, coarse_to_fine", [(6, True), (5, False)])
+def test_coarse_to_fine_needs_three_points_per_step(n, coarse_to_fine):
+    """initial_share 0.5 (every 2nd point first) applies from 3 x 2 = 6 source points. The even points lie on
+    the target, the odd ones 0.37 off: the first RMS is 0 on every 2nd point (coarse to fine), else the RMS of
+    all n points' distances to their nearest target point (brute force)."""
+    from scanreg.geometry import ClosestPoints, Cloud
+
+    rng = np.random.default_rng(5)
+    tgt = rng.normal(size=(6, 3)) * 3.0
+    src = tgt[:n].copy()
+    src[1::2] += [0.3, -0.2, 0.1]
+    res = icp("horn", initial_share=0.5).converge(Cloud(tgt), Cloud(src), np.eye(4), ClosestPoints(Cloud(tgt)),
+                                                   1e-9, None, None)
+    d = np.sqrt(((src[:, None] - tgt[None]) ** 2).sum(axis=2)).min(axis=1)
+    if coarse_to_fine:
+        assert res.rms_history[0] == 0.0
+    else:
+        assert res.rms_history[0] == pytest.approx(np.sqrt(np.mean(d ** 2)), rel=1e-12) and d.max() > 0.3
