@@ -421,3 +421,49 @@ def test_guided_all_inlier_probability_is_strict_at_twice_thr():
     r_share = np.mean(C[:, :n_in].sum(axis=1) / C.sum(axis=1))
     assert r.all_inlier_probability == pytest.approx(n_in / len(P0) * (1 - (1 - r_share ** 2) ** PER_SEED),
                                                      rel=1e-12)
+
+
+def test_guided_all_inlier_probability_uses_32_of_33_inliers():
+    """With 33 inliers the share r is the mean over a random 32 of them (the rule of the brute-force test above):
+    q matches r with one inlier left out, for one of the 33, and not the mean over all 33."""
+    rng = np.random.default_rng(11)
+    M, n_in, thr = 400, 33, 0.05
+    T = random_pose(rng, 180, 5.0)
+    P1 = rng.uniform(0, 10, (M, 3))
+    P0 = rng.uniform(-5, 15, (M, 3))
+    P0[:n_in] = apply_T(T, P1[:n_in]) + rng.normal(scale=0.005, size=(n_in, 3))
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute", seed=1)
+    r = lo_ransac(P0, P1, None, None, thr, st.p, st.p.seed)
+    assert r.inliers[:n_in].all() and r.inliers.sum() == n_in
+    d1 = np.linalg.norm(P1[:, None] - P1[None], axis=2)
+    d0 = np.linalg.norm(P0[:, None] - P0[None], axis=2)
+    C = np.abs(d1 - d0)[:n_in] < 2 * thr
+    share = C[:, :n_in].sum(axis=1) / C.sum(axis=1)
+    q = lambda r_share: n_in / M * (1 - (1 - r_share ** 2) ** PER_SEED)  # noqa: E731
+    left_out = [q(np.delete(share, i).mean()) for i in range(n_in)]
+    assert any(r.all_inlier_probability == pytest.approx(v, rel=1e-12) for v in left_out)
+    assert r.all_inlier_probability != pytest.approx(q(share.mean()), rel=1e-9)
+
+
+def test_guided_scores_count_inliers_up_to_twice_thr_from_the_seed():
+    """As the scoring test above, with noise 0.6 thr: some hypotheses count inliers whose distance to the seed
+    disagrees by between thr and 2 thr (both noisy), which the pool of width 2 thr keeps."""
+    rng = np.random.default_rng(6)
+    M, thr = 300, 0.05
+    T = random_pose(rng, 180, 5.0)
+    P1 = rng.uniform(0, 10, (M, 3))
+    P0 = rng.uniform(-5, 15, (M, 3))
+    P0[:120] = apply_T(T, P1[:120]) + rng.normal(scale=0.6 * thr, size=(120, 3))
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
+    s = _Search(P0, P1, thr, st.p)
+    seeds = np.zeros(64, np.int64)
+    diff = np.abs(s._d1(seeds) - s._d0(seeds))
+    Ts, counts = s._guided_batch(np.random.default_rng(0), seeds, diff)
+    pool = np.flatnonzero(diff[0] < 2 * thr)
+    far = 0
+    for Th, c in zip(Ts, counts):
+        res = apply_T(Th, P1[pool]) - P0[pool]
+        inside = np.einsum("ij,ij->i", res, res) < thr * thr
+        assert c == inside.sum()
+        far += int((inside & (diff[0][pool] >= thr)).any())
+    assert far > 0  # hypotheses counting such an inlier

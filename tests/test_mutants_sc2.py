@@ -107,7 +107,7 @@ def test_consensus_sets_by_hand_with_a_seed_of_few_compatible_matches():
     C = C + C.T
     C[0, :] = C[:, 0] = 0.0
     C[0, [4, 7]] = C[[4, 7], 0] = 1.0
-    for seeds in (np.array([0]), np.array([0, 5, 9])):
+    for seeds in (np.array([0]), np.array([0, 5, 9]), np.arange(M)):
         got = consensus_sets(C.astype(np.float32), seeds, 5, 3)
         for s, row in zip(seeds, got):
             sc2 = np.array([C[s, j] * sum(C[s, k] * C[k, j] for k in range(M)) for j in range(M)])
@@ -138,6 +138,33 @@ def test_leading_eigenvector_of_a_matrix_of_small_norm():
     """0.1 (J - I) for 3 x 3: |A v| < 1 from the start, and the eigenvector is still the normalised ones."""
     A = 0.1 * (np.ones((3, 3)) - np.eye(3))
     assert np.allclose(leading_eigenvector(A), np.ones(3) / np.sqrt(3), atol=1e-12)
+    for iterations in (1, 2, 20):  # a zero matrix: zeros, however many iterations
+        assert np.array_equal(leading_eigenvector(np.zeros((4, 4)), iterations), np.zeros(4))
+
+
+def test_three_inliers_are_refined_with_their_normals():
+    """3 noisy inliers (with normals) among 20 matches far from agreeing: the estimator's hypothesis fits the 3
+    points, and with exactly 3 inliers it is still refined: the result is the points-and-normals least squares
+    over them (SVD here, normal weight 100 x thr^2), not the points-only fit."""
+    from test_mutants_ransac import fit_points_normals
+
+    rng = np.random.default_rng(10)
+    thr, M = 0.05, 23
+    T = random_pose(rng, 180, 20)
+    P1 = rng.uniform(0, 10, size=(M, 3))
+    P0 = rng.uniform(-10, 20, size=(M, 3))
+    P0[:3] = apply_T(T, P1[:3]) + rng.normal(scale=0.003, size=(3, 3))
+    N1 = rng.normal(size=(M, 3))
+    N1 /= np.linalg.norm(N1, axis=1, keepdims=True)
+    N0 = N1 @ T[:3, :3].T + rng.normal(scale=0.03, size=(M, 3))
+    N0 /= np.linalg.norm(N0, axis=1, keepdims=True)
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances=Distances.absolute, estimator="sc2",
+                      normal_weight=100.0)
+    r = sc2_pcr(P0, P1, N0, N1, thr, st.p)
+    assert r.inliers.tolist() == [True] * 3 + [False] * (M - 3)
+    want = fit_points_normals(P0[:3], P1[:3], N0[:3], N1[:3], 100.0 * thr * thr)
+    assert np.allclose(r.T_target_source, want, atol=1e-9)
+    assert np.abs(want - fit_points_normals(P0[:3], P1[:3], N0[:3], N1[:3], 0.0)).max() > 1e-4
 
 
 @pytest.mark.parametrize("n_in", [30, 12])

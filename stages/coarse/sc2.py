@@ -84,12 +84,12 @@ def consensus_sets(C: np.ndarray, seeds: np.ndarray, k1: int, k2: int) -> np.nda
     then the ``k2`` of those of highest SC2 with it within the ``k1`` and the seed."""
     Cs = C[seeds]
     sc2 = Cs * (Cs @ C)
-    sc2[np.arange(len(seeds)), seeds] = -1.0  # the seed itself joins as the first member, not as a candidate
+    sc2[np.arange(len(seeds)), seeds] = -np.inf  # the seed itself joins as the first member, not as a candidate
     first = np.argsort(-sc2, axis=1, kind="stable")[:, :k1]
     pool = np.concatenate([seeds[:, None], first], axis=1)  # (S, k1 + 1), the seed at 0
     Cl = C[pool[:, :, None], pool[:, None, :]]
     local = np.einsum("sj,sj->sj", Cl[:, 0, :], np.einsum("sk,skj->sj", Cl[:, 0, :], Cl))
-    local[:, 0] = -1.0
+    local[:, 0] = -np.inf
     second = np.argsort(-local, axis=1, kind="stable")[:, :k2]
     return np.concatenate([seeds[:, None], np.take_along_axis(pool, second, axis=1)], axis=1)
 
