@@ -1,6 +1,8 @@
 """Known answers that kill the mutants of LO-RANSAC (./run mutants, issue #38): the final fit with normals in closed
 form (SVD, written here) over the inliers it returns, with three inliers and with thirty; the guided sampler's
-all-inlier probability against its formula counted by brute force; the iteration count's edge cases."""
+all-inlier probability against its formula counted by brute force; the iteration count's edge cases; local
+optimisation from the candidate (lo_iterations=0, fewer than 3 inliers: the finding the mutants made); and the
+thresholds' ties, placed exactly with integer points and dyadic distances."""
 
 import math
 
@@ -60,26 +62,30 @@ def test_the_final_fit_is_the_points_and_normals_least_squares_over_the_inliers(
     assert np.abs(want - points_only).max() > (1e-4 if weight > 1 else 1e-8)  # the normals' term matters here
 
 
-def test_guided_all_inlier_probability_by_brute_force():
-    """q = w (1 - (1 - r^2)^8): w the final model's inlier share, r the mean over its inliers i of the share of
-    inliers in C_i = {c : |d1(i, c) - d0(i, c)| < 2 thr} (i included). With at most 32 inliers every one of
-    them enters the mean."""
+def guided_shares(n_in, M=400, thr=0.05):
+    """n_in noisy inliers of a pose among M matches, found by guided LO-RANSAC: the result, and per inlier i the
+    share of inliers in C_i = {c : |d1(i, c) - d0(i, c)| < 2 thr} (i included), by brute force."""
     rng = np.random.default_rng(11)
-    M, n_in, thr = 400, 32, 0.05  # 32: the most that enter the mean all
     T = random_pose(rng, 180, 5.0)
     P1 = rng.uniform(0, 10, (M, 3))
     P0 = rng.uniform(-5, 15, (M, 3))
     P0[:n_in] = apply_T(T, P1[:n_in]) + rng.normal(scale=0.005, size=(n_in, 3))
     st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute", seed=1)
     r = lo_ransac(P0, P1, None, None, thr, st.p, st.p.seed)
-    inl = r.inliers
-    assert inl[:n_in].all() and inl.sum() == n_in
+    assert r.inliers[:n_in].all() and r.inliers.sum() == n_in
     d1 = np.linalg.norm(P1[:, None] - P1[None], axis=2)
     d0 = np.linalg.norm(P0[:, None] - P0[None], axis=2)
-    C = np.abs(d1 - d0)[inl] < 2 * thr
-    r_share = np.mean(C[:, inl].sum(axis=1) / C.sum(axis=1))
+    C = np.abs(d1 - d0)[:n_in] < 2 * thr
+    return r, C[:, :n_in].sum(axis=1) / C.sum(axis=1)
+
+
+def test_guided_all_inlier_probability_by_brute_force():
+    """q = w (1 - (1 - r^2)^8): w the final model's inlier share, r the mean over its inliers of their shares
+    (guided_shares). With at most 32 inliers every one of them enters the mean."""
+    r, share = guided_shares(32)  # 32: the most that enter the mean all
+    r_share = share.mean()
     assert 0.5 < r_share < 0.99  # outliers in the compatible sets (measured 0.92): the share is not 1
-    assert r.all_inlier_probability == pytest.approx(n_in / M * (1 - (1 - r_share ** 2) ** PER_SEED), rel=1e-12)
+    assert r.all_inlier_probability == pytest.approx(32 / 400 * (1 - (1 - r_share ** 2) ** PER_SEED), rel=1e-12)
 
 
 def test_guided_sampling_with_exactly_three_correspondences():
@@ -134,23 +140,30 @@ def test_ransac_keeps_the_largest_consensus(seed, sampling):
     assert np.allclose(r.T_target_source, T1, atol=1e-9)
 
 
+def seed_0_batch(rng_seed, noise, scale=1.0):
+    """300 matches, the first 120 inliers of a pose with noise ``noise`` x thr (thr 0.05 x scale), and one guided
+    batch whose 64 seeds are all correspondence 0: the matches, thr, |d1 - d0| from each seed, the hypotheses
+    and their counts."""
+    rng = np.random.default_rng(rng_seed)
+    M, thr = 300, 0.05 * scale
+    T = random_pose(rng, 180, 5.0 * scale)
+    P1 = rng.uniform(0, 10, (M, 3)) * scale
+    P0 = rng.uniform(-5, 15, (M, 3)) * scale
+    P0[:120] = apply_T(T, P1[:120]) + rng.normal(scale=noise * thr, size=(120, 3))
+    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
+    s = _Search(P0, P1, thr, st.p)
+    seeds = np.zeros(64, np.int64)
+    diff = np.abs(s._d1(seeds) - s._d0(seeds))
+    return (P0, P1, thr, diff) + s._guided_batch(np.random.default_rng(0), seeds, diff)
+
+
 @pytest.mark.parametrize("scale", [1.0, 100.0])
 def test_guided_hypotheses_are_scored_on_their_seeds_compatible_set(scale):
     """One guided batch whose 64 seeds are all correspondence 0 (an inlier): 512 samples, more hypotheses than
     one block of 64. Each hypothesis's count is, by brute force, the correspondences within thr of it (squared
     distance) among those compatible with the seed (|d1 - d0| < 2 thr); at two scales (thr 0.05 and 5), so that
     the pool's width is not mistaken for another expression of thr."""
-    rng = np.random.default_rng(5)
-    M, thr = 300, 0.05 * scale
-    T = random_pose(rng, 180, 5.0 * scale)
-    P1 = rng.uniform(0, 10, (M, 3)) * scale
-    P0 = rng.uniform(-5, 15, (M, 3)) * scale
-    P0[:120] = apply_T(T, P1[:120]) + rng.normal(scale=0.4 * thr, size=(120, 3))
-    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
-    s = _Search(P0, P1, thr, st.p)
-    seeds = np.zeros(64, np.int64)
-    diff = np.abs(s._d1(seeds) - s._d0(seeds))
-    Ts, counts = s._guided_batch(np.random.default_rng(0), seeds, diff)
+    P0, P1, thr, diff, Ts, counts = seed_0_batch(5, 0.4, scale)
     assert len(Ts) > 64
     pool = np.flatnonzero(diff[0] < 2 * thr)
     for Th, c in zip(Ts, counts):
@@ -426,21 +439,9 @@ def test_guided_all_inlier_probability_is_strict_at_twice_thr():
 def test_guided_all_inlier_probability_uses_32_of_33_inliers():
     """With 33 inliers the share r is the mean over a random 32 of them (the rule of the brute-force test above):
     q matches r with one inlier left out, for one of the 33, and not the mean over all 33."""
-    rng = np.random.default_rng(11)
-    M, n_in, thr = 400, 33, 0.05
-    T = random_pose(rng, 180, 5.0)
-    P1 = rng.uniform(0, 10, (M, 3))
-    P0 = rng.uniform(-5, 15, (M, 3))
-    P0[:n_in] = apply_T(T, P1[:n_in]) + rng.normal(scale=0.005, size=(n_in, 3))
-    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute", seed=1)
-    r = lo_ransac(P0, P1, None, None, thr, st.p, st.p.seed)
-    assert r.inliers[:n_in].all() and r.inliers.sum() == n_in
-    d1 = np.linalg.norm(P1[:, None] - P1[None], axis=2)
-    d0 = np.linalg.norm(P0[:, None] - P0[None], axis=2)
-    C = np.abs(d1 - d0)[:n_in] < 2 * thr
-    share = C[:, :n_in].sum(axis=1) / C.sum(axis=1)
-    q = lambda r_share: n_in / M * (1 - (1 - r_share ** 2) ** PER_SEED)  # noqa: E731
-    left_out = [q(np.delete(share, i).mean()) for i in range(n_in)]
+    r, share = guided_shares(33)
+    q = lambda r_share: 33 / 400 * (1 - (1 - r_share ** 2) ** PER_SEED)  # noqa: E731
+    left_out = [q(np.delete(share, i).mean()) for i in range(33)]
     assert any(r.all_inlier_probability == pytest.approx(v, rel=1e-12) for v in left_out)
     assert r.all_inlier_probability != pytest.approx(q(share.mean()), rel=1e-9)
 
@@ -448,17 +449,7 @@ def test_guided_all_inlier_probability_uses_32_of_33_inliers():
 def test_guided_scores_count_inliers_up_to_twice_thr_from_the_seed():
     """As the scoring test above, with noise 0.6 thr: some hypotheses count inliers whose distance to the seed
     disagrees by between thr and 2 thr (both noisy), which the pool of width 2 thr keeps."""
-    rng = np.random.default_rng(6)
-    M, thr = 300, 0.05
-    T = random_pose(rng, 180, 5.0)
-    P1 = rng.uniform(0, 10, (M, 3))
-    P0 = rng.uniform(-5, 15, (M, 3))
-    P0[:120] = apply_T(T, P1[:120]) + rng.normal(scale=0.6 * thr, size=(120, 3))
-    st = build_coarse("lo_ransac", distance_threshold=thr, distances="absolute")
-    s = _Search(P0, P1, thr, st.p)
-    seeds = np.zeros(64, np.int64)
-    diff = np.abs(s._d1(seeds) - s._d0(seeds))
-    Ts, counts = s._guided_batch(np.random.default_rng(0), seeds, diff)
+    P0, P1, thr, diff, Ts, counts = seed_0_batch(6, 0.6)
     pool = np.flatnonzero(diff[0] < 2 * thr)
     far = 0
     for Th, c in zip(Ts, counts):
