@@ -369,3 +369,86 @@ def test_kernel_weights_between_their_breakpoints():
     r = np.array([0.05, 0.1, 0.5, 0.8])
     assert np.allclose(kernel_weights("huber", r, 0.1), [1.0, 1.0, 0.2, 0.125])
     assert np.array_equal(kernel_weights("tukey", np.array([1.2, 1.0, 0.5]), 1.0), [0.0, 0.0, 0.5625])
+
+
+def icp(name, **kw):
+    from scanreg.stages.registry import ICP, load_all, make_params
+
+    load_all()
+    cls = ICP.get(name)
+    return cls(make_params(cls.Params, kw, f"icp={name}"))
+
+
+def test_accept_distance_is_the_parameter_else_the_final_limit_else_three_spacings():
+    assert icp("horn", accept_distance=None).accept_distance(None, 2.0) == 6.0
+    assert icp("horn", accept_distance=None).accept_distance(1.5, 2.0) == 1.5
+    assert icp("horn", accept_distance=4.0, distances="spacing").accept_distance(1.5, 2.0) == 8.0
+    assert icp("horn", accept_distance=4.0, distances="absolute").accept_distance(None, 2.0) == 4.0
+
+
+def test_the_accept_rule_counts_no_inlier_term_without_inliers():
+    """Start pose with no point within the distance 2: cost 2^2 = 4. End pose with half of them at RMS 1.8:
+    0.5 x 4 + 0.5 x 3.24 = 3.62, below 1.01 x 4: accepted. And an end pose of cost 4.08 (fitness 0.5, RMS
+    2.02...: 0.5 x 4 + 0.5 x 4.16) above 1.01 x 4 is rejected."""
+    from scanreg.stages.icp.base import IcpBase
+
+    none = {"icp_fitness": 0.0, "icp_inlier_rms": float("nan")}
+    assert IcpBase.accept(none, {"icp_fitness": 0.5, "icp_inlier_rms": 1.8}, 2.0)
+    assert not IcpBase.accept(none, {"icp_fitness": 0.5, "icp_inlier_rms": np.sqrt(4.16)}, 2.0)
+    assert IcpBase.accept(none, none, 2.0)
+    perfect = {"icp_fitness": 1.0, "icp_inlier_rms": 0.0}
+    assert IcpBase.accept(perfect, perfect, 2.0)  # cost 0 against 1.01 x 0: not clearly higher
+
+
+def test_pair_limit_defaults_halve_the_limit_once_the_rms_changes_by_less_than_one_percent():
+    """PairLimit's defaults are IcpParams' (shrink 0.5, settle 0.01): from 16 towards 4, an RMS change of 0.5 %
+    of the RMS halves the limit; one of 2 % does not."""
+    from scanreg.stages.icp.base import IcpParams
+
+    assert (IcpParams().shrink, IcpParams().settle) == (0.5, 0.01)
+    lim = PairLimit(16.0, 4.0)
+    assert not lim.advance(1.0, 0.98, 0.0) and lim.limit == 16.0
+    assert lim.advance(1.0, 0.995, 0.0) and lim.limit == 8.0
+
+
+def test_besl_mckay_stops_on_the_rms_change_and_records_the_rms_of_every_pair():
+    """A noisy copy of 300 points turned 5 degrees (the RMS settles near the noise, 0.02, not at 0): the history
+    starts at the RMS of every point's distance to its nearest target point at the start (brute force here),
+    the loop stops at the first RMS change below tau, and none before it is below tau."""
+    from scanreg.geometry import ClosestPoints, Cloud, apply_T, make_T
+    from scanreg.stages.icp.base import besl_mckay
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(300, 3)) * [3.0, 2.0, 1.0]
+    T = make_T(Rotation.from_rotvec([0.0, 0.05, 0.07]).as_matrix(), np.array([0.1, 0.0, -0.1]))
+    tgt = apply_T(T, pts) + rng.normal(scale=0.02, size=pts.shape)
+    tau = 1e-6
+    res = besl_mckay(ClosestPoints(Cloud(tgt)), pts, np.eye(4), tau, 100)
+    d0 = np.sqrt(((pts[:, None] - tgt[None]) ** 2).sum(axis=2)).min(axis=1)
+    assert res.rms_history[0] == pytest.approx(np.sqrt(np.mean(d0 ** 2)), rel=1e-12)
+    changes = np.abs(np.diff(res.rms_history))
+    assert res.converged and changes[-1] < tau and (changes[:-1] >= tau).all()
+    assert 0.02 < res.rms_history[-1] < 0.05  # measured 0.034
+    again = besl_mckay(ClosestPoints(Cloud(tgt)), pts, res.T_target_source, tau, 100)  # from its end point
+    assert again.converged and again.iterations == 1
+
+
+@pytest.mark.parametrize("n, coarse_to_fine", [(6, True), (5, False)])
+def test_coarse_to_fine_needs_three_points_per_step(n, coarse_to_fine):
+    """initial_share 0.5 (every 2nd point first) applies from 3 x 2 = 6 source points. The even points lie on
+    the target, the odd ones 0.37 off: the first RMS is 0 on every 2nd point (coarse to fine), else the RMS of
+    all n points' distances to their nearest target point (brute force)."""
+    from scanreg.geometry import ClosestPoints, Cloud
+
+    rng = np.random.default_rng(5)
+    tgt = rng.normal(size=(6, 3)) * 3.0
+    src = tgt[:n].copy()
+    src[1::2] += [0.3, -0.2, 0.1]
+    res = icp("horn", initial_share=0.5).converge(Cloud(tgt), Cloud(src), np.eye(4), ClosestPoints(Cloud(tgt)),
+                                                   1e-9, None, None)
+    d = np.sqrt(((src[:, None] - tgt[None]) ** 2).sum(axis=2)).min(axis=1)
+    if coarse_to_fine:
+        assert res.rms_history[0] == 0.0
+    else:
+        assert res.rms_history[0] == pytest.approx(np.sqrt(np.mean(d ** 2)), rel=1e-12) and d.max() > 0.3

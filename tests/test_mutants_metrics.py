@@ -123,3 +123,21 @@ def test_field_metrics_leave_out_what_the_trace_does_not_give():
     assert "keypoint_repeatability" not in m and "n_keypoints_source" not in m and "repeatability" not in masks
     m, masks = field_metrics(None, shift(0.5), np.eye(4), np.eye(4), k, k, p, 1.0)
     assert m == {"gt_rmse": 0.0, "coarse_gt_rmse": 0.5, "overlap_share_gt": 1.0} and masks == {}
+
+
+def test_field_metrics_of_an_empty_target_cloud():
+    """No target points: nothing of the source is in the overlap (and no search is built on no points)."""
+    pts = np.random.default_rng(1).normal(size=(20, 3))
+    m, _ = field_metrics(None, np.eye(4), np.eye(4), np.eye(4), pts, np.zeros((0, 3)), EvalParams(), 1.0)
+    assert m["overlap_share_gt"] == 0.0
+
+
+def test_repeatability_without_target_points_measures_the_overlap_on_the_target_keypoints():
+    """Without target_points the overlap's reference is the target keypoints, even when a search (here on points
+    far away) is passed: keypoints 0.1 apart at eps 0.5 and overlap radius 1 are all repeatable."""
+    from scanreg.geometry import ClosestPoints, Cloud
+
+    kp = np.array([[0.0, 0, 0], [2.0, 0, 0], [0, 2.0, 0]])
+    far = ClosestPoints(Cloud(kp + 100.0))
+    rep = keypoint_repeatability(kp, kp + [0.1, 0, 0], np.eye(4), 0.5, 1.0, None, far)
+    assert rep.repeatability == 1.0 and rep.source_in_overlap.all()

@@ -109,10 +109,10 @@ def consensus(pair: str) -> str:
     cells = []
     for f in (1.0, 2 / 3, 0.5, 1 / 3):
         t = f * thr
-        truth = int(local_opt(P0, P1, t, d_gt < t, p.lo_iterations)[1].sum())
+        truth = int(local_opt(P0, P1, t, T_gt, d_gt < t, p.lo_iterations)[1].sum())
         wrong = 0
         for T in top:
-            T_lo, inl = local_opt(P0, P1, t, np.linalg.norm(apply_T(T, P1) - P0, axis=1) < t, p.lo_iterations)
+            T_lo, inl = local_opt(P0, P1, t, T, np.linalg.norm(apply_T(T, P1) - P0, axis=1) < t, p.lo_iterations)
             if transform_errors(T_lo, T_gt)[0] > 10.0:
                 wrong = max(wrong, int(inl.sum()))
         cells.append(f"{truth} / {wrong}")

@@ -69,18 +69,10 @@ class _Search:
         ``max_iterations``)."""
         return self.drawn < max(self.needed, self.p.min_iterations) and self.drawn < self.p.max_iterations
 
-    def inliers(self, T: np.ndarray) -> np.ndarray:
-        return inliers_at(T, self.P0, self.P1, self.thr)
-
-    def local_opt(self, inl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return local_opt(self.P0, self.P1, self.thr, inl, self.p.lo_iterations)
-
-    def accept(self, T_cand: np.ndarray, count: int) -> None:
-        """Local optimisation of a candidate that beats the best; it becomes the best model."""
-        T_lo, inl_lo = self.local_opt(self.inliers(T_cand))
-        if inl_lo.sum() < count:
-            T_lo, inl_lo = T_cand, self.inliers(T_cand)
-        self.best_T, self.best_inl, self.best_n = T_lo, inl_lo, int(inl_lo.sum())
+    def accept(self, T_cand: np.ndarray) -> None:
+        """A candidate that beats the best, locally optimised (:func:`refine`), becomes the best model."""
+        self.best_T, self.best_inl = refine(self.P0, self.P1, self.thr, T_cand, self.p.lo_iterations)
+        self.best_n = int(self.best_inl.sum())
 
     def needed_for(self, q: float) -> int:
         """Hypotheses needed to draw one all-inlier sample with probability 1 - ``miss_probability`` when each
@@ -105,12 +97,8 @@ class _Search:
             idx = np.stack([rng.choice(M, 3, replace=False) for _ in range(B)]) if M < 8 else \
                 rng.integers(0, M, size=(B, 3))
             self.drawn += B
-            ok = (idx[:, 0] != idx[:, 1]) & (idx[:, 1] != idx[:, 2]) & (idx[:, 0] != idx[:, 2])
-            idx = idx[ok]
-            if not len(idx):
-                continue
             a, b = P1[idx], P0[idx]
-            good = self.valid(a, b)
+            good = self.valid(a, b)  # a sample that repeats a correspondence has no area: not valid
             if not good.any():
                 continue
             Ts = kabsch_batch(b[good], a[good])
@@ -118,7 +106,7 @@ class _Search:
             counts = (np.linalg.norm(moved - P0[None], axis=2) < thr).sum(axis=1)
             k = int(np.argmax(counts))
             if counts[k] > self.best_n:
-                self.accept(Ts[k], counts[k])
+                self.accept(Ts[k])
                 self.q = (self.best_n / M) ** 3
                 self.needed = self.needed_for(self.q)
 
@@ -140,12 +128,12 @@ class _Search:
             Ts, counts = hypotheses
             k = int(np.argmax(counts))
             if counts[k] > self.best_n:
-                self.accept(Ts[k], counts[k])
+                self.accept(Ts[k])
                 I = np.flatnonzero(self.best_inl)
                 if len(I) >= 3:  # r: inlier share of the compatible sets of the best model's inliers
                     sub = I[rng.permutation(len(I))[:32]]
                     Cs = np.abs(self._d1(sub) - self._d0(sub)) < 2 * thr
-                    r_est = float((Cs[:, I].sum(axis=1) / np.maximum(Cs.sum(axis=1), 1)).mean())
+                    r_est = float((Cs[:, I].sum(axis=1) / Cs.sum(axis=1)).mean())  # each row holds its own
                 self.q = self.best_n / M * (1 - (1 - r_est ** 2) ** PER_SEED)
                 self.needed = self.needed_for(self.q) * PER_SEED
 
@@ -168,16 +156,14 @@ class _Search:
         close_idx, member, n_close = _padded_members(close)
         if n_close.max() < 2:
             return None
-        L = close_idx.shape[1]
-        jpos = np.minimum((rng.random((S, PER_SEED)) * n_close[:, None]).astype(np.int64), L - 1)
+        jpos = (rng.random((S, PER_SEED)) * n_close[:, None]).astype(np.int64)  # < n_close: random() < 1
         js = np.take_along_axis(close_idx, jpos, axis=1)  # (S, PER_SEED)
         # k compatible with j as well (and not j)
         e1 = row_norms(P1[js][:, :, None, :] - P1[close_idx][:, None, :, :])
         e0 = row_norms(P0[js][:, :, None, :] - P0[close_idx][:, None, :, :])
         ck = (np.abs(e1 - e0) < thr) & member[:, None, :] & (close_idx[:, None, :] != js[:, :, None])
-        r = np.where(ck, rng.random(ck.shape), -1.0)
-        kpos = np.argmax(r, axis=2)
-        ok = (np.take_along_axis(r, kpos[..., None], axis=2)[..., 0] >= 0) & (n_close >= 2)[:, None]
+        kpos = np.argmax(np.where(ck, rng.random(ck.shape), -np.inf), axis=2)
+        ok = ck.any(axis=2)
         if not ok.any():
             return None
         ks = np.take_along_axis(close_idx, kpos, axis=1)
@@ -211,11 +197,11 @@ def inliers_at(T: np.ndarray, P0: np.ndarray, P1: np.ndarray, thr: float) -> np.
     return np.linalg.norm(apply_T(T, P1) - P0, axis=1) < thr
 
 
-def local_opt(P0: np.ndarray, P1: np.ndarray, thr: float, inl: np.ndarray,
+def local_opt(P0: np.ndarray, P1: np.ndarray, thr: float, T: np.ndarray, inl: np.ndarray,
               rounds: int) -> tuple[np.ndarray, np.ndarray]:
-    """Least squares on the inliers ``inl``, re-selected, until they stop changing (``rounds`` at most): the
-    local optimisation of LO-RANSAC. Returns the last fit and its inliers (the identity when never fitted)."""
-    T = np.eye(4)
+    """Least squares on the inliers ``inl`` of the model ``T``, re-selected, until they stop changing (``rounds``
+    at most): the local optimisation of LO-RANSAC. Returns the last fit and its inliers (``T`` and ``inl`` when
+    never fitted: no rounds, or fewer than 3 inliers)."""
     for _ in range(rounds):
         if inl.sum() < 3:
             break
@@ -225,6 +211,17 @@ def local_opt(P0: np.ndarray, P1: np.ndarray, thr: float, inl: np.ndarray,
             break
         inl = new
     return T, inl
+
+
+def refine(P0: np.ndarray, P1: np.ndarray, thr: float, T: np.ndarray,
+           rounds: int) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate model ``T`` locally optimised (:func:`local_opt`, ``rounds`` at most) and its inliers; the
+    candidate and its own inliers when the optimisation ends with fewer inliers."""
+    inl = inliers_at(T, P0, P1, thr)
+    T_lo, inl_lo = local_opt(P0, P1, thr, T, inl, rounds)
+    if inl_lo.sum() < inl.sum():
+        return T, inl
+    return T_lo, inl_lo
 
 
 def final_fit(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndarray | None, thr: float,
@@ -238,7 +235,7 @@ def final_fit(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndar
         if cur.sum() < 3:
             break
         n0 = n1 = None
-        if N0 is not None and N1 is not None and normal_weight > 0:
+        if N0 is not None and N1 is not None:  # (rigid_points_normals leaves them out at weight 0)
             n0, n1 = N0[cur], N1[cur]
             flip = np.einsum("ij,ij->i", n1 @ T[:3, :3].T, n0) < 0
             n1 = np.where(flip[:, None], -n1, n1)
@@ -253,5 +250,5 @@ def _padded_members(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     """For each row of a boolean (S, M) mask: the column indices where it holds, in order, padded to the
     longest row (S, L); which of those are real members; and how many each row has."""
     n = mask.sum(axis=1)
-    L = max(int(n.max()), 1)
+    L = int(n.max())
     return np.argsort(~mask, axis=1, kind="stable")[:, :L], np.arange(L)[None, :] < n[:, None], n

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 from scanreg.geometry import kabsch_batch
-from scanreg.stages.coarse.ransac import RansacResult, final_fit, local_opt
+from scanreg.stages.coarse.ransac import RansacResult, final_fit, refine
 
 
 def sc2_pcr(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndarray | None, thr: float,
@@ -37,7 +37,7 @@ def sc2_pcr(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndarra
     d1 = cdist(P1, P1)
     C = (np.abs(d1 - cdist(P0, P0)) < thr).astype(np.float32)
     np.fill_diagonal(C, 0.0)
-    seeds = spread_seeds(leading_eigenvector(C), d1, thr, max(1, int(np.ceil(p.seed_share * M))))
+    seeds = spread_seeds(leading_eigenvector(C), d1, thr, int(np.ceil(p.seed_share * M)))  # >= 1: share > 0
     sets = consensus_sets(C, seeds, min(p.sc2_k1, M - 1), min(p.sc2_k2, M - 1))
     # the weights of each set: the leading eigenvector of its own SC2 matrix
     Cl = C[sets[:, :, None], sets[:, None, :]]
@@ -45,9 +45,7 @@ def sc2_pcr(P0: np.ndarray, P1: np.ndarray, N0: np.ndarray | None, N1: np.ndarra
     Ts = weighted_kabsch_batch(P0[sets], P1[sets], W)
     T, inl = best_hypothesis(Ts, P0, P1, thr)
     if inl.sum() >= 3:
-        T_lo, inl_lo = local_opt(P0, P1, thr, inl, p.lo_iterations)
-        if inl_lo.sum() >= inl.sum():
-            T, inl = T_lo, inl_lo
+        T, inl = refine(P0, P1, thr, T, p.lo_iterations)
         T, inl = final_fit(P0, P1, N0, N1, thr, p.normal_weight, T, inl)
     return RansacResult(T, inl, len(seeds))
 
@@ -86,12 +84,12 @@ def consensus_sets(C: np.ndarray, seeds: np.ndarray, k1: int, k2: int) -> np.nda
     then the ``k2`` of those of highest SC2 with it within the ``k1`` and the seed."""
     Cs = C[seeds]
     sc2 = Cs * (Cs @ C)
-    sc2[np.arange(len(seeds)), seeds] = -1.0  # the seed itself joins as the first member, not as a candidate
+    sc2[np.arange(len(seeds)), seeds] = -np.inf  # the seed itself joins as the first member, not as a candidate
     first = np.argsort(-sc2, axis=1, kind="stable")[:, :k1]
     pool = np.concatenate([seeds[:, None], first], axis=1)  # (S, k1 + 1), the seed at 0
     Cl = C[pool[:, :, None], pool[:, None, :]]
     local = np.einsum("sj,sj->sj", Cl[:, 0, :], np.einsum("sk,skj->sj", Cl[:, 0, :], Cl))
-    local[:, 0] = -1.0
+    local[:, 0] = -np.inf
     second = np.argsort(-local, axis=1, kind="stable")[:, :k2]
     return np.concatenate([seeds[:, None], np.take_along_axis(pool, second, axis=1)], axis=1)
 
@@ -106,16 +104,13 @@ def best_hypothesis(Ts: np.ndarray, P0: np.ndarray, P1: np.ndarray, thr: float,
                     chunk: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """The hypothesis with the most correspondences within ``thr`` (ties: the lower sum of squared residuals
     truncated at ``thr``) and its inlier mask."""
-    best = (-1, np.inf, 0)
+    counts, cost = np.zeros(len(Ts), np.int64), np.zeros(len(Ts))
     for c0 in range(0, len(Ts), chunk):
         T = Ts[c0:c0 + chunk]
         r = P1 @ T[:, :3, :3].transpose(0, 2, 1) + (T[:, None, :3, 3] - P0)
         sq = np.einsum("bmi,bmi->bm", r, r)
-        counts = (sq < thr * thr).sum(axis=1)
-        cost = np.minimum(sq, thr * thr).sum(axis=1)
-        for b in range(len(T)):
-            if counts[b] > best[0] or (counts[b] == best[0] and cost[b] < best[1]):
-                best = (int(counts[b]), float(cost[b]), c0 + b)
-    T = Ts[best[2]]
+        counts[c0:c0 + chunk] = (sq < thr * thr).sum(axis=1)
+        cost[c0:c0 + chunk] = np.minimum(sq, thr * thr).sum(axis=1)
+    T = Ts[np.lexsort((cost, -counts))[0]]  # the most inliers, then the lowest cost, then the first
     d = P1 @ T[:3, :3].T + T[:3, 3] - P0
     return T, np.einsum("ij,ij->i", d, d) < thr * thr
