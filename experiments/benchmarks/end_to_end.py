@@ -323,26 +323,47 @@ DESCRIPTOR_INTRO = ("The paper's descriptor against FPFH in the default coarse s
                     "implementation before issue #16)")
 
 
-def replace_descriptor_table(md_path: Path, pairs: list[str]) -> None:
-    """``--only descriptor``: measure the descriptor table alone and put it in place of the one in ``md_path``
-    (the rest of the report, measured in an earlier run, is kept), noting this run's commit and date."""
-    from scanreg.app.config import git_revision
-
-    dt = descriptor_table(pairs)
-    print("\n".join(dt), flush=True)
-    intro = (DESCRIPTOR_INTRO.format(n=len(pairs)) + f"; measured on its own with `end_to_end.py --only descriptor`"
-             f", commit {git_revision()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}:")
+def replace_table(md_path: Path, intro: str, table: list[str], what: str) -> None:
+    """Put ``table`` (with its ``intro`` line) in place of the table whose intro starts like ``intro`` up to its
+    first " (" in the report ``md_path``, keeping the rest of the report (measured in an earlier run); appended
+    when the report has no such table."""
     lines = md_path.read_text().splitlines() if md_path.exists() else []
-    start = next((i for i, ln in enumerate(lines) if ln.startswith(DESCRIPTOR_INTRO.split(" (")[0])), None)
+    start = next((i for i, ln in enumerate(lines) if ln.startswith(intro.split(" (")[0])), None)
     if start is None:
-        lines += ["", intro, "", *dt]
+        lines += ["", intro, "", *table]
     else:
         end = start + 2
         while end < len(lines) and lines[end].startswith("|"):
             end += 1
-        lines[start:end] = [intro, "", *dt]
+        lines[start:end] = [intro, "", *table]
     md_path.write_text("\n".join(lines) + "\n")
-    print(f"wrote the descriptor table into {md_path}")
+    print(f"wrote the {what} table into {md_path}")
+
+
+def measured_alone(only: str) -> str:
+    from scanreg.app.config import git_revision
+
+    return (f"; measured on its own with `end_to_end.py --only {only}`, commit {git_revision()}, "
+            f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+
+
+def replace_descriptor_table(md_path: Path, pairs: list[str]) -> None:
+    """``--only descriptor``: measure the descriptor table alone and put it in place of the one in ``md_path``,
+    noting this run's commit and date."""
+    dt = descriptor_table(pairs)
+    print("\n".join(dt), flush=True)
+    replace_table(md_path, DESCRIPTOR_INTRO.format(n=len(pairs)) + measured_alone("descriptor") + ":", dt,
+                  "descriptor")
+
+
+STARTUP_INTRO = "Start-up and tracking overhead (CLI, median [IQR] of 5, the bunny pair bun000:bun045)"
+
+
+def replace_startup_table(md_path: Path, jobs: int) -> None:
+    """``--only startup``: measure the start-up table alone and put it in place of the one in ``md_path``."""
+    ov = overhead_table(jobs)
+    print("\n".join(ov), flush=True)
+    replace_table(md_path, STARTUP_INTRO + measured_alone("startup") + ":", ov, "start-up")
 
 
 # ------------------------------------------------------------------------------------------------------ driver
@@ -493,7 +514,7 @@ def main() -> None:
     ap.add_argument("--no-memory", action="store_true")
     ap.add_argument("--no-startup", action="store_true")
     ap.add_argument("--only", default=None, help="comma-separated case groups: bunny,3dmatch,dental; or "
-                    "'descriptor': only the descriptor table, written in place of the one in --out")
+                    "'descriptor' / 'startup': only that table, written in place of the one in --out")
     ap.add_argument("--extra", default=None, help=argparse.SUPPRESS)  # scanreg overrides (JSON list), to try
     ap.add_argument("--points", type=int, default=1_000_000, help="points per scan of the memory rows")
     ap.add_argument("--out", default=str(Path(__file__).with_suffix(".md")))
@@ -521,6 +542,9 @@ def main() -> None:
     if groups == ["descriptor"]:
         replace_descriptor_table(Path(a.out), PAIRS[:4])
         return
+    if groups == ["startup"]:
+        replace_startup_table(Path(a.out), 16)
+        return
     pairs, seeds = (PAIRS, (0, 1)) if a.all else (PAIRS[:a.pairs], (0,))
     cases = [{"group": "bunny", "pair": p, "seed": s} for s in seeds for p in pairs] if "bunny" in groups else []
     cases += [{"group": "3dmatch", "seed": s} for s in range(6)] if "3dmatch" in groups else []
@@ -547,7 +571,7 @@ def main() -> None:
     if not a.no_startup:
         ov = overhead_table(16)
         print("\n".join(ov), flush=True)
-        md += ["", "Start-up and tracking overhead (CLI, median [IQR] of 5, the bunny pair bun000:bun045):", "", *ov]
+        md += ["", STARTUP_INTRO + ":", "", *ov]
     md += ["", f"Benchmark wall time {time.time() - t0:.0f} s.", ""]
     Path(a.out).write_text("\n".join(md))
     (Path(a.out).with_suffix(".json")).write_text(json.dumps(rows, indent=1))
