@@ -72,19 +72,27 @@ def voxel_cells(points: np.ndarray, voxel: float, margin: int = 0) -> tuple[np.n
     return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2], keys, span
 
 
+def _marked(flat: np.ndarray, span: np.ndarray) -> np.ndarray | None:
+    """Which cells of a grid of ``span`` cells the cell numbers ``flat`` occupy, one flag per cell, when the
+    grid has at most 4 cells per point (marking them is then quicker than sorting the points); else None."""
+    n_cells = int(np.prod(span))
+    if n_cells > 4 * len(flat):
+        return None
+    occupied = np.zeros(n_cells, bool)
+    occupied[flat] = True
+    return occupied
+
+
 def occupied_cells(flat: np.ndarray, span: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``np.unique(flat, return_inverse=True, return_counts=True)`` for the cell numbers ``flat`` of
     :func:`voxel_cells` on a grid of ``span`` cells: the occupied cells in order, each point's position among
-    them, each one's point count. A grid of at most 4 cells per point is marked cell by cell instead of
-    sorting the points."""
-    n_cells = int(np.prod(span))
-    if n_cells > 4 * len(flat):
+    them, each one's point count; a small grid's cells are marked (:func:`_marked`) instead of sorted."""
+    occupied = _marked(flat, span)
+    if occupied is None:
         cells, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
         return cells, inv.ravel(), counts
-    occupied = np.zeros(n_cells, bool)
-    occupied[flat] = True
     cells = np.flatnonzero(occupied)
-    rank = np.zeros(n_cells, np.int64)
+    rank = np.zeros(len(occupied), np.int64)
     rank[cells] = np.arange(len(cells))
     inv = rank[flat]
     return cells, inv, np.bincount(inv, minlength=len(cells))
@@ -107,12 +115,8 @@ def voxel_count(points: np.ndarray, voxel: float) -> int:
     flat, keys, span = voxel_cells(points, voxel)
     if flat is None:
         return len(np.unique(keys, axis=0))
-    n_cells = int(np.prod(span))
-    if n_cells <= 4 * len(flat):  # a grid of few cells: mark the occupied ones
-        occupied = np.zeros(n_cells, bool)
-        occupied[flat] = True
-        return int(np.count_nonzero(occupied))
-    return distinct_count(flat)
+    occupied = _marked(flat, span)
+    return distinct_count(flat) if occupied is None else int(np.count_nonzero(occupied))
 
 
 def distinct_count(values: np.ndarray) -> int:

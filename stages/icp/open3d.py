@@ -94,8 +94,8 @@ class Open3dIcp(IcpBase):
                 break
             if limit.advance(history[-2], history[-1], tau):
                 history[-1] = float(reg.evaluate_registration(src, tgt, lim(), T).inlier_rmse)
-        cp = ClosestPoints(target)
+        pairs = self.closest(target, target_mesh)  # the final pairs' search: on the target's triangles if any
+        cp = pairs if pairs.mesh is None else ClosestPoints(target)  # the fit's distances: on its points
         d = cp(apply_T(T, source.points), maxd)[1]
         res = IcpResult(T, iterations, history, converged, final_distances=d, final_limit=limit.limit)
-        return self.finish(res, cp, source, T_init, maxd, start_limit, spacing, source,
-                           pairs_cp=self.closest(target, target_mesh))  # the pairs on the target's triangles if any
+        return self.finish(res, cp, source, T_init, maxd, start_limit, spacing, source, pairs_cp=pairs)
