@@ -223,7 +223,22 @@ def census(vertices: np.ndarray, faces: np.ndarray, *, sliver_angle_deg: float =
     self-intersection candidates or fold vertices (for a caller that runs the exact test anyway)."""
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
-    mesh = Mesh(v, f)
+    return mesh_census(Mesh(v, f), sliver_angle_deg=sliver_angle_deg, min_component_share=min_component_share,
+                       open_border_ratio=open_border_ratio, broad_phase=broad_phase)
+
+
+def mesh_census(mesh: Mesh, *, sliver_angle_deg: float = SLIVER_ANGLE_DEG,
+                min_component_share: float = MIN_COMPONENT_SHARE,
+                open_border_ratio: float = OPEN_BORDER_RATIO, broad_phase: bool = True) -> Census:
+    """:func:`census` of ``mesh`` itself: the topology it measures (edge table, components, border loops, face
+    angles) is remembered on ``mesh`` (:mod:`scanreg.mesh.topology`), so that the repair's audit of the same
+    mesh reuses it. A mesh whose arrays are not contiguous float64 vertices and int64 (M, 3) faces is measured
+    as :func:`census` converts it."""
+    v, f = mesh.vertices, mesh.faces
+    if not (v.dtype == np.float64 and f.dtype == np.int64 and f.shape[1:] == (3,) and v.flags.c_contiguous
+            and f.flags.c_contiguous):
+        return census(v, f, sliver_angle_deg=sliver_angle_deg, min_component_share=min_component_share,
+                      open_border_ratio=open_border_ratio, broad_phase=broad_phase)
     nv, nf = len(v), len(f)
     none_e, none_i = np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
     dup_v = _duplicate_vertices(v)

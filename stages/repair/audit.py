@@ -340,26 +340,12 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
 
 
 def _nothing_to_repair(stage, p: GuardParams, mesh: Mesh) -> bool:
-    """Whether the backend would change nothing (``p``: its planned parameters): a backend that only repairs
-    defects (``repairs_only_defects``), ``scope: defects``, and a mesh without any defect it repairs: by the
-    census of its topology and face shapes (:func:`~scanreg.mesh.census.census`: no part to remove, no hole,
-    no outer border to cap, no non-manifold edge or vertex, no inconsistent orientation, no unreferenced or
-    duplicate vertex, no degenerate, sliver or duplicate face; parts to join count too), then by the exact
-    self-intersection test (the audit's own, remembered for it)."""
-    from scanreg.mesh.census import census
-
-    if p.scope == "whole" or not getattr(stage, "repairs_only_defects", False) or p.check_only or \
-            p.open_border == "shell":
+    """Whether the backend would change nothing (``p``: its planned parameters): ``scope: defects``, a
+    backend that says so of the mesh's defect census (:meth:`AuditedRepair.changes`), and no self-intersecting
+    face by the exact test (the audit's own, remembered for it)."""
+    if p.scope == "whole" or p.check_only or p.open_border == "shell":
         return False
-    share = 1.0 if getattr(p, "keep_largest", False) else p.min_component_share
-    c = census(mesh.vertices, mesh.faces, sliver_angle_deg=p.sliver_angle_deg, min_component_share=share,
-               open_border_ratio=p.open_border_ratio, broad_phase=False).counts()
-    holes = c["boundary_loops"] if p.open_border == "cap" else c["holes"]
-    if holes or (getattr(p, "join_components", False) and c["components"] > 1) or any(c[k] for k in (
-            "small_components", "non_manifold_edges", "non_manifold_vertices", "inconsistent_orientation_edges",
-            "unreferenced_vertices", "duplicate_vertices", "degenerate_faces", "sliver_faces", "duplicate_faces")):
-        return False
-    return self_intersecting_count(mesh) == 0
+    return not stage.changes(mesh, p) and self_intersecting_count(mesh) == 0
 
 
 def _untouched(p: GuardParams, mesh: Mesh, t0: float, where: str) -> Repaired:
@@ -461,6 +447,12 @@ class AuditedRepair:
     def fills_holes(self, p: GuardParams) -> bool:
         """Whether the backend fills holes with these parameters (the border plan keeps borders open only then)."""
         return False
+
+    def changes(self, mesh: Mesh, p: GuardParams) -> bool:
+        """Whether the backend, with the planned parameters ``p``, may change ``mesh`` other than by removing
+        self-intersections (which the audit's exact test looks for): a mesh it would not change at all passes
+        untouched (``scope: defects``). By default it may: the backend always runs."""
+        return True
 
     def repair(self, mesh: Mesh, ctx: RunContext) -> Repaired:
         """The backend on ``mesh`` with the audit and the guard (:func:`repair_with_audit`), through the cache

@@ -32,10 +32,6 @@ class MeshFix(AuditedRepair):
     parts only (:func:`~scanreg.mesh.intersect.intersecting_across`). (MeshFix's verdict and the exact test agree on
     the bunny and the cow: tests/test_repair.py.)"""
 
-    repairs_only_defects = True
-    """MeshFix changes a mesh only where it finds a defect: a mesh without any passes untouched, without
-    MeshFix (:func:`~scanreg.stages.repair.audit.repair_with_audit`)."""
-
     @dataclass
     class Params(GuardParams):
         keep_largest: bool = False
@@ -63,6 +59,21 @@ class MeshFix(AuditedRepair):
 
     def fills_holes(self, p: MeshFix.Params) -> bool:
         return p.fill_holes
+
+    def changes(self, mesh: Mesh, p: MeshFix.Params) -> bool:
+        """MeshFix changes a mesh only where it finds a defect: by the census of its topology and face shapes
+        (:func:`~scanreg.mesh.census.mesh_census`), a part to remove (or to join, or any but the largest with
+        ``keep_largest``), a hole (with ``open_border=cap`` any border), a non-manifold edge or vertex, an
+        inconsistent orientation, an unreferenced or duplicate vertex, a degenerate, sliver or duplicate face."""
+        from scanreg.mesh.census import mesh_census
+
+        c = mesh_census(mesh, sliver_angle_deg=p.sliver_angle_deg, min_component_share=p.min_component_share,
+                        open_border_ratio=p.open_border_ratio, broad_phase=False).counts()
+        holes = c["boundary_loops"] if p.open_border == "cap" else c["holes"]
+        parts = (p.keep_largest or p.join_components) and c["components"] > 1
+        return bool(holes or parts or any(c[k] for k in (
+            "small_components", "non_manifold_edges", "non_manifold_vertices", "inconsistent_orientation_edges",
+            "unreferenced_vertices", "duplicate_vertices", "degenerate_faces", "sliver_faces", "duplicate_faces")))
 
     def run(self, mesh: Mesh, p: MeshFix.Params, ctx: RunContext) -> Mesh:
         """MeshFix on ``mesh`` with the planned parameters ``p``."""
