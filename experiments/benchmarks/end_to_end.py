@@ -1,10 +1,10 @@
 """Benchmark: the default pipeline end to end against Open3D's standard pipeline, side by side, in one run.
 
     .venv/bin/python experiments/benchmarks/end_to_end.py            # a subset (~9-11 min on a loaded 2-core box)
-    .venv/bin/python experiments/benchmarks/end_to_end.py --all      # all 40 bunny pairs x 2 poses, both ways (~40 min)
+    .venv/bin/python experiments/benchmarks/end_to_end.py --all      # all 40 bunny pairs x 2 poses, raw too (~30 min)
     .venv/bin/python experiments/benchmarks/end_to_end.py --only descriptor  # the descriptor table alone (~1 min)
     .venv/bin/python experiments/benchmarks/end_to_end.py --only bunny_raw,closed_defects,dental
-        # the section "Raw meshes with the default repair" alone (~4 min), written in place of the one in --out
+        # the section "Raw meshes with the default repair" alone (~3 min), written in place of the one in --out
 
 Cases (every one with ground truth; the source under a seeded random pose of any angle):
 - bunny: ordered pairs of the raw Stanford scans (``../shared/data/stanford_bunny``, binary range-grid PLYs, the
@@ -439,7 +439,7 @@ def raw_intro(rows: list[dict], only: str, note: str = "", wall: float | None = 
             f"standard pipeline on the same points. Medians [inter-quartile range]; repair share: time_repair_s / "
             f"time_total_s per run; ratio total: scanreg's time_total_s over Open3D's registration (its whole "
             f"pipeline); the issue asks for ratio total <= 1.5 with at least Open3D's success and a repair share "
-            f"<= 0.25 on bunny_raw." + (f" {note}" if note else "") + ":")
+            f"<= 0.25 on bunny_raw." + (f" {note.rstrip('.')}" if note else "") + ":")
 
 
 def replace_raw_section(md_path: Path, groups: list[str], all_pairs: bool, extra: list[str], note: str) -> None:
