@@ -1,19 +1,37 @@
 """Benchmark: the default pipeline end to end against Open3D's standard pipeline, side by side, in one run.
 
-    .venv/bin/python experiments/benchmarks/end_to_end.py            # a subset (~6-8 min on a loaded 2-core box)
-    .venv/bin/python experiments/benchmarks/end_to_end.py --all      # all 40 bunny pairs x 2 poses (~20 min)
+    .venv/bin/python experiments/benchmarks/end_to_end.py            # a subset (~9-11 min on a loaded 2-core box)
+    .venv/bin/python experiments/benchmarks/end_to_end.py --all      # all 40 bunny pairs x 2 poses, raw too (~30 min)
     .venv/bin/python experiments/benchmarks/end_to_end.py --only descriptor  # the descriptor table alone (~1 min)
+    .venv/bin/python experiments/benchmarks/end_to_end.py --only bunny_raw,closed_defects,dental
+        # the section "Raw meshes with the default repair" alone (~3 min), written in place of the one in --out
 
 Cases (every one with ground truth; the source under a seeded random pose of any angle):
 - bunny: ordered pairs of the raw Stanford scans (``../shared/data/stanford_bunny``, binary range-grid PLYs, the
   40 pairs of ``experiment=first_contact``), truth from ``bun.conf``; ``repair=none`` as in issue #16;
 - 3dmatch: the real 3DMatch fragment pair (``../shared/data/3dmatch_pair``), 6 poses;
-- dental: the cast-scan-like arch against its CT dentition (``conf/data/dental.yaml``), default repair.
+- dental: the cast-scan-like arch against its CT dentition (``conf/data/dental.yaml``), default repair;
+- bunny_raw (issue #34): the same raw Stanford scans read as meshes (the range grids triangulated), with the
+  default repair: ``scanreg data=stanford data.pair=A:B data.pose_seed=S tracking=none``, what a user's first
+  command runs. Pairs: ``PAIRS`` holds exactly the 40 ordered pairs of the 10 scans whose ground-truth overlap
+  (the runs' ``gt_overlap``: share of source points within 3 target spacings of the target at the true pose,
+  computed by ``data=stanford``'s loader) is >= 40 %, in decreasing overlap (0.93 down to 0.40); the default
+  subset ``RAW_PAIRS`` takes one pair from each block of 5 of that order (``PAIRS[2::5]``, overlap 0.91 to 0.42;
+  offset 2 touches 9 of the 10 scans, offset 0 only 7), the k-th under pose seed k; ``--all``: all 40 x seeds 0,1
+  (``experiment=first_contact``'s 80 runs);
+- closed_defects (issue #34): a CT-like closed mesh with real defects, pymeshfix's ``examples/StanfordBunny.ply``
+  (the demo's mesh: 70 holes, non-manifold edges, self-intersections), registered onto itself as two files, the
+  source under a random pose of ``data=files`` (``data.max_angle_deg=180 data.max_translation=0.5
+  data.pose_seed=S``, truth ``data.gt`` = the identity in ``identity.txt`` beside this file), default repair of
+  both; 6 poses.
+
+The section "Raw meshes with the default repair" tables bunny_raw, closed_defects and dental (issue #34's
+criterion: on bunny_raw, ``ratio total`` <= 1.5 with at least Open3D's success, and ``repair share`` <= 0.25).
 
 Methods, each case in a fresh subprocess, the two methods alternating which runs first (interleaved, so that a
 slow spell of the shared machine hits both):
-- scanreg: ``run_pipeline`` on the config ``scanreg`` composes with no overrides but the case's data (and
-  ``repair=none``, ``tracking=none``): what ``scanreg data=... tracking=none`` runs;
+- scanreg: ``run_pipeline`` on the config ``scanreg`` composes with no overrides but the case's data (and, for
+  bunny, ``repair=none``; ``tracking=none`` for all): what ``scanreg data=... tracking=none`` runs;
 - open3d: Open3D's standard pipeline as its global-registration tutorial runs it, on the same loaded inputs (the
   points of the scans, as ``o3d.io.read_point_cloud`` reads them): voxel = 1 % of the target's bounding-box
   diagonal; ``voxel_down_sample``; normals (radius 2 voxels, 30 nn); FPFH (radius 5 voxels, 100 nn); RANSAC on
@@ -24,10 +42,17 @@ Stage columns: load (reading + the random pose), sample (scanreg: mesh sampling;
 normals), coarse (scanreg: keypoints, descriptors, matching, RANSAC; open3d: FPFH and RANSAC), fine (ICP;
 open3d: the full clouds' normals too). ``registration`` is load + repair + sample + coarse + fine, the time to
 the transform, measured the same way for both; scanreg's ``time_total_s`` adds its evaluation (metrics, the 3D
-view file). Both workers import open3d before any timing (scanreg imports it inside the coarse stage otherwise,
-and that import, 0.7-2 s here, would land in one stage of one method); ``process`` is the subprocess's whole
-wall time, interpreter start and every import included. Success: rotation < 2 deg and translation < 1 % of the
-diagonal (3DMatch: 15 deg and 0.3 m, the 3DMatch benchmark's tolerances). Intervals: the inter-quartile range.
+view file). Both workers import open3d before any timing (scanreg imports it inside the coarse stage
+otherwise, and that import, 0.7-2 s here, would land in one stage of one method); ``process`` is the subprocess's
+whole wall time, interpreter start and every import included. Success: rotation < 2 deg and translation < 1 % of
+the diagonal (3DMatch: 15 deg and 0.3 m, the 3DMatch benchmark's tolerances). Intervals: the inter-quartile range.
+
+Columns beyond the stages: ``repair share``, the median over scanreg's runs of time_repair_s / time_total_s (the
+repair of both scans; ``-`` for Open3D, which repairs nothing); ``ratio registration``, scanreg's median
+registration time over Open3D's; ``ratio total``, scanreg's median ``time_total_s`` (all a run does, its
+evaluation included) over Open3D's median registration time (Open3D's whole pipeline from reading to the
+transform: it evaluates nothing), the comparison of issue #34; ``ratio process``, the subprocesses' median wall
+times. Every ratio is of medians over the same cases, measured in the same run.
 
 Peak RSS at 1M points: one subprocess per method and stage (sampling, coarse, fine) on bun000/bun045 sampled at
 1 000 000 points each (scanreg: barycentric; open3d: ``sample_points_uniformly``); the stage's peak is the
@@ -61,16 +86,43 @@ PAIRS = ("bun000:bun045,bun180:ear_back,bun045:bun000,top2:bun180,bun000:bun315,
          "bun045:bun315,chin:bun000,bun090:top3,top2:bun090,bun315:chin,top2:top3,ear_back:bun090,chin:bun270,"
          "bun180:bun270,bun090:top2,bun000:chin,chin:bun045,bun000:bun090,top3:top2,bun315:top3,bun270:bun180,"
          "bun090:bun000,bun270:chin").split(",")
+RAW_PAIRS = PAIRS[2::5]  # the default bunny_raw subset: one pair per block of 5 in PAIRS's overlap order (module doc)
+CLOSED_MESH = "pkg:pymeshfix/examples/StanfordBunny.ply"
+IDENTITY = Path(__file__).with_name("identity.txt")  # closed_defects' ground truth: the source is the target
 METHODS = ("scanreg", "open3d")
+MAIN_GROUPS = ("bunny", "3dmatch", "dental")
+RAW_GROUPS = ("bunny_raw", "closed_defects", "dental")  # the section "Raw meshes with the default repair"
+GROUPS = ("bunny", "3dmatch", "dental", "bunny_raw", "closed_defects")
+RAW_HEADING = "## Raw meshes with the default repair"
 
 
 # ----------------------------------------------------------------------------------------------------- workers
 def case_overrides(case: dict) -> list[str]:
+    """The scanreg overrides of a case: its data alone (and bunny's ``repair=none``)."""
     if case["group"] == "bunny":
         return ["data=stanford", f"data.pair={case['pair']}", f"data.pose_seed={case['seed']}", "repair=none"]
+    if case["group"] == "bunny_raw":
+        return ["data=stanford", f"data.pair={case['pair']}", f"data.pose_seed={case['seed']}"]
+    if case["group"] == "closed_defects":
+        return [f"data.source={CLOSED_MESH}", f"data.target={CLOSED_MESH}", f"data.gt={IDENTITY}",
+                "data.max_angle_deg=180", "data.max_translation=0.5", f"data.pose_seed={case['seed']}"]
     if case["group"] == "3dmatch":
         return ["data=pairs_3dmatch", f"data.pose_seed={case['seed']}"]
-    return ["data=dental", f"data.pose_seed={case['seed']}"]
+    if case["group"] == "dental":
+        return ["data=dental", f"data.pose_seed={case['seed']}"]
+    raise ValueError(f"unknown case group {case['group']!r}; known: {', '.join(GROUPS)}")
+
+
+def build_cases(groups, all_pairs: bool = False, n_pairs: int = 12) -> list[dict]:
+    """The cases of ``groups`` (see the module doc), in the order they run."""
+    pairs, seeds = (PAIRS, (0, 1)) if all_pairs else (PAIRS[:n_pairs], (0,))
+    raw = [(p, s) for s in (0, 1) for p in PAIRS] if all_pairs else [(p, k) for k, p in enumerate(RAW_PAIRS)]
+    cases = [{"group": "bunny", "pair": p, "seed": s} for s in seeds for p in pairs] if "bunny" in groups else []
+    cases += [{"group": "3dmatch", "seed": s} for s in range(6)] if "3dmatch" in groups else []
+    cases += [{"group": "dental", "seed": s} for s in (0, 1)] if "dental" in groups else []
+    cases += [{"group": "bunny_raw", "pair": p, "seed": s} for p, s in raw] if "bunny_raw" in groups else []
+    cases += [{"group": "closed_defects", "seed": s} for s in range(6)] if "closed_defects" in groups else []
+    return cases
 
 
 def tolerances(case: dict, diagonal: float) -> tuple[float, float]:
@@ -324,18 +376,20 @@ DESCRIPTOR_INTRO = ("The paper's descriptor against FPFH in the default coarse s
 
 
 def replace_table(md_path: Path, intro: str, table: list[str], what: str) -> None:
-    """Put ``table`` (with its ``intro`` line) in place of the table whose intro starts like ``intro`` up to its
-    first " (" in the report ``md_path``, keeping the rest of the report (measured in an earlier run); appended
-    when the report has no such table."""
+    """Put ``table`` (with its ``intro``, one line or several: a heading, a blank line, a paragraph) in place of
+    the table whose intro's first line starts like ``intro``'s up to its first " (" in the report ``md_path``,
+    keeping the rest of the report (measured in an earlier run); appended when the report has no such table.
+    The old intro is taken to have as many lines as the new one (both written by this script)."""
+    intro_lines = intro.split("\n")
     lines = md_path.read_text().splitlines() if md_path.exists() else []
-    start = next((i for i, ln in enumerate(lines) if ln.startswith(intro.split(" (")[0])), None)
+    start = next((i for i, ln in enumerate(lines) if ln.startswith(intro_lines[0].split(" (")[0])), None)
     if start is None:
-        lines += ["", intro, "", *table]
+        lines += ["", *intro_lines, "", *table]
     else:
-        end = start + 2
+        end = start + len(intro_lines) + 1
         while end < len(lines) and lines[end].startswith("|"):
             end += 1
-        lines[start:end] = [intro, "", *table]
+        lines[start:end] = [*intro_lines, "", *table]
     md_path.write_text("\n".join(lines) + "\n")
     print(f"wrote the {what} table into {md_path}")
 
@@ -364,6 +418,42 @@ def replace_startup_table(md_path: Path, jobs: int) -> None:
     ov = overhead_table(jobs)
     print("\n".join(ov), flush=True)
     replace_table(md_path, STARTUP_INTRO + measured_alone("startup") + ":", ov, "start-up")
+
+
+def raw_intro(rows: list[dict], only: str, note: str = "", wall: float | None = None) -> str:
+    """The heading and paragraph of the section "Raw meshes with the default repair" for ``rows`` (``only``: the
+    --only argument when measured on its own)."""
+    from scanreg.app.config import git_revision
+
+    n = {g: len({json.dumps(r["case"]) for r in rows if r["case"]["group"] == g}) for g in RAW_GROUPS}
+    how = (f"measured on its own with `end_to_end.py --only {only}`" if only else "measured in the run above")
+    return (f"{RAW_HEADING}\n\n"
+            f"Issue #34: the inputs as a user brings them, with no overrides (the default repair; `tracking=none`); "
+            f"{how}, commit {git_revision()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+            f"{os.cpu_count()} cores shared with other jobs"
+            + (f", benchmark wall time {wall:.0f} s" if wall is not None else "") + ". "
+            f"bunny_raw: {n['bunny_raw']} runs on ordered pairs of the raw Stanford range scans read as meshes, "
+            f"ground-truth overlap >= 40 %, each under its own random pose; closed_defects: {n['closed_defects']} "
+            f"random poses of pymeshfix's defective closed bunny (70 holes, non-manifold edges, self-intersections) "
+            f"onto itself; dental: {n['dental']} poses of the cast-scan-like arch onto its CT dentition. Open3D's "
+            f"standard pipeline on the same points. Medians [inter-quartile range]; repair share: time_repair_s / "
+            f"time_total_s per run; ratio total: scanreg's time_total_s over Open3D's registration (its whole "
+            f"pipeline); the issue asks for ratio total <= 1.5 with at least Open3D's success and a repair share "
+            f"<= 0.25 on bunny_raw." + (f" {note.rstrip('.')}" if note else "") + ":")
+
+
+def replace_raw_section(md_path: Path, groups: list[str], all_pairs: bool, extra: list[str], note: str) -> None:
+    """``--only`` with groups of the raw-mesh section alone: run them and put the section in place of the one in
+    ``md_path`` (its rows in the .json beside it with ``_raw`` added to the name)."""
+    t0 = time.time()
+    rows = run_cases(build_cases(groups, all_pairs), extra)
+    table = case_table(rows, RAW_GROUPS)
+    print("\n".join(table), flush=True)
+    intro = raw_intro(rows, ",".join(groups) + (" --all" if all_pairs else ""), note, time.time() - t0)
+    if extra:
+        intro = intro[:-1] + f" scanreg overrides: {' '.join(extra)}:"
+    replace_table(md_path, intro, table, "raw-mesh")
+    md_path.with_name(md_path.stem + "_raw.json").write_text(json.dumps(rows, indent=1))
 
 
 # ------------------------------------------------------------------------------------------------------ driver
@@ -397,7 +487,7 @@ def run_cases(cases: list[dict], extra: list[str]) -> list[dict]:
                 row["success"] = False
             rows.append(row)
             label = case.get("pair", case["group"])
-            print(f"{i + 1:>3}/{len(cases)} {case['group']:<8} {label:<16} seed {case['seed']} {method:<8} "
+            print(f"{i + 1:>3}/{len(cases)} {case['group']:<14} {label:<16} seed {case['seed']} {method:<8} "
                   f"{'ok  ' if row['success'] else 'FAIL'} rot {row.get('rotation_error_deg', float('nan')):8.3f} "
                   f"reg {row.get('time_registration_s', float('nan')):6.2f} s  process {wall:6.2f} s {err}",
                   flush=True)
@@ -418,30 +508,37 @@ def med_iqr(xs: list[float], fmt: str = "{:.2f}") -> str:
     return (fmt + " [" + fmt + "–" + fmt + "]").format(q2, q1, q3) if len(xs) > 1 else fmt.format(q2)
 
 
-def case_table(rows: list[dict]) -> list[str]:
-    cols = ["time_load_s", "time_repair_s", "time_sample_s", "time_coarse_s", "time_icp_s", "time_registration_s",
-            "time_total_s", "process_s"]
+def case_table(rows: list[dict], groups=MAIN_GROUPS) -> list[str]:
+    """Per group of ``groups`` with rows and method: success, medians [IQR] of the stage times, the repair share
+    and the ratios to Open3D (module doc)."""
     head = ["case", "method", "success", "failed runs", "rotation error [deg]", "load [s]", "repair [s]",
-            "sample [s]", "coarse [s]", "fine [s]", "registration [s]", "time_total_s [s]", "process [s]",
-            "ratio registration", "ratio process"]
+            "repair share", "sample [s]", "coarse [s]", "fine [s]", "registration [s]", "time_total_s [s]",
+            "process [s]", "ratio registration", "ratio total", "ratio process"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for group in ("bunny", "3dmatch", "dental"):
+    for group in groups:
         g = [r for r in rows if r["case"]["group"] == group]
         if not g:
             continue
-        med = {}
-        for method in METHODS:
-            mr = [r for r in g if r["method"] == method]
-            med[method] = {c: np.median([r[c] for r in mr if c in r]) if any(c in r for r in mr) else np.nan
-                           for c in ("time_registration_s", "process_s")}
+
+        def median(method, c):
+            xs = [r[c] for r in g if r["method"] == method and c in r]
+            return float(np.median(xs)) if xs else np.nan
+
+        # numerator column of scanreg over denominator column of open3d
+        ratios = [("time_registration_s", "time_registration_s"), ("time_total_s", "time_registration_s"),
+                  ("process_s", "process_s")]
         for method in METHODS:
             mr = [r for r in g if r["method"] == method]
             ok = sum(r["success"] for r in mr)
             cells = [group, method, f"{ok}/{len(mr)}", str(sum(1 for r in mr if r["error"])),
                      med_iqr([r.get("rotation_error_deg") for r in mr if r["success"]], "{:.3f}")]
-            cells += [med_iqr([r.get(c) for r in mr]) for c in cols]
-            for c in ("time_registration_s", "process_s"):
-                cells.append(f"{med['scanreg'][c] / med['open3d'][c]:.2f}" if method == "scanreg" else "1")
+            cells += [med_iqr([r.get(c) for r in mr]) for c in ("time_load_s", "time_repair_s")]
+            cells.append(med_iqr([r["time_repair_s"] / r["time_total_s"] for r in mr if "time_total_s" in r])
+                         if method == "scanreg" else "-")
+            cells += [med_iqr([r.get(c) for r in mr]) for c in ("time_sample_s", "time_coarse_s", "time_icp_s",
+                                                                "time_registration_s", "time_total_s", "process_s")]
+            cells += [f"{median('scanreg', a) / median('open3d', b):.2f}" if method == "scanreg" else "1"
+                      for a, b in ratios]
             lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -509,12 +606,17 @@ def overhead_table(jobs: int) -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--all", action="store_true", help="all 40 bunny pairs x 2 poses (default: 12 pairs x 1)")
+    ap.add_argument("--all", action="store_true", help="all 40 bunny pairs x 2 poses, for bunny and bunny_raw "
+                    "(default: bunny 12 pairs x 1, bunny_raw the 8 of RAW_PAIRS x 1)")
     ap.add_argument("--pairs", type=int, default=12, help="bunny pairs in the subset (pose seed 0)")
     ap.add_argument("--no-memory", action="store_true")
     ap.add_argument("--no-startup", action="store_true")
-    ap.add_argument("--only", default=None, help="comma-separated case groups: bunny,3dmatch,dental; or "
+    ap.add_argument("--only", default=None, help="comma-separated case groups: bunny,3dmatch,dental,bunny_raw,"
+                    "closed_defects (groups of the section 'Raw meshes with the default repair' alone, e.g. "
+                    "bunny_raw,closed_defects,dental: only that section, written in place of the one in --out); or "
                     "'descriptor' / 'startup': only that table, written in place of the one in --out")
+    ap.add_argument("--note", default="", help="a sentence added to the raw-mesh section's intro (e.g. which state "
+                    "of the code it measures)")
     ap.add_argument("--extra", default=None, help=argparse.SUPPRESS)  # scanreg overrides (JSON list), to try
     ap.add_argument("--points", type=int, default=1_000_000, help="points per scan of the memory rows")
     ap.add_argument("--out", default=str(Path(__file__).with_suffix(".md")))
@@ -538,17 +640,21 @@ def main() -> None:
 
     if not (shared_data_dir() / "stanford_bunny").is_dir():
         sys.exit(f"error: {shared_data_dir()}: the shared data is absent; this benchmark needs ../shared/data")
-    groups = a.only.split(",") if a.only else ["bunny", "3dmatch", "dental"]
+    groups = a.only.split(",") if a.only else list(GROUPS)
     if groups == ["descriptor"]:
         replace_descriptor_table(Path(a.out), PAIRS[:4])
         return
     if groups == ["startup"]:
         replace_startup_table(Path(a.out), 16)
         return
-    pairs, seeds = (PAIRS, (0, 1)) if a.all else (PAIRS[:a.pairs], (0,))
-    cases = [{"group": "bunny", "pair": p, "seed": s} for s in seeds for p in pairs] if "bunny" in groups else []
-    cases += [{"group": "3dmatch", "seed": s} for s in range(6)] if "3dmatch" in groups else []
-    cases += [{"group": "dental", "seed": s} for s in (0, 1)] if "dental" in groups else []
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        ap.error(f"--only: unknown case group(s) {', '.join(unknown)}; known: {', '.join(GROUPS)}, or descriptor, "
+                 "startup alone")
+    if set(groups) <= set(RAW_GROUPS) and set(groups) - set(MAIN_GROUPS):
+        replace_raw_section(Path(a.out), groups, a.all, extra, a.note)
+        return
+    cases = build_cases(groups, a.all, a.pairs)
     t0 = time.time()
     rows = run_cases(cases, extra)
     from scanreg.app.config import git_revision
@@ -558,9 +664,14 @@ def main() -> None:
           f"`{' '.join(['experiments/benchmarks/end_to_end.py', *sys.argv[1:]])}`, commit {git_revision()}, "
           f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores shared with other jobs"
           + (f"; scanreg overrides {' '.join(extra)}" if extra else "") + ". How it is measured: the module doc of "
-          "`end_to_end.py`. Medians [inter-quartile range]; ratio: scanreg's median / Open3D's in this run.",
-          "", *case_table(rows)]
+          "`end_to_end.py`. Medians [inter-quartile range]; ratio: scanreg's median / Open3D's in this run (ratio "
+          "total: scanreg's time_total_s over Open3D's registration).",
+          "", *case_table(rows, MAIN_GROUPS)]
     print("\n".join(md[4:]), flush=True)
+    if any(g in groups for g in RAW_GROUPS if g not in MAIN_GROUPS):
+        rt = case_table(rows, RAW_GROUPS)
+        print("\n".join(rt), flush=True)
+        md += ["", *raw_intro(rows, "", a.note).split("\n"), "", *rt]
     if not a.no_memory:
         md += ["", f"Peak RSS at {a.points:,} points per scan (bun045 onto bun000), one subprocess per method and "
                "stage, `resource.getrusage` maximum RSS:", "", *memory_table(a.points)]
