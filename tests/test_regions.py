@@ -184,3 +184,40 @@ def test_a_failed_repair_says_whose_it_was(fail):
         repair_scans(geometries, SimpleNamespace(repair=_Repair(fail)), RunContext(seed=0))
     assert e.value.role == fail and e.value.metrics == {"guard_ok": 0.0} and fail in str(e.value)
     assert mesh_stats(a)["boundary_loops"] == 1
+
+
+def test_a_part_split_in_two_keeps_its_largest_piece():
+    """Two spheres touching at one vertex are one part; a backend that splits that vertex (MeshFix does, on
+    load) makes two pieces, and the stitched mesh keeps the larger, as MeshFix keeps one piece of a part."""
+    from scanreg.mesh.topology import _face_components
+
+    big, small = sphere(24), sphere(8)
+    top_big = int(np.argmax(big.vertices[:, 2]))
+    low_small = int(np.argmin(small.vertices[:, 2]))
+    shift = big.vertices[top_big] - small.vertices[low_small]
+    n = len(big.vertices)
+    idx = np.arange(len(small.vertices)) + n
+    idx[low_small] = top_big  # the two spheres share that vertex
+    keep_v = np.ones(len(small.vertices), bool)
+    keep_v[low_small] = False
+    renum = np.full(len(small.vertices), -1)
+    renum[keep_v] = n + np.arange(keep_v.sum())
+    renum[low_small] = top_big
+    mesh = Mesh(np.vstack([big.vertices, small.vertices[keep_v] + shift]),
+                np.vstack([big.faces, renum[small.faces]]), "two")
+    assert _face_components(mesh).max() == 0  # one part
+    at = np.zeros(len(mesh.vertices), bool)
+    at[top_big] = True
+    region_faces = np.flatnonzero(dilate_faces(mesh.faces, at[mesh.faces].any(axis=1), 2))
+    from scanreg.mesh.regions import Region
+
+    q = submesh(mesh, np.isin(np.arange(len(mesh.faces)), region_faces))
+    # the backend's answer: the shared vertex split, the small sphere's faces on a copy of it
+    centre = int(np.flatnonzero((q.vertices == mesh.vertices[top_big]).all(axis=1))[0])
+    on_small = np.isin(region_faces, np.arange(len(big.faces), len(mesh.faces)))
+    rv = np.vstack([q.vertices, q.vertices[centre]])
+    rf = q.faces.copy()
+    rf[on_small] = np.where(rf[on_small] == centre, len(q.vertices), rf[on_small])
+    out = stitch(mesh, [Region(region_faces, 0)], [(rv, rf)])
+    assert out is not None and _face_components(out).max() == 0
+    assert face_set(out) == face_set(big)

@@ -322,7 +322,8 @@ def test_meshfix_counts_intersections_between_parts_it_repaired_one_by_one(monke
     """Two interpenetrating copies of the cow (two parts, repaired one by one, each certified by MeshFix): the
     audit's count of self-intersecting faces after the repair comes from the pairs across the parts only
     (intersect.intersecting_across; the output is given no self-intersection test of its own) and equals the
-    full exact test of the repaired mesh."""
+    full exact test of the repaired mesh. (MeshFix on the whole mesh, ``scope=whole``: with the default the input's
+    test is decided on the census's pairs.)"""
     import scanreg.mesh.topology as topology
     import scanreg.stages.repair.meshfix as mf
     from scanreg.geometry import Mesh
@@ -346,7 +347,7 @@ def test_meshfix_counts_intersections_between_parts_it_repaired_one_by_one(monke
     monkeypatch.setattr(mf, "intersecting_across", spy_across)
     monkeypatch.setattr(topology, "self_intersections", spy_tests)
     monkeypatch.setenv("SCANREG_NO_FORK", "1")  # the input's test (beside the backend) made where the spy sees it
-    res = stage("meshfix", check_only=False).repair(two, CTX)
+    res = stage("meshfix", check_only=False, scope="whole").repair(two, CTX)
     out, m = res.mesh, res.metrics
     assert len(calls) == 1 and int(calls[0].sum()) == m["after_self_intersecting_faces"]
     assert len(out.faces) not in tested  # the count came from the pairs across the parts

@@ -263,12 +263,13 @@ def test_meshfix_tests_from_the_input_and_trusts_its_own_cleaning(monkeypatch):
     """The audit tests the input for self-intersections beside the backend; MeshFix's loop that keeps an open
     scan's border open (bun000) tests its meshes from that outcome (``previous``: incrementally), and the
     audit's count of the output equals the full exact test's. With MeshFix's own cleaning (the closed bunny),
-    its verdict is the count: the output is not tested again."""
+    its verdict is the count: the output is not tested again. (``scope=whole``, MeshFix on the whole mesh; the
+    default ``scope=defects`` decides the input's test on the census's pairs: tests/test_regions.py.)"""
     import scanreg.mesh.intersect as intersect
     import scanreg.mesh.topology as topology
     import scanreg.stages.repair.meshfix as meshfix
 
-    mf = stage("meshfix")
+    mf = stage("meshfix", scope="whole")
     assert meshfix._keeps_borders(make_params(type(mf).Params, {"max_hole_edges": 100}, "meshfix"))
     assert not meshfix._keeps_borders(mf.p)  # MeshFix's own cleaning
     assert not meshfix._keeps_borders(make_params(type(mf).Params, {"max_hole_edges": 100, "clean_iterations": 0},
@@ -286,12 +287,12 @@ def test_meshfix_tests_from_the_input_and_trusts_its_own_cleaning(monkeypatch):
     scan = read_mesh(str(shared("stanford_bunny/bun000.ply")))
     # forking (the default), the input's test runs in a child process beside MeshFix (this spy does not see
     # it) and the loop waits for its outcome; in place, the same repair gives the same metrics and faces
-    forked, m_forked = audited(stage("meshfix"), read_mesh(str(shared("stanford_bunny/bun000.ply"))))
+    forked, m_forked = audited(stage("meshfix", scope="whole"), read_mesh(str(shared("stanford_bunny/bun000.ply"))))
     assert not [t for t in tests if t[0] == len(scan.faces) and t[1] is None] and incremental
     tests.clear()
     incremental.clear()
     monkeypatch.setenv("SCANREG_NO_FORK", "1")
-    out, m = audited(stage("meshfix"), scan)
+    out, m = audited(stage("meshfix", scope="whole"), scan)
     monkeypatch.delenv("SCANREG_NO_FORK")
     assert {k: v for k, v in m.items() if not k.endswith("time_s")} == \
         {k: v for k, v in m_forked.items() if not k.endswith("time_s")} and np.array_equal(forked.faces, out.faces)
@@ -306,11 +307,11 @@ def test_meshfix_tests_from_the_input_and_trusts_its_own_cleaning(monkeypatch):
     tests.clear()
     bunny = read_mesh(BUNNY)
     # the same with MeshFix's own cleaning
-    forked, m_forked = audited(stage("meshfix"), read_mesh(BUNNY))
+    forked, m_forked = audited(stage("meshfix", scope="whole"), read_mesh(BUNNY))
     assert len(bunny.faces) not in [t[0] for t in tests]
     tests.clear()
     monkeypatch.setenv("SCANREG_NO_FORK", "1")
-    out, m = audited(stage("meshfix"), bunny)
+    out, m = audited(stage("meshfix", scope="whole"), bunny)
     assert {k: v for k, v in m.items() if not k.endswith("time_s")} == \
         {k: v for k, v in m_forked.items() if not k.endswith("time_s")} and np.array_equal(forked.faces, out.faces)
     assert m["guard_ok"] == 1 and m["open_border_open"] == 0

@@ -32,20 +32,27 @@ AFTER_TOLERANCE: dict[str, float] = {
     "after_unreferenced_vertices": 0,
     "after_self_intersecting_faces": 0,
     "after_watertight": 0,
-    # The sizes: exact for now. A repair that works on the defective regions only may triangulate the patches
-    # differently; when its method changes, give each a stated tolerance here (and say why in the commit):
-    # absolute (counts) for vertices, faces, boundary_edges and sliver_faces, relative (share of the recorded
-    # value, RELATIVE below) for area and volume.
-    "after_vertices": 0,
-    "after_faces": 0,
-    "after_boundary_edges": 0,
+    # The sizes. The repair of the defective regions only (scope=defects, the default since the recording)
+    # triangulates the same holes with the same MeshFix calls, but hands the sliver collapse the faces in another
+    # order, and the collapse is greedy (MeshLab's T-vertex removal visits the faces in order); and the collapse
+    # itself now freezes the vertices near a fold it made and tries again instead of giving up on every sliver
+    # (on the whole mesh too: bun045 70 -> 8 slivers left, bun270 60 -> 8, top2 84 -> 0). What that moves, on
+    # the 10 raw scans: vertices and faces up to 0.23 %, boundary edges 0.4 % (border caps collapsed), area up
+    # to 1.3 % (long caps along top2's ragged outer border). Relative (share of the recorded value):
+    "after_vertices": 0.005,
+    "after_faces": 0.005,
+    "after_boundary_edges": 0.01,
+    "after_area": 0.02,
+    "after_volume": 0.02,
+    # slivers left: at most SLIVER_SHARE of the faces more than recorded (top3 keeps 23 of 70,879 that the
+    # collapse of the whole mesh's order removed; a collapse that folds is kept back near the fold)
     "after_sliver_faces": 0,
-    "after_area": 0.0,
-    "after_volume": 0.0,
 }
 """The deviation from the recording each ``after_*`` metric may have: absolute for counts, relative for
 :data:`RELATIVE`. 0 is exact (a float to :data:`FLOAT_REL`)."""
-RELATIVE = {"after_area", "after_volume"}
+RELATIVE = {"after_vertices", "after_faces", "after_boundary_edges", "after_area", "after_volume"}
+SLIVER_SHARE = 0.0005
+"""``after_sliver_faces`` may exceed the recording by this share of the recorded faces."""
 DEFECT_CLASSES = ("after_boundary_loops", "after_components", "after_non_manifold_edges",
                   "after_non_manifold_vertices", "after_inconsistent_orientation_edges", "after_degenerate_faces",
                   "after_unreferenced_vertices", "after_self_intersecting_faces", "after_watertight")
@@ -82,7 +89,7 @@ def _repaired(name: str) -> dict:
 def _differs(now: float, ref: float, tol: float, relative: bool) -> bool:
     """Whether ``now`` is farther than ``tol`` from the recorded ``ref``: a share of ``ref`` (``relative``) or
     absolute; a recorded float is never held tighter than :data:`FLOAT_REL`."""
-    if isinstance(ref, float):
+    if isinstance(ref, float) or relative:
         return abs(now - ref) > max(tol if relative else 0.0, FLOAT_REL) * abs(ref) + (0.0 if relative else tol)
     return abs(now - ref) > tol
 
@@ -99,6 +106,11 @@ def test_the_default_repair_reports_the_recorded_counts(name):
         elif k.startswith("after_"):
             assert k in AFTER_TOLERANCE, f"{k} recorded but has no entry in AFTER_TOLERANCE"
             tol = AFTER_TOLERANCE[k]
+            if k == "after_sliver_faces":  # fewer is fine; more by at most SLIVER_SHARE of the faces
+                limit = r + SLIVER_SHARE * ref["after_faces"]
+                if k not in m or m[k] > limit:
+                    wrong.append(f"{k}: recorded {r}, now {m.get(k, 'absent')} (allowed: at most {limit:.0f})")
+                continue
             if k not in m or _differs(m[k], r, tol, k in RELATIVE):
                 allowed = "exact" if not tol else f"{tol:g} {'relative' if k in RELATIVE else 'absolute'}"
                 wrong.append(f"{k}: recorded {r}, now {m.get(k, 'absent')} (allowed: {allowed})")

@@ -100,6 +100,25 @@ def self_intersections(vertices: np.ndarray, faces: np.ndarray,
     return out
 
 
+def intersections_among(vertices: np.ndarray, faces: np.ndarray, pairs: np.ndarray) -> Intersections:
+    """The self-intersection test of a mesh decided on the face ``pairs`` (P, 2; smaller first, each once) only,
+    exactly as the full test decides each: the full test's outcome when the pairs include every intersecting
+    one (a broad phase's candidates, :meth:`scanreg.mesh.census.Census.pairs_to_test`). Pairs with a
+    degenerate face take no part, as in the full test."""
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    out = Intersections(v, f, np.zeros((0, 2), np.int64), _face_keys(v, f) if len(f) >= MIN_FACES else None)
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if len(f) < 2 or not len(pairs):
+        return out
+    vw, fw, live = _welded(v, f)
+    pairs = pairs[live[pairs].all(axis=1)]
+    hit = np.concatenate([_pair_hits(vw[fw], fw, pairs[s:s + PAIR_BLOCK, 0], pairs[s:s + PAIR_BLOCK, 1])
+                          for s in range(0, len(pairs), PAIR_BLOCK)] or [np.zeros(0, bool)])
+    out.pairs = pairs[hit]
+    return out
+
+
 def degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Faces with a repeated vertex index or three collinear corners (exactly)."""
     f = faces

@@ -157,6 +157,7 @@ def stitch(mesh: Mesh, regions: list[Region], repaired: list[tuple[np.ndarray, n
     rest_keys = np.sort(_keys(_edges(rest), n))
     kept = ~inside  # the mesh's faces in the result
     new_v, new_f, top = [v], [], n
+    split = False  # a region given back in more pieces than it had
     for r, (rv, rf) in zip(regions, repaired):
         rv, rf = np.asarray(rv, dtype=np.float64), np.asarray(rf, dtype=np.int64)
         own = f[r.faces]
@@ -185,6 +186,7 @@ def stitch(mesh: Mesh, regions: list[Region], repaired: list[tuple[np.ndarray, n
         cut = ids[outside[ids]]
         if len(cut):  # a piece the backend split off the region (no cut vertex): dropped, as MeshFix drops
             faces = faces[_touching(faces, np.isin(faces, cut).any(axis=1))]  # what it splits off a part
+        split |= len(faces) and _labels(faces).max() > _labels(own).max()
         # the region's faces given back with the same vertices stay where they were
         old = _triples(own, top)
         order = np.argsort(old)
@@ -197,9 +199,10 @@ def stitch(mesh: Mesh, regions: list[Region], repaired: list[tuple[np.ndarray, n
     faces = np.vstack([f[kept], *new_f])
     # a part split in two (a vertex joining two sheets, split by the backend): its largest piece stays, as
     # MeshFix keeps one piece of each part it repairs
-    part = np.full(len(faces), -1, np.int64)
-    part[:int(kept.sum())] = _labels(f)[kept]
-    faces = faces[_largest_piece(faces, part)]
+    if split:
+        part = np.full(len(faces), -1, np.int64)
+        part[:int(kept.sum())] = _labels(f)[kept]
+        faces = faces[_largest_piece(faces, part)]
     used = np.zeros(len(vertices), bool)
     used[faces.ravel()] = True
     return Mesh(vertices[used], (np.cumsum(used) - 1)[faces], mesh.source)
@@ -247,13 +250,15 @@ def _touching(faces: np.ndarray, seeds: np.ndarray) -> np.ndarray:
 
 
 def _match_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """For each row of ``b``, the index of the row of ``a`` with exactly the same coordinates (-1: none; the
-    rows of ``a`` are distinct)."""
+    """For each row of ``b``, the index of the one row of ``a`` with exactly the same coordinates (-1: none, or
+    several rows of ``a`` there, as a split vertex's copies)."""
     both = np.vstack([a, b])
     order = np.lexsort((both[:, 2], both[:, 1], both[:, 0]))
     s = both[order]
     new = np.r_[True, (s[1:] != s[:-1]).any(axis=1)]
-    first = order[np.maximum.accumulate(np.where(new, np.arange(len(s)), 0))]  # each run's first row
+    run = np.cumsum(new) - 1
+    first = order[np.flatnonzero(new)][run]  # each run's first row: a's rows come first (lexsort is stable)
+    from_a = np.bincount(run, order < len(a))[run]
     res = np.empty(len(both), np.int64)
-    res[order] = np.where(first < len(a), first, -1)  # a's rows come first in a run (lexsort is stable)
+    res[order] = np.where((first < len(a)) & (from_a == 1), first, -1)
     return res[len(a):]

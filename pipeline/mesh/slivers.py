@@ -8,15 +8,19 @@ import heapq
 import numpy as np
 
 from scanreg.geometry import Mesh, col_max, col_min, rows_any, submesh
-from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, _min_angles_deg, _per_face, known, mesh_stats, min_angles_deg,
-                                   non_manifold_vertices, remember, self_intersecting_count)
+from scanreg.mesh.intersect import intersections_among
+from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, _cached, _min_angles_deg, _per_face, intersections, known,
+                                   mesh_stats, min_angles_deg, non_manifold_vertices, remember,
+                                   self_intersecting_count)
 
 
-def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: int = 3) -> Mesh:
+def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: int = 3,
+                     frozen: np.ndarray | None = None) -> Mesh:
     """``mesh`` without slivers (smallest angle below ``angle_deg``), as the paper removes degenerate triangles:
     MeshLab's T-vertex removal by edge collapse (:func:`tvertex_collapse`: a cap's apex onto its long edge, a
     needle's short edge to a point, at the ratio of a face's edge to its height of the limit angle), then null
-    faces and unreferenced vertices. The mesh is returned unchanged when it has no sliver."""
+    faces and unreferenced vertices; ``frozen``: a mask of ``mesh``'s vertices that do not move (the slivers
+    whose apex they are stay). The mesh is returned unchanged when it has no sliver."""
     ang = min_angles_deg(mesh)
     if not (ang < angle_deg).any():
         return mesh
@@ -29,7 +33,7 @@ def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: in
     vid, fid = np.arange(len(v)), np.arange(len(f))  # each vertex's and face's index in ``mesh``
     touched = np.zeros(len(v), bool)  # input vertices moved onto another or joined by one
     for _ in range(rounds):
-        v, f, kv, kf, joined = tvertex_collapse(v, f, threshold, maybe)
+        v, f, kv, kf, joined = tvertex_collapse(v, f, threshold, maybe, None if frozen is None else frozen[vid])
         vid, fid = vid[kv], fid[kf]
         touched[vid[joined]] = True
         changed = rows_any(touched[vid[f]])
@@ -89,10 +93,11 @@ def _tvertex_test(P: np.ndarray, threshold: np.float32) -> tuple[np.ndarray, np.
 
 
 def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
-                     maybe: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+                     maybe: np.ndarray | None = None, frozen: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """vcglib's ``Clean::RemoveTVertexByCollapse(m, threshold, repeat=true)`` (MeshLab's "Remove T-vertices by
     edge collapse"), computed on the faces that take part only (``maybe``: a mask of the faces that can pass
-    the test at the start, None: any).
+    the test at the start, None: any); ``frozen``: a mask of vertices never moved (no face with such an apex
+    is a candidate).
 
     Each round visits the faces in order; a face whose corner opposite its longest side (its apex) is not
     marked and lies within the side's length / ``threshold`` of it has the apex moved onto the side's corner
@@ -107,14 +112,14 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
 
     Returns the vertices and faces, the indices of the kept input vertices and faces (in order), and which
     output vertices were moved or joined."""
-    thr = np.float32(threshold)
-    v = np.asarray(v, np.float64)
-    f = np.asarray(f, np.int64)
+    thr, v, f = np.float32(threshold), np.asarray(v, np.float64), np.asarray(f, np.int64)
     kv, kf = np.arange(len(v)), np.arange(len(f))
     joined = np.zeros(len(v), bool)
     look = np.arange(len(f)) if maybe is None else np.flatnonzero(maybe)
     while len(look):
         hit, side, near = _tvertex_test(v[f[look]], thr)
+        if frozen is not None:
+            hit &= ~frozen[kv][f[look, (side + 2) % 3]]
         cand = look[hit]
         if not len(cand):
             break
@@ -134,7 +139,7 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
             return np.flatnonzero(rows_any(f == x))
 
         pos = v.copy()
-        marked = np.zeros(len(v), bool)
+        marked = np.zeros(len(v), bool) if frozen is None else frozen[kv]
         dirty = set()  # faces with a corner moved in this round
         onto = {}  # apex -> the vertex it was moved onto
         heap = cand.tolist()
@@ -160,21 +165,7 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
                     if g not in queued:
                         queued.add(g)
                         heapq.heappush(heap, g)
-        # join each moved vertex with the one it was moved onto (chains into one group, the lowest index kept)
-        root: dict[int, int] = {}
-
-        def find(x: int) -> int:
-            while root.get(x, x) != x:
-                x = root[x]
-            return x
-
-        for a, b in onto.items():
-            ra, rb = find(a), find(b)
-            if ra != rb:
-                root[max(ra, rb)] = min(ra, rb)
-        members = np.array(sorted(set(onto) | set(onto.values())), np.int64)
-        remap = np.arange(len(v))
-        remap[members] = [find(int(x)) for x in members]
+        members, remap = _joined(onto, len(v))
         keep_v = remap == np.arange(len(v))
         F = remap[f]
         keep_f = (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0])
@@ -190,18 +181,80 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
     return v, f, kv, kf, joined
 
 
+def _joined(onto: dict[int, int], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each moved vertex joined with the one it was moved onto (``onto``; chains into one group, the lowest
+    index kept): the vertices involved, and each of the ``n`` vertices' index after the join."""
+    root: dict[int, int] = {}
+
+    def find(x: int) -> int:
+        while root.get(x, x) != x:
+            x = root[x]
+        return x
+
+    for a, b in onto.items():
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            root[max(ra, rb)] = min(ra, rb)
+    members = np.array(sorted(set(onto) | set(onto.values())), np.int64)
+    remap = np.arange(n)
+    remap[members] = [find(int(x)) for x in members]
+    return members, remap
+
+
 def fold_counts(mesh: Mesh) -> np.ndarray:
     """``[self-intersecting faces, non-manifold edges, non-manifold vertices]``: what an edge collapse can add."""
     return np.array([self_intersecting_count(mesh), mesh_stats(mesh)["non_manifold_edges"],
                      non_manifold_vertices(mesh)])
 
 
-def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
+def collapse_folds(before: Mesh, after: Mesh, sites: bool = False) -> tuple[np.ndarray, ...]:
     """:func:`fold_counts` of ``before`` and ``after`` (the same mesh before and after a local edit such as
     :func:`collapse_slivers`) where they differ: both restricted to the faces near a face that is in one mesh
     and not in the other (centroids within the sum of the two faces' circumradii), so that the comparison costs a
     self-intersection test of that neighbourhood, not of the whole mesh. Faces elsewhere are the same in both
-    and would add the same count to each. Both are zeros when no face differs."""
+    and would add the same count to each. Both are zeros when no face differs. With ``sites``, also where
+    ``after`` has folds there: the corners of its self-intersecting faces, its non-manifold vertices and the
+    ends of its non-manifold edges, as points (k, 3)."""
+    near = _near_changes(before, after)
+    if near is None:
+        zero = np.zeros(3, np.int64)
+        return (zero, zero, np.zeros((0, 3))) if sites else (zero, zero)
+    sb, sub = _tested_part(before, near[0]), submesh(after, near[1])
+    intersections(sub, previous=sb)  # from the neighbourhood's test before the edit: the changed faces only
+    counts = fold_counts(sb), fold_counts(sub)
+    return (*counts, _fold_points(sub)) if sites else counts
+
+
+def _tested_part(mesh: Mesh, mask: np.ndarray) -> Mesh:
+    """``submesh(mesh, mask)``, with its self-intersection test taken from ``mesh``'s when that is known (the
+    pairs of two faces in the part), else made."""
+    sub = submesh(mesh, mask)
+    whole = known(mesh, "intersections")
+    if whole is not None and whole.faces is mesh.faces:
+        pos = np.cumsum(mask) - 1
+        pairs = whole.pairs[mask[whole.pairs].all(axis=1)] if len(whole.pairs) else whole.pairs
+        remember(sub, "intersections", intersections_among(sub.vertices, sub.faces, pos[pairs]))
+    else:
+        intersections(sub)
+    return sub
+
+
+def _fold_points(mesh: Mesh) -> np.ndarray:
+    """The corners of ``mesh``'s self-intersecting faces, its non-manifold vertices and the ends of its
+    non-manifold edges (points (k, 3); the tests :func:`fold_counts` made, reused)."""
+    from scanreg.mesh.topology import _mesh_edges, non_manifold_vertex_mask, self_intersecting_faces
+
+    directed, edge, counts = _mesh_edges(mesh)
+    at = np.zeros(len(mesh.vertices), bool)
+    at[mesh.faces[self_intersecting_faces(mesh)].ravel()] = True
+    at[directed[counts[edge] > 2].ravel()] = True
+    at |= non_manifold_vertex_mask(mesh)
+    return mesh.vertices[at]
+
+
+def _near_changes(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray] | None:
+    """Masks of the faces of ``before`` and of ``after`` near a face that is in one mesh and not in the other
+    (:func:`collapse_folds`); None when no face differs."""
     from scipy.spatial import cKDTree
 
     fb, fa = before.faces, after.faces
@@ -212,9 +265,9 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
     else:
         gone, new = _changed_faces(before, after)
     if not gone.any() and not new.any():
-        return np.zeros(3, np.int64), np.zeros(3, np.int64)
+        return None
 
-    xb, rb = _centres(before)
+    xb, rb = _cached(before, "centres", lambda: _centres(before))
     if tracked:  # the faces the collapse kept have before's centres (computed once), and get before's verdict
         x_new, r_new = _centres(Mesh(after.vertices, fa[new]))
         ra = np.empty(len(fa))
@@ -293,7 +346,7 @@ def collapse_folds(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
         near_a[~new], near_a[new] = near_b[track[3]], near(x_new, r_new)
     else:
         near_a = near(xa, ra)
-    return fold_counts(submesh(before, near_b)), fold_counts(submesh(after, near_a))
+    return near_b, near_a
 
 
 def _centres(m: Mesh) -> tuple[np.ndarray, np.ndarray]:

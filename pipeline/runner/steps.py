@@ -18,16 +18,16 @@ from typing import Optional
 
 import numpy as np
 
-from scanreg.errors import InputError
+from scanreg.errors import InputError, ScanregError
 from scanreg.eval.checks import check_geometry, check_inputs
 from scanreg.eval.metrics import (EvalParams, alignment_metrics, field_metrics, gt_metrics, surface_deviation)
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
                                       relative_motion)
 from scanreg.geometry import ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, transform_geometry
-from scanreg.process import blas_single_thread
+from scanreg.process import blas_single_thread, start_isolated
 from scanreg.runner.build import Stages
 from scanreg.runner.outputs import write_keypoints
-from scanreg.types import Correspondences, PairResult, PreparedScan, Problem, RunContext, ScanSet
+from scanreg.types import Correspondences, PairResult, PreparedScan, Problem, Repaired, RunContext, ScanSet
 
 MIN_POINTS = 10
 """Fewest points a cloud may have after sampling (the coarse and fine stages need neighbourhoods)."""
@@ -49,16 +49,52 @@ def load_problem(stages: Stages, ctx: RunContext) -> Problem | ScanSet:
     return problem
 
 
+def repairs_needed(geometries: dict[str, Geometry], stages: Stages) -> list[str]:
+    """The roles (keys of ``geometries``) whose scan the repair works on: meshes, when it applies to the role."""
+    return [role for role, g in geometries.items() if isinstance(g, Mesh) and stages.repair.applies_to(role)]
+
+
+def repair_scans(geometries: dict[str, Geometry], stages: Stages, ctx: RunContext) -> dict[str, Repaired]:
+    """The repair of every scan in ``geometries`` (by role) that it applies to (:func:`repairs_needed`), the
+    scans at once: each but the first in a process of its own (:func:`scanreg.process.start_isolated`) while
+    this one repairs the first, so that two scans take one repair's time on two cores. The same results as
+    one after the other (each repair is a function of its scan, the seed and its parameters); the first
+    failure is raised."""
+    roles = repairs_needed(geometries, stages)
+    started = {role: start_isolated(_repaired_alone, stages.repair, geometries[role], ctx) for role in roles[1:]}
+    out, role = {}, None
+    try:
+        for role in roles[:1]:
+            out[role] = stages.repair.repair(geometries[role], ctx)
+        for role, pending in started.items():
+            out[role] = pending.result()
+    except ScanregError as e:
+        e.role = role  # whose repair failed, for the metrics that go with the failed run
+        raise
+    finally:
+        for pending in started.values():
+            pending.cancel()  # (a no-op for those whose result was taken)
+    return out
+
+
+def _repaired_alone(repair, mesh: Mesh, ctx: RunContext) -> Repaired:
+    """``repair.repair(mesh, ctx)`` with its mesh's arrays only (the measurements remembered on it stay here)."""
+    r = repair.repair(mesh, ctx)
+    m = r.mesh
+    return Repaired(Mesh(m.vertices, m.faces, m.source, m.closure_faces), r.metrics)
+
+
 def prepare_scan(geometry: Geometry, stages: Stages, ctx: RunContext, name: str, salt: int,
-                 role: str | None = None, repair: bool = True) -> PreparedScan:
+                 role: str | None = None, repair: bool = True, repaired: Repaired | None = None) -> PreparedScan:
     """One scan ready to register: a mesh repaired (``repair``, and when the repair applies to its ``role``:
-    ``source``, ``target``, or ``scan`` for a scan of a set; ``name`` by default) and then its scanned side
-    sampled; a cloud sampled (thinned) as the sampler says; the sampling spacing estimated with
-    ``ctx.rng(salt)``."""
+    ``source``, ``target``, or ``scan`` for a scan of a set; ``name`` by default; or ``repaired``, its repair
+    made already, :func:`repair_scans`) and then its scanned side sampled; a cloud sampled (thinned) as the
+    sampler says; the sampling spacing estimated with ``ctx.rng(salt)``."""
     t0 = time.perf_counter_ns()
     surface, audit = geometry, {}
-    if repair and isinstance(geometry, Mesh) and stages.repair.applies_to(role or name):
+    if repaired is None and repair and isinstance(geometry, Mesh) and stages.repair.applies_to(role or name):
         repaired = stages.repair.repair(geometry, ctx)
+    if repaired is not None:
         surface, audit = repaired.mesh, repaired.metrics
     # a scan closed as a shell by the repair (repair.open_border=shell) is sampled and compared on its scanned side
     surface = surface.scanned() if isinstance(surface, Mesh) else surface

@@ -31,10 +31,11 @@ import numpy as np
 
 from scanreg.errors import ScanregError, StageError
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
+from scanreg.mesh.census import mesh_census
 from scanreg.mesh.distances import area_samples, distances_to, point_distances, raycasting_scene
+from scanreg.mesh.intersect import Intersections, intersections_among
 from scanreg.mesh.shell import close_as_shell
 from scanreg.mesh.slivers import collapse_folds, collapse_slivers
-from scanreg.mesh.intersect import Intersections
 from scanreg.mesh.topology import (audit_mesh, border_loops, component_areas, forget, intersections, known,
                                    mesh_stats, non_manifold_vertices, open_scan_borders, remember,
                                    remember_later, self_intersecting_count)
@@ -56,10 +57,12 @@ class GuardParams:
     """Which input meshes are repaired: ``source``, ``target`` or ``both`` (a CT surface made of separate
     teeth must not lose all but its largest component, so the dental case repairs the source only)."""
     scope: str = "defects"
-    """What the backend works on. ``defects``: a mesh in which the census of its topology and face shapes and
-    the exact self-intersection test find no defect the backend repairs passes untouched (a backend that only
-    repairs defects, MeshFix; reported as ``untouched`` 1, with the audit of a repair); ``whole``: the backend
-    always runs on the whole mesh, as the paper's procedure does."""
+    """What the backend works on. ``defects``: the input's self-intersection test is decided on the pairs the
+    defect census's broad phase leaves; a mesh in which the census and that test find no defect the backend
+    repairs passes untouched (``untouched`` 1, with the audit of a repair); otherwise MeshFix repairs the
+    regions around the defects only, stitched back into the rest (the whole mesh when they cannot be cut out;
+    docs/repair.md, "Repair where the defects are"). ``whole``: the backend always runs on the whole mesh and
+    the input gets the full exact test, as the paper's procedure does."""
     check_only: bool = False
     """Audit what the repair would do (the before/after table and the guard) but go on with the unrepaired
     mesh; a guard violation is then reported, not fatal."""
@@ -187,10 +190,16 @@ def _first_line(e: BaseException) -> str:
     return (str(e).strip().splitlines() or [""])[0][:200]
 
 
-def _intersection_pairs(mesh: Mesh) -> tuple:
+def _intersection_pairs(mesh: Mesh, p: GuardParams) -> tuple:
     """The input's self-intersection test (:func:`scanreg.mesh.topology.intersections`) as the arrays that make
     it: its intersecting pairs and its face keys (the mesh's own arrays stay with the caller)."""
     found = intersections(mesh)
+    return found.pairs, found.keys
+
+
+def _census_pairs(mesh: Mesh, p: GuardParams) -> tuple:
+    """:func:`census_intersections` as the arrays that make it (as :func:`_intersection_pairs`)."""
+    found = census_intersections(mesh, p)
     return found.pairs, found.keys
 
 
@@ -288,19 +297,23 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
         raise StageError(f"{where}: the repair's audit needs libigl ({_first_line(e)}): pip install libigl") from e
     t0 = time.perf_counter()
     planned = _planned(stage, mesh, where)
-    if _nothing_to_repair(stage, planned, mesh):
-        print(f"note: {where}: no defect the repair would change (census and exact self-intersection test): "
-              "left untouched")
-        return _untouched(planned, mesh, t0, where)
-    # the input's exact self-intersection test (the audit's costliest part) runs beside the backend, in a child
-    # process; the first test that starts from it (the output's, or a backend's own loop) waits for it. (Without
-    # forking it is made first, here.)
-    beside = None if known(mesh, "intersections") is not None or not forking() else \
-        start_isolated(_intersection_pairs, mesh)
-    if beside is not None:
-        remember_later(mesh, "intersections",
-                       lambda: Intersections(mesh.vertices, mesh.faces, *beside.result()))
+    # the input's exact self-intersection test (the audit's costliest part; with scope=defects decided on the
+    # census's pairs) runs beside the backend, in a child process; the first test that starts from it (the
+    # output's, or a backend's own loop) waits for it, as does the check that a mesh has nothing to repair.
+    # (Without forking it is made first, here.)
+    test = _intersection_pairs if planned.scope == "whole" else _census_pairs
+    beside = None
+    if known(mesh, "intersections") is None:
+        if forking():
+            beside = start_isolated(test, mesh, planned)
+            remember_later(mesh, "intersections", lambda: Intersections(mesh.vertices, mesh.faces, *beside.result()))
+        else:
+            remember(mesh, "intersections", Intersections(mesh.vertices, mesh.faces, *test(mesh, planned)))
     try:
+        if _nothing_to_repair(stage, planned, mesh):
+            print(f"note: {where}: no defect the repair would change (census and exact self-intersection test): "
+                  "left untouched")
+            return _untouched(planned, mesh, t0, where)
         before = audit_mesh(mesh, self_intersections=beside is None)
         input_side = _input_side(p, mesh, ctx.seed)
         t1 = time.perf_counter()
@@ -337,6 +350,18 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
         print(f"warning: {problems}")
     m["untouched"] = 0.0
     return Repaired(mesh if p.check_only else out, m)
+
+
+def census_intersections(mesh: Mesh, p: GuardParams) -> Intersections:
+    """``scope: defects``: the input's self-intersection test decided on the pairs the defect census's broad
+    phase cannot prove apart (:meth:`~scanreg.mesh.census.Census.pairs_to_test`), each pair by the exact test:
+    the whole mesh's answer at a fraction of its cost (``experiments/benchmarks/census.md``), resting on the
+    broad phase's one assumption (:func:`~scanreg.mesh.census.intersection_candidates`). The repair's output
+    is tested exactly where it differs from the input (:func:`~scanreg.mesh.intersect.self_intersections`
+    from this outcome), so no self-intersection the repair makes goes unreported."""
+    c = mesh_census(mesh, sliver_angle_deg=p.sliver_angle_deg, min_component_share=p.min_component_share,
+                    open_border_ratio=p.open_border_ratio)
+    return intersections_among(mesh.vertices, mesh.faces, c.pairs_to_test(mesh.faces))
 
 
 def _nothing_to_repair(stage, p: GuardParams, mesh: Mesh) -> bool:
@@ -386,21 +411,57 @@ def _planned(stage, mesh: Mesh, where: str) -> GuardParams:
 
 def _without_slivers(p: GuardParams, out: Mesh) -> tuple[Mesh, float]:
     """``out`` with its slivers collapsed (``remove_slivers``), kept only where the collapse folds nothing (a
-    raw scan's ragged border can); and the seconds the fold check took (counted as the audit's)."""
-    if not p.remove_slivers:
-        return out, 0.0
+    raw scan's ragged border can: the vertices near such a fold are frozen and the collapse tried again,
+    :data:`FOLD_RETRIES` times); and the seconds the fold checks took (counted as the audit's)."""
+    return _collapsed(p, out) if p.remove_slivers else (out, 0.0)
+
+
+def _collapsed(p: GuardParams, out: Mesh) -> tuple[Mesh, float]:
+    """One pass of :func:`_without_slivers`: ``out`` collapsed, or ``out`` itself when there is no sliver or
+    every try folded something; and the seconds the fold checks took."""
     collapsed = collapse_slivers(out, p.sliver_angle_deg)
     if collapsed is out:
         return out, 0.0
     tf = time.perf_counter()
-    folds_out, folds_collapsed = collapse_folds(out, collapsed)  # the neighbourhood of the collapse only
+    # the neighbourhood of the collapse only
+    folds_out, folds_collapsed, sites = collapse_folds(out, collapsed, sites=True)
+    frozen = None
+    for _ in range(FOLD_RETRIES):
+        if (folds_collapsed <= folds_out).all():
+            break
+        # a kind of fold added: the vertices near it stay where they are, and the slivers elsewhere go
+        frozen = _near_vertices(out, sites, frozen)
+        collapsed = collapse_slivers(out, p.sliver_angle_deg, frozen=frozen)
+        if collapsed is out:
+            break
+        folds_out, folds_collapsed, sites = collapse_folds(out, collapsed, sites=True)
     t_folds = time.perf_counter() - tf
-    if not (folds_collapsed <= folds_out).all():  # a kind of fold added: the backend's mesh stays
+    if collapsed is out or not (folds_collapsed <= folds_out).all():  # the backend's mesh stays
         return out, t_folds
     si = known(out, "self_intersecting_faces")
     if si is not None:  # the collapse's own change to it, measured where it happened
         remember(collapsed, "self_intersecting_faces", si + int(folds_collapsed[0] - folds_out[0]))
     return collapsed, t_folds
+
+
+FOLD_RETRIES = 4
+"""How often the sliver collapse is tried again, with the vertices near the folds it made frozen, before the
+backend's mesh is kept as it was."""
+FOLD_RINGS = 1
+"""The vertices within this many rings of edges of a fold the collapse made are frozen in the next try."""
+
+
+def _near_vertices(mesh: Mesh, sites: np.ndarray, frozen: np.ndarray | None) -> np.ndarray:
+    """``frozen`` (a vertex mask of ``mesh``, None: none) and the vertices of ``mesh`` within
+    :data:`FOLD_RINGS` rings of the one nearest each of ``sites`` (points)."""
+    from scipy.spatial import cKDTree
+
+    out = np.zeros(len(mesh.vertices), bool) if frozen is None else frozen.copy()
+    if len(sites):
+        out[cKDTree(mesh.vertices).query(sites)[1]] = True
+        for _ in range(FOLD_RINGS):
+            out[mesh.faces[out[mesh.faces].any(axis=1)].ravel()] = True
+    return out
 
 
 def guard_problems(p: GuardParams, m: dict[str, float], mode: str, mesh: Mesh, where: str) -> str | None:

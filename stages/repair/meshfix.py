@@ -83,8 +83,13 @@ class MeshFix(AuditedRepair):
         return out
 
     def _repaired(self, mesh: Mesh, p: MeshFix.Params, ctx: RunContext) -> Mesh:
-        """The whole mesh at once when it is one part (or ``join_components``); else the parts below
-        ``min_component_share`` removed and every other part repaired on its own, the results side by side."""
+        """``scope: defects``: the defective regions (:meth:`_regional`) when they can be cut out. Else the whole
+        mesh at once when it is one part (or ``join_components``); else the parts below ``min_component_share``
+        removed and every other part repaired on its own, the results side by side."""
+        if p.scope == "defects" and not p.join_components:
+            out = self._regional(mesh, p, ctx)
+            if out is not None:
+                return out
         if not p.join_components and not _face_components(mesh).any():
             return self._run_one(mesh, p, ctx, previous=mesh)
         keep = large_components(mesh, 1.0 if p.keep_largest else p.min_component_share)
@@ -105,6 +110,33 @@ class MeshFix(AuditedRepair):
             remember(out, "self_intersecting_faces", int(across.sum()))
         return out
 
+    def _regional(self, mesh: Mesh, p: MeshFix.Params, ctx: RunContext) -> Mesh | None:
+        """MeshFix on the defective regions only (:func:`_fill_regions`), after the parts below
+        ``min_component_share`` are removed. The result is tested for self-intersections where it changed (from
+        the input's outcome); those found are cut out with a ring of faces around them and the holes refilled
+        in their regions (unrefined), as :func:`_clean_keeping_borders` does on the whole mesh, up to
+        ``clean_iterations`` times. None (repair the whole mesh) when the regions cannot be cut out, or when
+        cutting out intersections split a part in pieces."""
+        keep = large_components(mesh, 1.0 if p.keep_largest else p.min_component_share)
+        quiet = not ctx.verbose
+        kept = mesh if keep.all() else submesh(mesh, keep)
+        out = _fill_regions(kept, p, p.refine, quiet)
+        clean, previous = False, mesh
+        for _ in range(p.clean_iterations):
+            if out is None:
+                return None
+            sel = self_intersecting_faces(out, previous=previous)
+            if not sel.any():
+                clean = True
+                break
+            previous = out
+            out = _fill_regions(submesh(out, ~dilate_faces(out.faces, sel)), p, False, quiet)
+        if out is None or _face_components(out).max() > _face_components(kept).max():
+            return None  # cutting out intersections split a part: MeshFix on the whole mesh keeps one piece of it
+        if clean:
+            remember(out, "self_intersecting_faces", 0)
+        return out
+
     def _run_one(self, mesh: Mesh, p: MeshFix.Params, ctx: RunContext, previous: Mesh) -> Mesh:
         """MeshFix on one part (or on every part with ``join_components``); may return no face. ``previous``:
         the repair's input, whose self-intersection test the loop that keeps borders open starts from."""
@@ -120,6 +152,43 @@ class MeshFix(AuditedRepair):
         if clean:  # the audit need not test it again (its one self-intersection pass is this one)
             remember(out, "self_intersecting_faces", 0)
         return out
+
+
+def _fill_regions(mesh: Mesh, p: MeshFix.Params, refine: bool, quiet: bool) -> Mesh | None:
+    """``mesh`` with the regions around its holes to fill (at most ``max_hole_edges`` edges) and its non-manifold
+    vertices and edges, with a margin (:func:`~scanreg.mesh.regions.defect_regions`), repaired by MeshFix in one
+    child process (:func:`_region_sessions`; ``refine``: refine the patches) and stitched back
+    (:func:`~scanreg.mesh.regions.stitch`), without the parts below ``min_component_share`` and the vertices no
+    face uses; the regions also take in inconsistently oriented edges. None (repair the whole mesh) for defects
+    that are not local to a region (duplicate faces, degenerate faces) or regions whose cut MeshFix
+    did not leave as it was (a flipped patch larger than its region comes back turned at the cut)."""
+    from scanreg.mesh.census import mesh_census
+    from scanreg.mesh.regions import defect_regions, stitch
+
+    c = mesh_census(mesh, sliver_angle_deg=p.sliver_angle_deg, min_component_share=p.min_component_share,
+                    open_border_ratio=p.open_border_ratio, broad_phase=False)
+    if len(c.duplicate_faces) or len(c.degenerate_faces):
+        return None
+    if len(c.small_components):  # bits a cut split off
+        mesh = submesh(mesh, ~np.isin(c.component, c.small_components))
+        return _fill_regions(mesh, p, refine, quiet)
+    f = mesh.faces
+    loops = c.loop_edges
+    holes = (loops <= p.max_hole_edges if p.max_hole_edges else np.ones(len(loops), bool)) & p.fill_holes
+    seeds = np.zeros(len(f), bool)
+    seeds[c.boundary_faces[holes[c.boundary_loop]]] = True
+    seeds[c.non_manifold_edge_faces] = True
+    seeds[c.inconsistent_edge_faces] = True  # (a flipped patch larger than its region: its cut comes back turned)
+    hot = np.zeros(len(mesh.vertices), bool)
+    hot[c.non_manifold_vertices] = True
+    seeds |= hot[f].any(axis=1)
+    regions = defect_regions(mesh, seeds, holes)
+    if regions is None:
+        return None
+    parts = [submesh(mesh, r.faces) for r in regions]
+    repaired = run_isolated(_region_sessions, [(q.vertices, q.faces, r.hole_edges) for q, r in zip(parts, regions)],
+                            refine, quiet) if regions else []
+    return stitch(mesh, regions, repaired)
 
 
 def _clean_keeping_borders(v: np.ndarray, f: np.ndarray, p: MeshFix.Params, quiet: bool,
@@ -146,8 +215,7 @@ def _clean_keeping_borders(v: np.ndarray, f: np.ndarray, p: MeshFix.Params, quie
         cm = ms.current_mesh()
         vm, fm = cm.vertex_matrix(), cm.face_matrix()  # here: MeshLab is not called in the child
         v, f = run_isolated(_fill_session, vm, fm, p.max_hole_edges, False, quiet)  # unrefined
-    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
-    if (repeated | (triangle_areas_normals(Mesh(v, f))[0] <= 0)).any():  # mesh_stats' degenerate faces
+    if _degenerate(v, f).any():
         v2, f2 = run_isolated(_degeneracy_session, v, f)
         if mesh_stats(Mesh(v2, f2))["boundary_loops"] <= mesh_stats(Mesh(v, f))["boundary_loops"]:
             v, f, clean = v2, f2, False  # changed after the test
@@ -190,6 +258,33 @@ def _meshfix_session(vertices: np.ndarray, faces: np.ndarray, p, quiet: bool):
         clean = bool(tin.clean(max_iters=p.clean_iterations, inner_loops=3))
     v, f = tin.return_arrays()
     return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64), clean
+
+
+def _region_sessions(regions: list, refine: bool, quiet: bool) -> list[tuple[np.ndarray, np.ndarray]]:
+    """MeshFix on each region (vertices, faces, the edges of its largest hole): loaded, its holes of at most
+    that many edges filled (none when 0), and when the filling made degenerate faces, MeshFix's strong
+    degeneracy removal (kept unless it opens a border, as :func:`_clean_keeping_borders` does on the whole
+    mesh). No part is removed: a region's cut border ties it to the rest."""
+    out = []
+    for vertices, faces, hole_edges in regions:
+        tin = _loaded(vertices, faces, quiet)
+        if hole_edges:
+            tin.fill_small_boundaries(nbe=hole_edges, refine=refine)
+        v, f = (np.asarray(a) for a in tin.return_arrays())
+        if _degenerate(v, f).any():
+            loops = tin.n_boundaries
+            tin.strong_degeneracy_removal(3)
+            if tin.n_boundaries <= loops:
+                v, f = (np.asarray(a) for a in tin.return_arrays())
+        out.append((np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)))
+    return out
+
+
+def _degenerate(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Faces with a repeated vertex index or zero area (:func:`~scanreg.mesh.topology.mesh_stats`' degenerate
+    faces)."""
+    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
+    return repeated | (triangle_areas_normals(Mesh(np.asarray(v, dtype=np.float64), f))[0] <= 0)
 
 
 def _fill_session(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, refine: bool,

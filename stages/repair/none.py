@@ -21,7 +21,8 @@ class NoRepair:
         self.p = params
 
     def applies_to(self, role: str) -> bool:
-        return True
+        """False: no scan has anything done to it (so none is handed to a process of its own for it)."""
+        return False
 
     def repair(self, mesh: Mesh, ctx: RunContext) -> Repaired:
         return Repaired(mesh)
