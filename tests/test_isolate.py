@@ -113,7 +113,7 @@ def test_meshfix_crash_is_one_error_line(monkeypatch):
 
     load_all()
     cls = REPAIR.get("meshfix")
-    st = cls(make_params(cls.Params, {"cache": "off"}, "meshfix"))
+    st = cls(make_params(cls.Params, {"cache": "off", "scope": "whole"}, "meshfix"))
 
     def crashes(*args):
         faulthandler.disable()  # (pytest's would print the child's stack)
@@ -139,18 +139,19 @@ def test_a_value_that_cannot_be_pickled_is_named():
         run_isolated(lambda: threading.Lock())
 
 
-def _meshfix_stage():
+def _meshfix_stage(**params):
     from scanreg.stages.registry import REPAIR, load_all, make_params
 
     load_all()
     cls = REPAIR.get("meshfix")
-    return cls(make_params(cls.Params, {"cache": "off"}, "meshfix"))
+    return cls(make_params(cls.Params, {"cache": "off", **params}, "meshfix"))
 
 
 @linux
-def test_meshfix_failure_in_its_child_leaves_no_process(monkeypatch):
-    """An exception inside MeshFix's session (in its child) is the backend's one error line, and the child is
-    reaped."""
+@pytest.mark.parametrize("scope, session", [("whole", "_meshfix_session"), ("defects", "_region_sessions")])
+def test_meshfix_failure_in_its_child_leaves_no_process(monkeypatch, scope, session):
+    """An exception inside MeshFix's session (in its child: the whole mesh's, or the defective regions') is the
+    backend's one error line, and the child is reaped."""
     import scanreg.stages.repair.meshfix as meshfix_module
     from scanreg.errors import StageError
     from scanreg.io import read_mesh
@@ -159,11 +160,11 @@ def test_meshfix_failure_in_its_child_leaves_no_process(monkeypatch):
     def breaks(*args):
         raise RuntimeError("MeshFix broke")
 
-    monkeypatch.setattr(meshfix_module, "_meshfix_session", breaks)
+    monkeypatch.setattr(meshfix_module, session, breaks)
     before = children()
     with pytest.raises(StageError, match=r"the backend failed \(RuntimeError: MeshFix broke\)"):
-        _meshfix_stage().repair(read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj"),
-                                Context(seed=0, run_dir=None))
+        _meshfix_stage(scope=scope).repair(read_mesh("pkg:pymeshlab/tests/sample_meshes/cow.obj"),
+                                           Context(seed=0, run_dir=None))
     assert settled(before)
 
 

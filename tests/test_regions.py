@@ -183,6 +183,8 @@ def test_a_failed_repair_says_whose_it_was(fail):
     with pytest.raises(StageError) as e:
         repair_scans(geometries, SimpleNamespace(repair=_Repair(fail)), RunContext(seed=0))
     assert e.value.role == fail and e.value.metrics == {"guard_ok": 0.0} and fail in str(e.value)
+    other = {"source": "target", "target": "source"}[fail]  # the other repair finished, its audit kept
+    assert list(e.value.repaired) == [other] and e.value.repaired[other].metrics == {"after_faces": len(a.faces)}
     assert mesh_stats(a)["boundary_loops"] == 1
 
 
@@ -221,3 +223,30 @@ def test_a_part_split_in_two_keeps_its_largest_piece():
     out = stitch(mesh, [Region(region_faces, 0)], [(rv, rf)])
     assert out is not None and _face_components(out).max() == 0
     assert face_set(out) == face_set(big)
+
+
+def test_stitch_refuses_a_region_given_back_with_an_edge_the_rest_has():
+    """A tetrahedron's two faces given back with their diagonal turned: every cut edge is still there, but the
+    new diagonal is an edge of the rest too (a non-manifold, inconsistently oriented seam): refused."""
+    from scanreg.mesh.regions import Region
+
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    f = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+    mesh = Mesh(v, f, "tet")
+    region = Region(np.array([1, 2]), 0)
+    assert stitch(mesh, [region], [(v, f[[1, 2]])]) is not None  # given back as it was: taken
+    assert stitch(mesh, [region], [(v, np.array([[0, 1, 2], [0, 2, 3]]))]) is None
+
+
+def test_a_face_turned_over_is_turned_back_in_its_region():
+    """A closed sphere with one face reversed: the default repair (its region) orients it as MeshFix on the
+    whole mesh does; the face given back turned is a new face, not the old one kept."""
+    mesh = sphere(16)
+    faces = mesh.faces.copy()
+    faces[40] = faces[40, ::-1]
+    ctx = RunContext(seed=0)
+    for scope in ("defects", "whole"):
+        m = scanreg.build_stage("repair", "meshfix", scope=scope, remove_slivers=False).repair(
+            Mesh(mesh.vertices, faces, "s"), ctx).metrics
+        assert m["before_inconsistent_orientation_edges"] == 3
+        assert m["after_inconsistent_orientation_edges"] == 0 and m["after_boundary_loops"] == 0, scope

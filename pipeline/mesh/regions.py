@@ -77,7 +77,7 @@ def _unpinched(mesh: Mesh, mask: np.ndarray) -> np.ndarray | None:
     outside share, whose faces in the mask form two fans: a backend would split it), until none is left (None
     after :data:`UNPINCH_ROUNDS` rounds)."""
     f = mesh.faces
-    for _ in range(UNPINCH_ROUNDS + 1):
+    for grown in range(UNPINCH_ROUNDS + 1):
         outside = np.zeros(len(mesh.vertices), bool)
         outside[f[~mask].ravel()] = True
         ids = np.unique(f[mask])  # submesh's vertex order
@@ -85,6 +85,8 @@ def _unpinched(mesh: Mesh, mask: np.ndarray) -> np.ndarray | None:
         pinched = pinched[outside[pinched]]
         if not len(pinched):
             return mask
+        if grown == UNPINCH_ROUNDS:
+            return None
         hot = np.zeros(len(mesh.vertices), bool)
         hot[pinched] = True
         mask = mask | hot[f].any(axis=1)
@@ -187,11 +189,13 @@ def stitch(mesh: Mesh, regions: list[Region], repaired: list[tuple[np.ndarray, n
         if len(cut):  # a piece the backend split off the region (no cut vertex): dropped, as MeshFix drops
             faces = faces[_touching(faces, np.isin(faces, cut).any(axis=1))]  # what it splits off a part
         split |= len(faces) and _labels(faces).max() > _labels(own).max()
-        # the region's faces given back with the same vertices stay where they were
-        old = _triples(own, top)
+        # the region's faces given back with the same vertices in the same turn stay where they were (a face
+        # turned over is a new one)
+        own_rot, got_rot = _rotated(own), _rotated(faces)
+        old = _triples(own_rot, top)
         order = np.argsort(old)
-        pos = np.minimum(np.searchsorted(old[order], _triples(faces, top)), len(old) - 1)
-        same = old[order][pos] == _triples(faces, top)
+        pos = np.minimum(np.searchsorted(old[order], _triples(got_rot, top)), len(old) - 1)
+        same = (own_rot[order[pos]] == got_rot).all(axis=1)
         kept[r.faces[order[pos[same]]]] = True
         new_v.append(rv[fresh])
         new_f.append(faces[~same])
@@ -199,6 +203,8 @@ def stitch(mesh: Mesh, regions: list[Region], repaired: list[tuple[np.ndarray, n
     faces = np.vstack([f[kept], *new_f])
     # a part split in two (a vertex joining two sheets, split by the backend): its largest piece stays, as
     # MeshFix keeps one piece of each part it repairs
+    if not _seam_manifold(vertices, faces, outside & _used(f, inside, len(v))):
+        return None
     if split:
         part = np.full(len(faces), -1, np.int64)
         part[:int(kept.sum())] = _labels(f)[kept]
@@ -235,12 +241,45 @@ def _largest_piece(faces: np.ndarray, part: np.ndarray) -> np.ndarray:
     return keep[piece]
 
 
+def _used(f: np.ndarray, inside: np.ndarray, n: int) -> np.ndarray:
+    """Which of ``n`` vertices a face in the mask ``inside`` uses."""
+    out = np.zeros(n, bool)
+    out[f[inside].ravel()] = True
+    return out
+
+
+def _seam_manifold(vertices: np.ndarray, faces: np.ndarray, cut: np.ndarray) -> bool:
+    """Whether the faces at the ``cut`` vertices (a mask over the first ``len(cut)`` vertices) meet as a manifold,
+    consistently oriented surface there: every edge with at most two faces, in opposite directions, and each cut
+    vertex's faces one fan (a region given back with an edge the rest already has, or pinched at a cut vertex,
+    would break it)."""
+    at = np.zeros(len(vertices), bool)
+    at[:len(cut)] = cut
+    seam = faces[at[faces].any(axis=1)]
+    if not len(seam):
+        return True
+    e = _edges(seam)
+    n = len(vertices)
+    undirected = np.sort(np.minimum(e[:, 0], e[:, 1]) * n + np.maximum(e[:, 0], e[:, 1]))
+    directed = np.sort(_keys(e, n))
+    if (np.diff(directed) == 0).any() or (_count_in(undirected, undirected) > 2).any():
+        return False
+    sub = Mesh(vertices, seam)
+    return not (non_manifold_vertex_mask(sub) & at).any()
+
+
+def _rotated(f: np.ndarray) -> np.ndarray:
+    """Each face's corners turned (cyclically, the orientation kept) so that its smallest vertex comes first."""
+    k = np.argmin(f, axis=1)
+    r = np.arange(len(f))
+    return np.stack([f[r, k], f[r, (k + 1) % 3], f[r, (k + 2) % 3]], axis=1)
+
+
 def _triples(f: np.ndarray, n: int) -> np.ndarray:
-    """One integer per face for its set of vertices (any corner order) in a mesh of ``n`` vertices (a hash when
-    n**3 overflows 64 bits: equal sets, equal keys)."""
-    s = np.sort(f, axis=1)
+    """One integer per face row in a mesh of ``n`` vertices, for sorting and looking up (a hash when n**3
+    overflows 64 bits: equal rows, equal keys; a match is confirmed row by row)."""
     with np.errstate(over="ignore"):
-        return (s[:, 0] * n + s[:, 1]) * n + s[:, 2]
+        return (f[:, 0] * n + f[:, 1]) * n + f[:, 2]
 
 
 def _touching(faces: np.ndarray, seeds: np.ndarray) -> np.ndarray:

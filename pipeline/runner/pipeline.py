@@ -48,8 +48,9 @@ def run_stages(stages: Stages, ctx: RunContext, t_start: int | None = None) -> R
     try:
         repaired = repair_scans(geometries, stages, ctx)
     except ScanregError as e:  # the metrics measured so far go with the failed run
+        done = {REPAIR_PREFIX[r] + k: v for r, rep in getattr(e, "repaired", {}).items() for k, v in rep.metrics.items()}
         role = getattr(e, "role", None) or "source"
-        e.metrics = {**m, **{REPAIR_PREFIX[role] + k: v for k, v in e.metrics.items()}}
+        e.metrics = {**m, **done, **{REPAIR_PREFIX[role] + k: v for k, v in e.metrics.items()}}
         raise
     m["time_repair_s"] = (time.perf_counter_ns() - t0) / 1e9  # both scans, at once
     for role, salt in (("source", 2), ("target", 1)):

@@ -58,22 +58,27 @@ def repair_scans(geometries: dict[str, Geometry], stages: Stages, ctx: RunContex
     """The repair of every scan in ``geometries`` (by role) that it applies to (:func:`repairs_needed`), the
     scans at once: each but the first in a process of its own (:func:`scanreg.process.start_isolated`) while
     this one repairs the first, so that two scans take one repair's time on two cores. The same results as
-    one after the other (each repair is a function of its scan, the seed and its parameters); the first
-    failure is raised."""
+    one after the other (each repair is a function of its scan, the seed and its parameters). When one fails,
+    the others still finish; the first failure is raised, with ``role`` (whose) and ``repaired`` (the repairs
+    that finished)."""
     roles = repairs_needed(geometries, stages)
     started = {role: start_isolated(_repaired_alone, stages.repair, geometries[role], ctx) for role in roles[1:]}
-    out, role = {}, None
+    out, failed = {}, None
     try:
-        for role in roles[:1]:
-            out[role] = stages.repair.repair(geometries[role], ctx)
-        for role, pending in started.items():
-            out[role] = pending.result()
-    except ScanregError as e:
-        e.role = role  # whose repair failed, for the metrics that go with the failed run
-        raise
-    finally:
+        for role in roles:
+            try:
+                out[role] = started[role].result() if role in started else stages.repair.repair(geometries[role],
+                                                                                                 ctx)
+            except ScanregError as e:  # the others finish (one cut short would leave its cache entry locked)
+                e.role = role  # whose repair failed, for the metrics that go with the failed run
+                failed = failed or e
+    except BaseException:  # a crash or an interrupt: the others are ended (a no-op for those already taken)
         for pending in started.values():
-            pending.cancel()  # (a no-op for those whose result was taken)
+            pending.cancel()
+        raise
+    if failed is not None:
+        failed.repaired = out  # the repairs that finished, whose audits go with the failed run too
+        raise failed
     return out
 
 

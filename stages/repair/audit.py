@@ -192,7 +192,8 @@ def _first_line(e: BaseException) -> str:
 
 def _intersection_pairs(mesh: Mesh, p: GuardParams) -> tuple:
     """The input's self-intersection test (:func:`scanreg.mesh.topology.intersections`) as the arrays that make
-    it: its intersecting pairs and its face keys (the mesh's own arrays stay with the caller)."""
+    it: its intersecting pairs and its face keys (the mesh's own arrays stay with the caller). ``p`` is not used
+    (the signature of :func:`_census_pairs`, the test with ``scope=defects``)."""
     found = intersections(mesh)
     return found.pairs, found.keys
 
@@ -307,8 +308,10 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
         if forking():
             beside = start_isolated(test, mesh, planned)
             remember_later(mesh, "intersections", lambda: Intersections(mesh.vertices, mesh.faces, *beside.result()))
+        elif planned.scope == "whole":
+            intersections(mesh)  # made here, remembered on the mesh
         else:
-            remember(mesh, "intersections", Intersections(mesh.vertices, mesh.faces, *test(mesh, planned)))
+            remember(mesh, "intersections", census_intersections(mesh, planned))
     try:
         if _nothing_to_repair(stage, planned, mesh):
             print(f"note: {where}: no defect the repair would change (census and exact self-intersection test): "
@@ -417,8 +420,8 @@ def _without_slivers(p: GuardParams, out: Mesh) -> tuple[Mesh, float]:
 
 
 def _collapsed(p: GuardParams, out: Mesh) -> tuple[Mesh, float]:
-    """One pass of :func:`_without_slivers`: ``out`` collapsed, or ``out`` itself when there is no sliver or
-    every try folded something; and the seconds the fold checks took."""
+    """:func:`_without_slivers` itself: ``out`` collapsed (tried again with the vertices near a fold frozen), or
+    ``out`` when there is no sliver or every try folded something; and the seconds the fold checks took."""
     collapsed = collapse_slivers(out, p.sliver_angle_deg)
     if collapsed is out:
         return out, 0.0
