@@ -31,9 +31,9 @@ from scipy.sparse.csgraph import connected_components
 from scanreg.geometry import Mesh, col_max, col_min, rows_any
 from scanreg.mesh.intersect import candidate_pairs
 from scanreg.mesh.predicates import orient3d_filter
-from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, _cross_columns, _face_areas, _mesh_edges_sorted, border_loops,
-                                   boundary_edges, component_areas, dilate_faces, loop_labels, min_angles_deg,
-                                   non_manifold_vertex_mask, open_scan_borders)
+from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, _cached, _cross_columns, _face_areas, _mesh_edges_sorted,
+                                   border_loops, boundary_edges, component_areas, dilate_faces, loop_labels,
+                                   min_angles_deg, non_manifold_vertex_mask, open_scan_borders)
 
 MIN_COMPONENT_SHARE = 0.01
 """The repair's default ``min_component_share`` (:class:`scanreg.stages.repair.audit.GuardParams`): parts with
@@ -230,15 +230,23 @@ def census(vertices: np.ndarray, faces: np.ndarray, *, sliver_angle_deg: float =
 def mesh_census(mesh: Mesh, *, sliver_angle_deg: float = SLIVER_ANGLE_DEG,
                 min_component_share: float = MIN_COMPONENT_SHARE,
                 open_border_ratio: float = OPEN_BORDER_RATIO, broad_phase: bool = True) -> Census:
-    """:func:`census` of ``mesh`` itself: the topology it measures (edge table, components, border loops, face
-    angles) is remembered on ``mesh`` (:mod:`scanreg.mesh.topology`), so that the repair's audit of the same
-    mesh reuses it. A mesh whose arrays are not contiguous float64 vertices and int64 (M, 3) faces is measured
-    as :func:`census` converts it."""
+    """:func:`census` of ``mesh`` itself: the census, and the topology it measures (edge table, components,
+    border loops, face angles), are remembered on ``mesh`` (:mod:`scanreg.mesh.topology`), so that the repair's
+    steps and audit of the same mesh reuse them. A mesh whose arrays are not contiguous float64 vertices and
+    int64 (M, 3) faces is measured as :func:`census` converts it."""
     v, f = mesh.vertices, mesh.faces
     if not (v.dtype == np.float64 and f.dtype == np.int64 and f.shape[1:] == (3,) and v.flags.c_contiguous
             and f.flags.c_contiguous):
         return census(v, f, sliver_angle_deg=sliver_angle_deg, min_component_share=min_component_share,
                       open_border_ratio=open_border_ratio, broad_phase=broad_phase)
+    return _cached(mesh, ("census", sliver_angle_deg, min_component_share, open_border_ratio, broad_phase),
+                   lambda: _mesh_census(mesh, sliver_angle_deg, min_component_share, open_border_ratio, broad_phase))
+
+
+def _mesh_census(mesh: Mesh, sliver_angle_deg: float, min_component_share: float, open_border_ratio: float,
+                 broad_phase: bool) -> Census:
+    """:func:`mesh_census`, measured (contiguous float64 vertices and int64 faces)."""
+    v, f = mesh.vertices, mesh.faces
     nv, nf = len(v), len(f)
     none_e, none_i = np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
     dup_v = _duplicate_vertices(v)

@@ -18,11 +18,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from scanreg.geometry import Mesh, submesh
-from scanreg.mesh.topology import boundary_edges, dilate_faces, loop_labels, non_manifold_vertex_mask
+from scanreg.mesh.topology import (_face_components, boundary_edges, dilate_faces, face_labels, loop_labels,
+                                   non_manifold_vertex_mask)
 
 MARGIN_RINGS = 2
 """Rings of faces around the defects that a region includes at first: the backend sees each defect with its
@@ -78,8 +77,7 @@ def _unpinched(mesh: Mesh, mask: np.ndarray) -> np.ndarray | None:
     after :data:`UNPINCH_ROUNDS` rounds)."""
     f = mesh.faces
     for grown in range(UNPINCH_ROUNDS + 1):
-        outside = np.zeros(len(mesh.vertices), bool)
-        outside[f[~mask].ravel()] = True
+        outside = _used(f, ~mask, len(mesh.vertices))
         ids = np.unique(f[mask])  # submesh's vertex order
         pinched = ids[non_manifold_vertex_mask(submesh(mesh, mask))]
         pinched = pinched[outside[pinched]]
@@ -116,7 +114,7 @@ def _regions(mesh: Mesh, mask: np.ndarray, hole_keys: np.ndarray, hole_loop: np.
     loops, ``size``: every loop's edges)."""
     f, n = mesh.faces, len(mesh.vertices)
     idx = np.flatnonzero(mask)
-    comp = _labels(f[idx])
+    comp = face_labels(f[idx])
     out = []
     for c in np.unique(comp):
         faces = idx[comp == c]
@@ -153,9 +151,8 @@ def stitch(mesh: Mesh, regions: list[Region], repaired: list[tuple[np.ndarray, n
     for r in regions:
         inside[r.faces] = True
     rest = f[~inside]
-    outside = np.zeros(len(v), bool)
-    outside[rest.ravel()] = True
     n = len(v)
+    outside = _used(f, ~inside, n)
     rest_keys = np.sort(_keys(_edges(rest), n))
     kept = ~inside  # the mesh's faces in the result
     new_v, new_f, top = [v], [], n
@@ -188,7 +185,7 @@ def stitch(mesh: Mesh, regions: list[Region], repaired: list[tuple[np.ndarray, n
         cut = ids[outside[ids]]
         if len(cut):  # a piece the backend split off the region (no cut vertex): dropped, as MeshFix drops
             faces = faces[_touching(faces, np.isin(faces, cut).any(axis=1))]  # what it splits off a part
-        split |= len(faces) and _labels(faces).max() > _labels(own).max()
+        split |= len(faces) and face_labels(faces).max() > face_labels(own).max()
         # the region's faces given back with the same vertices in the same turn stay where they were (a face
         # turned over is a new one)
         own_rot, got_rot = _rotated(own), _rotated(faces)
@@ -201,33 +198,22 @@ def stitch(mesh: Mesh, regions: list[Region], repaired: list[tuple[np.ndarray, n
         new_f.append(faces[~same])
     vertices = np.vstack(new_v)
     faces = np.vstack([f[kept], *new_f])
-    # a part split in two (a vertex joining two sheets, split by the backend): its largest piece stays, as
-    # MeshFix keeps one piece of each part it repairs
-    if not _seam_manifold(vertices, faces, outside & _used(f, inside, len(v))):
+    if not _seam_manifold(vertices, faces, outside & _used(f, inside, n)):
         return None
-    if split:
-        part = np.full(len(faces), -1, np.int64)
-        part[:int(kept.sum())] = _labels(f)[kept]
+    if split:  # a part split in two (a vertex joining two sheets, split by the backend): its largest piece
+        part = np.full(len(faces), -1, np.int64)  # stays, as MeshFix keeps one piece of each part it repairs
+        part[:int(kept.sum())] = _face_components(mesh)[kept]
         faces = faces[_largest_piece(faces, part)]
     used = np.zeros(len(vertices), bool)
     used[faces.ravel()] = True
     return Mesh(vertices[used], (np.cumsum(used) - 1)[faces], mesh.source)
 
 
-def _labels(faces: np.ndarray) -> np.ndarray:
-    """The connected component of each face (faces sharing a vertex are connected), any labelling."""
-    used, inv = np.unique(faces, return_inverse=True)
-    inv = inv.reshape(-1, 3)
-    g = coo_matrix((np.ones(2 * len(inv)), (np.r_[inv[:, 0], inv[:, 1]], np.r_[inv[:, 1], inv[:, 2]])),
-                   shape=(len(used), len(used)))
-    return connected_components(g, directed=False)[1][inv[:, 0]]
-
-
 def _largest_piece(faces: np.ndarray, part: np.ndarray) -> np.ndarray:
     """Which ``faces`` lie on the piece (connected component) with the most faces among the pieces of their
     part (``part``: each face's part in the input, -1 for a new face; a piece's part is that of its faces
     that have one, and a piece of new faces only is dropped)."""
-    piece = _labels(faces)
+    piece = face_labels(faces)
     n = int(piece.max()) + 1
     of = np.full(n, -1, np.int64)
     np.maximum.at(of, piece, part)
@@ -284,7 +270,7 @@ def _triples(f: np.ndarray, n: int) -> np.ndarray:
 
 def _touching(faces: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     """Which of ``faces`` are connected (through shared vertices) to a face in the mask ``seeds``."""
-    comp = _labels(faces)
+    comp = face_labels(faces)
     return np.isin(comp, comp[seeds])
 
 

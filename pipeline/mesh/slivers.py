@@ -9,9 +9,9 @@ import numpy as np
 
 from scanreg.geometry import Mesh, col_max, col_min, rows_any, submesh
 from scanreg.mesh.intersect import intersections_among
-from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, _cached, _min_angles_deg, _per_face, intersections, known,
-                                   mesh_stats, min_angles_deg, non_manifold_vertices, remember,
-                                   self_intersecting_count)
+from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, _cached, _mesh_edges, _min_angles_deg, _per_face, intersections,
+                                   known, mesh_stats, min_angles_deg, non_manifold_vertex_mask, non_manifold_vertices,
+                                   remember, self_intersecting_count, self_intersecting_faces)
 
 
 def collapse_slivers(mesh: Mesh, angle_deg: float = SLIVER_ANGLE_DEG, rounds: int = 3,
@@ -242,8 +242,6 @@ def _tested_part(mesh: Mesh, mask: np.ndarray) -> Mesh:
 def _fold_points(mesh: Mesh) -> np.ndarray:
     """The corners of ``mesh``'s self-intersecting faces, its non-manifold vertices and the ends of its
     non-manifold edges (points (k, 3); the tests :func:`fold_counts` made, reused)."""
-    from scanreg.mesh.topology import _mesh_edges, non_manifold_vertex_mask, self_intersecting_faces
-
     directed, edge, counts = _mesh_edges(mesh)
     at = np.zeros(len(mesh.vertices), bool)
     at[mesh.faces[self_intersecting_faces(mesh)].ravel()] = True

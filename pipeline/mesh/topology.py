@@ -364,16 +364,28 @@ def _face_components(mesh: Mesh) -> np.ndarray:
     return _cached(mesh, "components", lambda: _face_components_uncached(mesh))
 
 
+def face_labels(faces: np.ndarray, n_vertices: int | None = None) -> np.ndarray:
+    """The connected component of each of ``faces`` (faces sharing a vertex are connected), labels in no
+    particular order: the vertices joined along the faces' edges (cheaper than the face-face graph), a graph of
+    ``n_vertices`` vertices (at least the faces' largest index + 1), or with None of the vertices the faces use
+    (for a few faces of a large mesh)."""
+    f = np.asarray(faces)
+    if n_vertices is None:
+        used, inv = np.unique(f, return_inverse=True)
+        f, nv = inv.reshape(-1, 3), len(used)
+    else:
+        nv = max(n_vertices, int(f.max()) + 1)
+    g = coo_matrix((np.ones(2 * len(f)), (np.concatenate([f[:, 0], f[:, 1]]), np.concatenate([f[:, 1], f[:, 2]]))),
+                   shape=(nv, nv))
+    return connected_components(g, directed=False)[1][f[:, 0]]
+
+
 def _face_components_uncached(mesh: Mesh) -> np.ndarray:
     f = mesh.faces
     if not len(f):
         return np.zeros(0, np.int32)
-    # the vertices joined along the faces' edges (cheaper than the face-face graph), then relabelled so that the
-    # labels count up in the order of each component's first face
-    nv = max(len(mesh.vertices), int(f.max()) + 1)
-    g = coo_matrix((np.ones(2 * len(f)), (np.concatenate([f[:, 0], f[:, 1]]), np.concatenate([f[:, 1], f[:, 2]]))),
-                   shape=(nv, nv))
-    lab = connected_components(g, directed=False)[1][f[:, 0]]
+    # relabelled so that the labels count up in the order of each component's first face
+    lab = face_labels(f, len(mesh.vertices))
     if (lab == lab[0]).all():  # one part (unreferenced vertices are parts of their own)
         return np.zeros(len(f), np.int32)
     uniq, first = np.unique(lab, return_index=True)

@@ -48,14 +48,16 @@ def run_stages(stages: Stages, ctx: RunContext, t_start: int | None = None) -> R
     try:
         repaired = repair_scans(geometries, stages, ctx)
     except ScanregError as e:  # the metrics measured so far go with the failed run
-        done = {REPAIR_PREFIX[r] + k: v for r, rep in getattr(e, "repaired", {}).items() for k, v in rep.metrics.items()}
+        done = {REPAIR_PREFIX[r] + k: v for r, rep in getattr(e, "repaired", {}).items()
+                for k, v in rep.metrics.items()}
         role = getattr(e, "role", None) or "source"
         e.metrics = {**m, **done, **{REPAIR_PREFIX[role] + k: v for k, v in e.metrics.items()}}
         raise
     m["time_repair_s"] = (time.perf_counter_ns() - t0) / 1e9  # both scans, at once
     for role, salt in (("source", 2), ("target", 1)):
         try:
-            scans[role] = scan = prepare_scan(geometries[role], stages, ctx, role, salt, repaired=repaired.get(role))
+            scans[role] = scan = prepare_scan(geometries[role], stages, ctx, role, salt, repair=False,
+                                              repaired=repaired.get(role))  # (repaired above, or not at all)
         except ScanregError as e:
             e.metrics = {**m, **e.metrics}
             raise

@@ -190,17 +190,17 @@ def _first_line(e: BaseException) -> str:
     return (str(e).strip().splitlines() or [""])[0][:200]
 
 
-def _intersection_pairs(mesh: Mesh, p: GuardParams) -> tuple:
-    """The input's self-intersection test (:func:`scanreg.mesh.topology.intersections`) as the arrays that make
-    it: its intersecting pairs and its face keys (the mesh's own arrays stay with the caller). ``p`` is not used
-    (the signature of :func:`_census_pairs`, the test with ``scope=defects``)."""
-    found = intersections(mesh)
-    return found.pairs, found.keys
+def _input_test(mesh: Mesh, p: GuardParams) -> Intersections:
+    """The input's self-intersection test: with ``scope: defects`` decided on the census's pairs
+    (:func:`census_intersections`), else the full test (:func:`scanreg.mesh.topology.intersections`, remembered on
+    the mesh)."""
+    return intersections(mesh) if p.scope == "whole" else census_intersections(mesh, p)
 
 
-def _census_pairs(mesh: Mesh, p: GuardParams) -> tuple:
-    """:func:`census_intersections` as the arrays that make it (as :func:`_intersection_pairs`)."""
-    found = census_intersections(mesh, p)
+def _input_test_arrays(mesh: Mesh, p: GuardParams) -> tuple:
+    """:func:`_input_test` as the arrays that make it, for a child process: its intersecting pairs and its face
+    keys (the mesh's own arrays stay with the caller)."""
+    found = _input_test(mesh, p)
     return found.pairs, found.keys
 
 
@@ -302,16 +302,13 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
     # census's pairs) runs beside the backend, in a child process; the first test that starts from it (the
     # output's, or a backend's own loop) waits for it, as does the check that a mesh has nothing to repair.
     # (Without forking it is made first, here.)
-    test = _intersection_pairs if planned.scope == "whole" else _census_pairs
     beside = None
     if known(mesh, "intersections") is None:
         if forking():
-            beside = start_isolated(test, mesh, planned)
+            beside = start_isolated(_input_test_arrays, mesh, planned)
             remember_later(mesh, "intersections", lambda: Intersections(mesh.vertices, mesh.faces, *beside.result()))
-        elif planned.scope == "whole":
-            intersections(mesh)  # made here, remembered on the mesh
         else:
-            remember(mesh, "intersections", census_intersections(mesh, planned))
+            remember(mesh, "intersections", _input_test(mesh, planned))
     try:
         if _nothing_to_repair(stage, planned, mesh):
             print(f"note: {where}: no defect the repair would change (census and exact self-intersection test): "
@@ -415,13 +412,10 @@ def _planned(stage, mesh: Mesh, where: str) -> GuardParams:
 def _without_slivers(p: GuardParams, out: Mesh) -> tuple[Mesh, float]:
     """``out`` with its slivers collapsed (``remove_slivers``), kept only where the collapse folds nothing (a
     raw scan's ragged border can: the vertices near such a fold are frozen and the collapse tried again,
-    :data:`FOLD_RETRIES` times); and the seconds the fold checks took (counted as the audit's)."""
-    return _collapsed(p, out) if p.remove_slivers else (out, 0.0)
-
-
-def _collapsed(p: GuardParams, out: Mesh) -> tuple[Mesh, float]:
-    """:func:`_without_slivers` itself: ``out`` collapsed (tried again with the vertices near a fold frozen), or
-    ``out`` when there is no sliver or every try folded something; and the seconds the fold checks took."""
+    :data:`FOLD_RETRIES` times, before the backend's mesh is kept as it was); and the seconds the fold checks
+    took (counted as the audit's)."""
+    if not p.remove_slivers:
+        return out, 0.0
     collapsed = collapse_slivers(out, p.sliver_angle_deg)
     if collapsed is out:
         return out, 0.0
