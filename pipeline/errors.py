@@ -30,4 +30,18 @@ def one_line(e: BaseException, limit: int = 160) -> str:
 
 def warn(msg: str) -> None:
     """A ``warning:`` line on standard output (the run goes on)."""
-    print(f"warning: {msg}", flush=True)
+    _line(f"warning: {msg}")
+
+
+def note(msg: str) -> None:
+    """A ``note:`` line on standard output: what a default chose, or that a step was skipped."""
+    _line(f"note: {msg}")
+
+
+def _line(text: str) -> None:
+    """``text`` and its newline in one write (``print`` makes two when standard output is unbuffered, and the
+    lines of two processes, such as a pair's two repairs, would interleave)."""
+    import sys
+
+    sys.stdout.write(text + "\n")
+    sys.stdout.flush()

@@ -250,3 +250,15 @@ def test_a_face_turned_over_is_turned_back_in_its_region():
             Mesh(mesh.vertices, faces, "s"), ctx).metrics
         assert m["before_inconsistent_orientation_edges"] == 3
         assert m["after_inconsistent_orientation_edges"] == 0 and m["after_boundary_loops"] == 0, scope
+
+
+def test_a_note_is_one_write_so_two_repairs_do_not_interleave_their_lines(monkeypatch):
+    """The two repairs of a pair print their notes at the same time; with unbuffered output (PYTHONUNBUFFERED)
+    ``print`` writes a line and its newline in two calls, and the two processes' lines ran into one another."""
+    from scanreg.errors import note, warn
+
+    writes = []
+    monkeypatch.setattr("sys.stdout", SimpleNamespace(write=writes.append, flush=lambda: None))
+    note("the border is kept open")
+    warn("a free motion")
+    assert writes == ["note: the border is kept open\n", "warning: a free motion\n"]

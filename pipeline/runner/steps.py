@@ -18,7 +18,7 @@ from typing import Optional
 
 import numpy as np
 
-from scanreg.errors import InputError, ScanregError
+from scanreg.errors import InputError, ScanregError, warn
 from scanreg.eval.checks import check_geometry, check_inputs
 from scanreg.eval.metrics import (EvalParams, alignment_metrics, field_metrics, gt_metrics, surface_deviation)
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
@@ -212,7 +212,7 @@ def pose_from_pairs(pairs: Correspondences | None, ev: EvalParams) -> PoseCovari
     pc = pose_covariance(pairs.source, pairs.target, pairs.normals)
     msg = degeneracy_warning(pc, ev.pose_condition_warn)
     if msg:
-        print(f"warning: {msg}", flush=True)
+        warn(msg)
     return pc
 
 

@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from scanreg.errors import ScanregError, StageError
+from scanreg.errors import ScanregError, StageError, note, warn
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.mesh.census import mesh_census
 from scanreg.mesh.distances import area_samples, distances_to, point_distances, raycasting_scene
@@ -311,8 +311,8 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
             remember(mesh, "intersections", _input_test(mesh, planned))
     try:
         if _nothing_to_repair(stage, planned, mesh):
-            print(f"note: {where}: no defect the repair would change (census and exact self-intersection test): "
-                  "left untouched")
+            note(f"{where}: no defect the repair would change (census and exact self-intersection test): left "
+                 "untouched")
             return _untouched(planned, mesh, t0, where)
         before = audit_mesh(mesh, self_intersections=beside is None)
         input_side = _input_side(p, mesh, ctx.seed)
@@ -347,7 +347,7 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
     if problems:
         if not p.check_only:
             raise StageError(problems, metrics=m)
-        print(f"warning: {problems}")
+        warn(problems)
     m["untouched"] = 0.0
     return Repaired(mesh if p.check_only else out, m)
 
@@ -403,9 +403,9 @@ def _planned(stage, mesh: Mesh, where: str) -> GuardParams:
     except Exception as e:  # not the backend's failure: named as the plan's
         raise StageError(f"{where}: the repair's border plan failed ({type(e).__name__}: {_first_line(e)})") from e
     if p.open_border == "auto":
-        print(f"note: {where}: " + ("an open scan (its outer border is long for its area): the border is kept "
-                                    "open" if mode == "open" else "no outer border: every hole is capped")
-              + " (repair.open_border=auto; set cap, open or shell to choose)")
+        note(f"{where}: " + ("an open scan (its outer border is long for its area): the border is kept "
+                             "open" if mode == "open" else "no outer border: every hole is capped")
+             + " (repair.open_border=auto; set cap, open or shell to choose)")
     return apply_plan(p, mode, max_hole)
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scanreg.errors import note
 from scanreg.geometry import Mesh
 from scanreg.types import Repaired, RunContext
 
@@ -171,8 +172,7 @@ def cached_repair(stage, mesh: Mesh, ctx: RunContext, cache: RepairCache | None)
             hit = cache.wait(key, mesh.source)
     if hit is not None:
         out, m = hit
-        print(f"note: repair={stage.name}: {mesh.source or 'mesh'}: the repaired mesh from the cache "
-              f"({cache.path(key)})")
+        note(f"repair={stage.name}: {mesh.source or 'mesh'}: the repaired mesh from the cache ({cache.path(key)})")
         return Repaired(mesh if stage.p.check_only else out, {**m, "cache_hit": 1.0})
     try:
         res = repair_with_audit(stage, mesh, ctx)
