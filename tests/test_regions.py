@@ -127,8 +127,8 @@ def test_the_default_repair_fills_holes_in_their_regions_only():
 
 def test_a_raw_scan_is_repaired_in_regions_with_its_slivers_collapsed():
     """A raw Stanford scan: regional MeshFix (its holes filled, its non-manifold vertices split), the slivers
-    collapsed where that folds nothing (the collapse tried again with the vertices near a fold frozen: before
-    that, bun045 kept all 70 of its slivers), no self-intersection."""
+    collapsed where that folds nothing (the collapse tried again with the vertices near a fold frozen, so that
+    one fold does not keep every sliver), no self-intersection."""
     from scanreg.io import read_mesh
 
     from scanreg.mesh.intersect import self_intersecting_faces
