@@ -165,3 +165,34 @@ def test_view_colour_range_near_the_deviations(tmp_path):
     fixed = write_view(tmp_path / "fixed.html", target, Cloud(aligned), np.eye(4), aligned, on_surface, None,
                        EvalParams(deviation_range=0.1)).read_text()
     assert "colour range ±100 µm" in _title(fixed)
+
+
+def test_view_holds_the_points_and_deviations_it_was_given(tmp_path):
+    """The page's figure (plotly.js JSON with base64 typed arrays) decodes to the aligned points and their signed
+    deviations in display units, and to the target's points: the coordinates are not swapped, scaled or
+    reordered on the way."""
+    import base64
+
+    from scanreg.eval.metrics import EvalParams
+    from scanreg.eval.view3d import write_view
+
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0, 20, (3000, 2))
+    target = Cloud(np.c_[xy, np.zeros(len(xy))], np.tile([0.0, 0.0, 1.0], (len(xy), 1)))
+    dev = rng.uniform(-0.3, 0.3, len(xy))
+    aligned = np.c_[xy[:, 1], xy[:, 0], dev]  # a different order of points than the target's
+    on_surface = (np.c_[aligned[:, :2], np.zeros(len(xy))], np.abs(dev), target.normals)
+    page = write_view(tmp_path / "view3d.html", target, Cloud(aligned), np.eye(4), aligned, on_surface, None,
+                      EvalParams()).read_text()
+    fig = json.loads(re.search(r"var fig = (\{.*\});\n", page).group(1))
+
+    def arr(a):
+        return np.frombuffer(base64.b64decode(a["bdata"]), dtype="<f4")
+
+    traces = {t["name"]: t for t in fig["data"]}
+    shown = traces["source after alignment: deviation [µm]"]
+    xyz = np.c_[arr(shown["x"]), arr(shown["y"]), arr(shown["z"])]
+    np.testing.assert_allclose(xyz, aligned.astype(np.float32))
+    np.testing.assert_allclose(arr(shown["marker"]["color"]), (dev * 1000).astype(np.float32), rtol=1e-6)
+    tg = traces["target"]
+    np.testing.assert_allclose(np.c_[arr(tg["x"]), arr(tg["y"]), arr(tg["z"])], target.points.astype(np.float32))
