@@ -101,6 +101,7 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
         r = colour_range(dev[ok], p)
 
     tp = _points(target)
+    n_shown = {"target": len(tp), "source": len(pts)}
     tp = tp[_subsample(len(tp), k, rng)]
     sp = _points(source)
     sp = sp[_subsample(len(sp), k, rng)]
@@ -133,6 +134,9 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
     title = f"deviation of the aligned source from the target (colour range ±{r * scale:g} {du})"
     if table:
         title += f"; table: statistics per {label_name}" + (" (FDI numbers)" if label_name == "tooth" else "")
+    thinned = [f"{k:,} of the {n:,} {name} points" for name, n in n_shown.items() if n > k]
+    if thinned:
+        title += "; shown: a random " + " and ".join(thinned)
     layout = {"title": {"text": title, "font": {"size": 13}}, "height": 1000 if table else 800,
               "scene": _scene([0.3, 1.0] if table else [0.0, 1.0]), "legend": {"x": 0, "y": 1},
               "margin": {"l": 0, "r": 0, "t": 40, "b": 0}}

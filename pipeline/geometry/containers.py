@@ -66,6 +66,14 @@ class Cloud:
         extra = {k: v[idx] for k, v in self.extra.items() if isinstance(v, np.ndarray) and len(v) == n}
         return Cloud(self.points[idx], None if self.normals is None else self.normals[idx], self.source, extra)
 
+    def thinned(self, max_points: int, rng: np.random.Generator) -> "Cloud":
+        """At most ``max_points`` of the points (:meth:`subset`): a uniform random subset drawn with ``rng``, in
+        the cloud's order; the cloud itself when it has no more, or ``max_points`` is 0."""
+        n = len(self.points)
+        if not max_points or n <= max_points:
+            return self
+        return self.subset(np.sort(rng.choice(n, size=max_points, replace=False)))
+
 
 Geometry = Mesh | Cloud
 

@@ -14,8 +14,13 @@ from scanreg.stages.coarse.base import CoarseBase, Described
 from scanreg.stages.coarse.ransac import lo_ransac
 from scanreg.stages.coarse.sc2 import sc2_pcr
 from scanreg.stages.coarse.thinning import downsampled, without_isolated
+from scanreg.stages.pair import thinned_pair
 from scanreg.stages.registry import COARSE, SALIENCE
 from scanreg.types import CoarseResult, CoarseTrace, Distances, RunContext, to_abs
+
+THIN_SALT = 6100
+"""Salts of the run's generators (:meth:`~scanreg.types.RunContext.rng`) that draw the points a large target
+(this one) and source (the next) are thinned to (``max_input_points``)."""
 
 
 @COARSE.register("lo_ransac")
@@ -104,6 +109,14 @@ class LoRansac(CoarseBase):
         than its target) then keep enough keypoints: with the 4-spacing voxel alone, 3 000 sampled points
         became 900 and a demo pose failed (docs: Registration, findings). null: no lower bound."""
 
+        max_input_points: int = 100000
+        """With ``voxel``: a cloud with more points than this is first thinned to a seeded uniform random subset of
+        this many (:meth:`~scanreg.geometry.Cloud.thinned`) and the pair's spacing measured again on the thinned
+        clouds, before the isolated points are looked for and the clouds voxel-downsampled:
+        those passes then cost what this many points cost, however large the input (the stage keeps at most
+        ``max_points`` anyway). Thinning to a k-th lowers the density contrast between a surface and scattered
+        outliers that ``isolated_ratio`` relies on. 0: every point."""
+
         isolated_ratio: Optional[float] = 0.25
         """With ``voxel``: before thinning, drop isolated points (outliers). On the grid of the initial voxel
         (4 spacings), a cell is sparse when it holds fewer than this share (a ratio, no unit) of a full cell's
@@ -121,6 +134,8 @@ class LoRansac(CoarseBase):
         def check(self):
             if self.min_points is not None and self.min_points < 10:
                 raise ValueError(f"min_points must be >= 10 or null, got {self.min_points}")
+            if self.max_input_points != 0 and self.max_input_points < 1000:
+                raise ValueError(f"max_input_points must be 0 (every point) or >= 1000, got {self.max_input_points}")
             if self.max_points is not None and self.max_points < 10:
                 raise ValueError(f"max_points must be >= 10 or null, got {self.max_points}")
             if self.isolated_ratio is not None and not 0 < self.isolated_ratio <= 1:
@@ -152,6 +167,8 @@ class LoRansac(CoarseBase):
         with blas_single_thread():
             if p.voxel is None:
                 return self._run(target, source, spacing, ctx)
+            target, source, spacing = thinned_pair(target, source, spacing, p.max_input_points, ctx, THIN_SALT)
+            inputs = {"coarse_input_points_target": target.n_points, "coarse_input_points_source": source.n_points}
             voxel, dropped = p.voxel * spacing, (0, 0)
             if p.isolated_ratio is not None and (p.min_points is None or
                                                  min(target.n_points, source.n_points) > p.min_points):
@@ -159,8 +176,8 @@ class LoRansac(CoarseBase):
                                                                   p.isolated_ratio, ctx)
             target, source, thinned = downsampled(target, source, spacing, ctx, voxel, p.max_points, p.min_points)
             res = self._run(target, source, thinned, ctx)
-            res.metrics.update({"coarse_points_target": target.n_points, "coarse_points_source": source.n_points,
-                                "coarse_spacing": thinned, "coarse_isolated_target": dropped[0],
+            res.metrics.update({**inputs, "coarse_points_target": target.n_points,
+                                "coarse_points_source": source.n_points, "coarse_spacing": thinned, "coarse_isolated_target": dropped[0],
                                 "coarse_isolated_source": dropped[1]})
             return res
 

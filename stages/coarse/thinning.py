@@ -1,19 +1,13 @@
-"""Thinning a pair of clouds for a coarse stage: isolated points (outliers) dropped, one point per voxel kept,
-the voxel bounded by the counts it leaves, and the thinned pair's own spacing."""
+"""Thinning a pair of clouds for a coarse stage: isolated points (outliers) dropped, one point per voxel kept, the
+voxel bounded by the counts it leaves, and the thinned pair's own spacing."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from scanreg.geometry import Cloud, estimate_spacing, sparse_voxel_mask, voxel_count, voxel_representatives
+from scanreg.geometry import Cloud, sparse_voxel_mask, voxel_count, voxel_representatives
+from scanreg.stages.pair import pair_spacing
 from scanreg.types import RunContext
-
-
-def pair_spacing(target_points: np.ndarray, source_points: np.ndarray, ctx: RunContext) -> float:
-    """The spacing of a pair of clouds as the runner measures a run's: the larger of the two median
-    nearest-neighbour distances, each estimated with the run's seeded generators (``ctx.rng(1)``, ``ctx.rng(2)``)."""
-    return max(estimate_spacing(target_points, ctx.rng(1)), estimate_spacing(source_points, ctx.rng(2)))
-
 
 def without_isolated(target: Cloud, source: Cloud, spacing: float, voxel_spacings: float, ratio: float,
                      ctx: RunContext) -> tuple[Cloud, Cloud, tuple[int, int], float]:

@@ -11,6 +11,7 @@ schedule, one set of robust kernels and one acceptance test, and report the same
 - ``icp_fitness``: the share of source points whose closest target point at the kept pose lies within
   ``max_correspondence_distance`` (the final pair limit; every point when it is null);
 - ``icp_inlier_rms``: the RMS distance of those points (input units);
+- ``icp_points_source``: the source points the stage worked on (at most ``max_points``);
 - ``icp_accepted``: 1 when ICP's final pose is kept, 0 when it explained the data worse than the start pose
   (see :meth:`IcpBase.accept`) and the start pose was kept instead;
 - ``icp_accept_start_fitness``, ``icp_accept_end_fitness``, ``icp_accept_start_rms``, ``icp_accept_end_rms``
@@ -45,10 +46,15 @@ from scanreg.errors import ConfigError, StageError
 from scanreg.geometry import (ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, horn_quaternion, morton_order,
                               rotate_normals)
 from scanreg.process import blas_single_thread
+from scanreg.stages.pair import thinned_pair
 from scanreg.types import Correspondences, Distances, IcpResult, RunContext, to_abs
 
 
 KERNELS = ("none", "huber", "tukey", "geman_mcclure", "cauchy")
+
+THIN_SALT = 7100
+"""Salts of the run's generators (:meth:`~scanreg.types.RunContext.rng`) that draw the points a large target
+(this one) and source (the next) are thinned to (``max_points``)."""
 
 
 def kernel_weights(kernel: str, r: np.ndarray, scale: float) -> np.ndarray | None:
@@ -163,6 +169,14 @@ class IcpParams:
     basin_points: int = 5000
     """``wide``: the Besl-McKay loop runs on at most this many source points (every k-th along a Morton curve,
     so spread evenly); the variant's schedule then uses every point."""
+    max_points: int = 200000
+    """The stage works on at most this many points of each cloud: a larger cloud is thinned to a seeded uniform
+    random subset of this many (:meth:`~scanreg.geometry.Cloud.thinned`) before anything else, its normals and
+    k-d tree included; the pairs, ``icp_fitness`` and RMS are then the thinned clouds', and the distances given in
+    spacings (``distances``) are in the thinned pair's spacing, measured again. A target whose closest points come
+    from its triangles (``target``) is used whole. The pose's statistical error falls
+    like one over the square root of the number of pairs; at this count it lies far below what the sampling
+    resolves (``experiments/benchmarks/growth.md`` compares the rotation errors). 0: every point."""
 
     def check(self):
         if self.max_iterations < 1:
@@ -193,6 +207,8 @@ class IcpParams:
             raise ValueError(f"basin must be auto, local or wide, got '{self.basin}'")
         if self.basin_points < 3:
             raise ValueError(f"basin_points must be >= 3, got {self.basin_points}")
+        if self.max_points != 0 and self.max_points < 100:
+            raise ValueError(f"max_points must be 0 (every point) or >= 100, got {self.max_points}")
 
 
 class IcpBase:
@@ -214,6 +230,14 @@ class IcpBase:
         if self.p.target == "mesh" and mesh is None:
             raise ConfigError(f"icp={self.name}: icp.target=mesh needs a target mesh, but the target is a point cloud")
         return ClosestPoints(target, mesh if self.p.target in ("mesh", "auto") and mesh is not None else None)
+
+    def working_clouds(self, target: Cloud, source: Cloud, spacing: float, target_mesh: Mesh | None,
+                       ctx: RunContext) -> tuple[Cloud, Cloud, float]:
+        """The clouds the stage works on and their spacing: each thinned to at most ``max_points`` points
+        (:func:`~scanreg.stages.pair.thinned_pair`, seeded by the run); the target whole when its closest points
+        come from ``target_mesh``'s triangles."""
+        whole_target = target_mesh is not None and self.p.target != "points"
+        return thinned_pair(target, source, spacing, self.p.max_points, ctx, THIN_SALT, thin_target=not whole_target)
 
     def pairs(self, moved: np.ndarray, moved_normals, cp: ClosestPoints, maxd: float | None, it: int):
         """Closest points of ``moved`` and the mask of pairs kept."""
@@ -271,6 +295,7 @@ class IcpBase:
     def refine(self, target: Cloud, source: Cloud, T_init: np.ndarray, spacing: float, ctx: RunContext,
                target_mesh: Mesh | None = None, start_is_estimate: bool = True) -> IcpResult:
         p = self.p
+        target, source, spacing = self.working_clouds(target, source, spacing, target_mesh, ctx)
         tau = to_abs(p.tau, p.distances, spacing)
         maxd = to_abs(p.max_correspondence_distance, p.distances, spacing)
         kscale = to_abs(p.kernel_scale, p.distances, spacing)
@@ -341,6 +366,7 @@ class IcpBase:
             res.final_distances = cp(apply_T(T_init, moving.points), maxd)[1]
             m = self.final_metrics(res.final_distances, maxd)
         res.metrics = {**res.metrics, **m, "icp_accepted": float(accepted),
+                       "icp_points_source": float(source.n_points),
                        "icp_accept_start_fitness": m0["icp_fitness"], "icp_accept_end_fitness": m1["icp_fitness"],
                        "icp_accept_start_rms": m0["icp_inlier_rms"], "icp_accept_end_rms": m1["icp_inlier_rms"]}
         if start_limit is not None and spacing > 0:

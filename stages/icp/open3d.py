@@ -53,6 +53,7 @@ class Open3dIcp(IcpBase):
         if p.kernel != "none" and p.estimation == "point_to_point":
             raise ConfigError("icp=open3d: Open3D's point-to-point estimation takes no robust kernel; set "
                               "icp.kernel=none or icp.estimation=point_to_plane")
+        target, source, spacing = self.working_clouds(target, source, spacing, None, ctx)  # (points only)
         reg = o3d.pipelines.registration
         tau = to_abs(p.tau, p.distances, spacing)
         maxd = to_abs(p.max_correspondence_distance, p.distances, spacing)

@@ -33,6 +33,8 @@ class PointToPlane(IcpBase):
 
     def refine(self, target: Cloud, source: Cloud, T_init: np.ndarray, spacing: float, ctx: RunContext,
                target_mesh: Mesh | None = None, start_is_estimate: bool = True) -> IcpResult:
+        # the normals of the thinned target only
+        target, source, spacing = self.working_clouds(target, source, spacing, target_mesh, ctx)
         if target.normals is None and target_mesh is None:
             target = Cloud(target.points, estimate_normals(target.points), target.source)
         return super().refine(target, source, T_init, spacing, ctx, target_mesh, start_is_estimate)
