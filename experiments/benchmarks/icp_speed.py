@@ -85,7 +85,8 @@ def run_case(method: str, n: int, iters: int | None, case=None) -> dict:
 
         cls = ICP.get(method)
         # each variant with its defaults (its Params dataclass: the same as conf/icp's since #32), one pair limit
-        kw = {"max_correspondence_distance": MAXD}
+        # every point (max_points=0): the loop at N points against Open3D's (the default works on at most 200k)
+        kw = {"max_correspondence_distance": MAXD, "max_points": 0}
         if iters:
             kw.update(tau=0.0, max_iterations=iters)
         res = cls(make_params(cls.Params, kw, method)).refine(tgt, src, np.eye(4), spacing, RunContext(seed=0))
