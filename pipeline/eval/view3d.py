@@ -24,7 +24,7 @@ import numpy as np
 
 from scanreg.errors import ConfigError
 from scanreg.eval.deviation import colour_range, display_unit
-from scanreg.geometry import Mesh
+from scanreg.geometry import Mesh, random_subset
 
 RDBU_R = [[0.0, "rgb(5,48,97)"], [0.1, "rgb(33,102,172)"], [0.2, "rgb(67,147,195)"], [0.3, "rgb(146,197,222)"],
           [0.4, "rgb(209,229,240)"], [0.5, "rgb(247,247,247)"], [0.6, "rgb(253,219,199)"], [0.7, "rgb(244,165,130)"],
@@ -34,10 +34,6 @@ RDBU_R = [[0.0, "rgb(5,48,97)"], [0.1, "rgb(33,102,172)"], [0.2, "rgb(67,147,195
 
 def _points(g) -> np.ndarray:
     return g.vertices if isinstance(g, Mesh) else g.points
-
-
-def _subsample(n: int, k: int, rng: np.random.Generator) -> np.ndarray:
-    return np.sort(rng.choice(n, size=k, replace=False)) if n > k else np.arange(n)
 
 
 def _typed(a: np.ndarray) -> dict:
@@ -102,10 +98,10 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
 
     tp = _points(target)
     n_shown = {"target": len(tp), "source": len(pts)}
-    tp = tp[_subsample(len(tp), k, rng)]
+    tp = tp[random_subset(len(tp), k, rng)]
     sp = _points(source)
-    sp = sp[_subsample(len(sp), k, rng)]
-    j = _subsample(len(pts), k, rng)
+    sp = sp[random_subset(len(sp), k, rng)]
+    j = random_subset(len(pts), k, rng)
     pts, dev, ok = pts[j].astype(np.float32), dev[j], ok[j]
 
     traces = [_scatter(tp, "target", color="rgb(150,150,150)", opacity=0.35),
@@ -165,7 +161,7 @@ def write_set_view(path: Path, merged, names: list[str], colours: np.ndarray, ma
     """The merged points of a scan set in one self-contained view, a colour and a legend entry per scan (click
     an entry to hide that scan); a seeded subsample of at most ``max_points`` points, named in the title."""
     rng = np.random.default_rng([seed, 78])
-    j = _subsample(merged.n_points, max_points, rng)
+    j = random_subset(merged.n_points, max_points, rng)
     pts, scan = merged.points[j], merged.extra["scan"][j]
     traces = []
     for k in np.unique(scan):

@@ -72,7 +72,13 @@ class Cloud:
         n = len(self.points)
         if not max_points or n <= max_points:
             return self
-        return self.subset(np.sort(rng.choice(n, size=max_points, replace=False)))
+        return self.subset(random_subset(n, max_points, rng))
+
+
+def random_subset(n: int, k: int, rng: np.random.Generator) -> np.ndarray:
+    """Ascending indices of a uniform random subset of ``k`` of ``range(n)``, drawn with ``rng``; every index
+    (``rng`` untouched) when ``n <= k``."""
+    return np.sort(rng.choice(n, size=k, replace=False)) if n > k else np.arange(n)
 
 
 Geometry = Mesh | Cloud

@@ -239,6 +239,10 @@ class IcpBase:
         whole_target = target_mesh is not None and self.p.target != "points"
         return thinned_pair(target, source, spacing, self.p.max_points, ctx, THIN_SALT, thin_target=not whole_target)
 
+    def prepared_target(self, target: Cloud, target_mesh: Mesh | None) -> Cloud:
+        """The (thinned) target cloud as the variant needs it, e.g. with normals; as it is by default."""
+        return target
+
     def pairs(self, moved: np.ndarray, moved_normals, cp: ClosestPoints, maxd: float | None, it: int):
         """Closest points of ``moved`` and the mask of pairs kept."""
         q, d, qn = cp(moved, maxd)
@@ -296,6 +300,7 @@ class IcpBase:
                target_mesh: Mesh | None = None, start_is_estimate: bool = True) -> IcpResult:
         p = self.p
         target, source, spacing = self.working_clouds(target, source, spacing, target_mesh, ctx)
+        target = self.prepared_target(target, target_mesh)
         tau = to_abs(p.tau, p.distances, spacing)
         maxd = to_abs(p.max_correspondence_distance, p.distances, spacing)
         kscale = to_abs(p.kernel_scale, p.distances, spacing)

@@ -10,7 +10,6 @@ from scipy.spatial.transform import Rotation
 from scanreg.geometry import Cloud, Mesh, cross3, estimate_normals, make_T
 from scanreg.stages.icp.base import IcpBase, IcpParams, _compress, least_norm_solve
 from scanreg.stages.registry import ICP
-from scanreg.types import IcpResult, RunContext
 
 
 @ICP.register("point_to_plane")
@@ -31,13 +30,11 @@ class PointToPlane(IcpBase):
         spread evenly) until the stopping rule holds, then on every point until it holds again (see
         :class:`~scanreg.stages.icp.base.IcpParams`). 1: every point throughout."""
 
-    def refine(self, target: Cloud, source: Cloud, T_init: np.ndarray, spacing: float, ctx: RunContext,
-               target_mesh: Mesh | None = None, start_is_estimate: bool = True) -> IcpResult:
-        # the normals of the thinned target only
-        target, source, spacing = self.working_clouds(target, source, spacing, target_mesh, ctx)
+    def prepared_target(self, target: Cloud, target_mesh: Mesh | None) -> Cloud:
+        """The target with normals: its own, else estimated (on the points the stage works on)."""
         if target.normals is None and target_mesh is None:
-            target = Cloud(target.points, estimate_normals(target.points), target.source)
-        return super().refine(target, source, T_init, spacing, ctx, target_mesh, start_is_estimate)
+            return Cloud(target.points, estimate_normals(target.points), target.source)
+        return target
 
     def step(self, moved, q, qn, ok, w):
         if not ok.all():
