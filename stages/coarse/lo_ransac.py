@@ -112,10 +112,10 @@ class LoRansac(CoarseBase):
         max_input_points: int = 100000
         """With ``voxel``: a cloud with more points than this is first thinned to a seeded uniform random subset of
         this many (:meth:`~scanreg.geometry.Cloud.thinned`) and the pair's spacing measured again on the thinned
-        clouds, before the isolated points are looked for and the clouds voxel-downsampled:
-        those passes then cost what this many points cost, however large the input (the stage keeps at most
-        ``max_points`` anyway). Thinning to a k-th lowers the density contrast between a surface and scattered
-        outliers that ``isolated_ratio`` relies on. 0: every point."""
+        clouds, before the isolated points are looked for and the clouds voxel-downsampled: those passes then cost
+        what this many points cost, however large the input (the stage keeps at most ``max_points`` anyway).
+        Thinning lowers the density contrast between a surface and scattered outliers that ``isolated_ratio``
+        relies on. 0: every point."""
 
         isolated_ratio: Optional[float] = 0.25
         """With ``voxel``: before thinning, drop isolated points (outliers). On the grid of the initial voxel
@@ -177,8 +177,8 @@ class LoRansac(CoarseBase):
             target, source, thinned = downsampled(target, source, spacing, ctx, voxel, p.max_points, p.min_points)
             res = self._run(target, source, thinned, ctx)
             res.metrics.update({**inputs, "coarse_points_target": target.n_points,
-                                "coarse_points_source": source.n_points, "coarse_spacing": thinned, "coarse_isolated_target": dropped[0],
-                                "coarse_isolated_source": dropped[1]})
+                                "coarse_points_source": source.n_points, "coarse_spacing": thinned,
+                                "coarse_isolated_target": dropped[0], "coarse_isolated_source": dropped[1]})
             return res
 
     def _run(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext) -> CoarseResult:

@@ -9,6 +9,7 @@ from scanreg.geometry import Cloud, sparse_voxel_mask, voxel_count, voxel_repres
 from scanreg.stages.pair import pair_spacing
 from scanreg.types import RunContext
 
+
 def without_isolated(target: Cloud, source: Cloud, spacing: float, voxel_spacings: float, ratio: float,
                      ctx: RunContext) -> tuple[Cloud, Cloud, tuple[int, int], float]:
     """Both clouds without their isolated points (:func:`scanreg.geometry.sparse_voxel_mask` on a grid of
