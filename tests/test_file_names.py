@@ -8,7 +8,7 @@ import shlex
 import numpy as np
 import pytest
 
-from conftest import run_cli
+from conftest import run_cli, shared
 from scanreg.app.arguments import (file_overrides, path_override_error, quote_value, shell_arg, split_files,
                                    with_files)
 from scanreg.errors import ConfigError
@@ -196,3 +196,36 @@ def test_view_holds_the_points_and_deviations_it_was_given(tmp_path):
     np.testing.assert_allclose(arr(shown["marker"]["color"]), (dev * 1000).astype(np.float32), rtol=1e-6)
     tg = traces["target"]
     np.testing.assert_allclose(np.c_[arr(tg["x"]), arr(tg["y"]), arr(tg["z"])], target.points.astype(np.float32))
+
+
+def test_the_deviations_are_shown_in_a_unit_that_follows_the_input():
+    """Metre input (a bunny, an RGB-D cloud) shows its deviations in mm, millimetre input (a dental scan) in µm;
+    ``units=auto`` tells them apart by the target's size; set units and display units are kept."""
+    from scanreg.eval.metrics import EvalParams
+
+    def shown(p, diagonal=None):
+        q = p.shown(diagonal)
+        return q.units, q.deviation_scale, q.deviation_unit
+
+    assert shown(EvalParams(), 0.25) == ("m", 1000.0, "mm")  # the Stanford bunny
+    assert shown(EvalParams(), 4.9) == ("m", 1000.0, "mm")  # a 3DMatch fragment
+    assert shown(EvalParams(), 60.0) == ("mm", 1000.0, "um")  # a dental arch
+    assert shown(EvalParams()) == ("mm", 1000.0, "um")  # no size known: as before units existed
+    assert shown(EvalParams(units="cm"), 0.25) == ("cm", 10.0, "mm")
+    assert shown(EvalParams(units="mm"), 0.25) == ("mm", 1000.0, "um")
+    assert shown(EvalParams(deviation_scale=1.0, deviation_unit="m"), 0.25) == ("m", 1.0, "m")
+    assert shown(EvalParams().shown(60.0), 0.25) == ("mm", 1000.0, "um")  # settled once, kept
+    with pytest.raises(ValueError, match="units must be auto, m, cm, mm, um; got 'inch'"):
+        EvalParams(units="inch").check()
+
+
+def test_a_metre_scale_run_shows_millimetres(tmp_path):
+    """The run's 3D view on metre input (the bunny pair) labels its colours in mm and says how it knew."""
+    from scanreg.api import register
+
+    register(shared("stanford_bunny/bun045.ply"), shared("stanford_bunny/bun000.ply"), run_dir=tmp_path,
+             overrides=["repair=none"])
+    page = (tmp_path / "view3d.html").read_text()
+    assert "signed deviation [mm]" in page
+    assert not any(u in page for u in ("[\\u00b5m]", "[µm]", " \\u00b5m", " µm"))
+    assert "input units: m, guessed from the target's size, 0.246 across" in page

@@ -63,6 +63,7 @@ def tolerance_shares(dev: np.ndarray, sigma: np.ndarray | None, p, prefix: str =
 
     if not len(dev):
         return {}
+    p = p.shown()
     tag = f"{prefix}over_{p.deviation_tolerance * p.deviation_scale:g}{p.deviation_unit}"
     out = {f"{tag}_share": float(np.mean(np.abs(dev) > p.deviation_tolerance))}
     if sigma is not None:
@@ -117,6 +118,7 @@ def colour_range(dev: np.ndarray, p) -> float:
     display unit when nothing was compared or every deviation is zero."""
     if p.deviation_range is not None:
         return float(p.deviation_range)
+    p = p.shown()
     a = np.abs(dev[np.isfinite(dev)]) * p.deviation_scale
     q = float(np.percentile(a, 95)) if len(a) else 0.0
     if not q > 0:
@@ -146,6 +148,7 @@ def write_outputs(run_dir: Path, geom, dev_v: np.ndarray, ok_v: np.ndarray, dev_
 
     from scanreg.io import write_ply
 
+    p = p.shown()
     scale, unit = p.deviation_scale, p.deviation_unit
     paths = [run_dir / "deviation_map.ply", run_dir / "deviation_histogram.png", run_dir / "deviation_map.png"]
     write_ply(paths[0], geom, colors=colours(dev_v, ok_v, rng),
@@ -228,7 +231,9 @@ def evaluate_deviation(run_dir: Path, aligned: Cloud, aligned_geom, cp, labels: 
     the 3D view needs (``points``, ``dev``, ``ok``, ``table``, ``part``); ``cp`` finds closest points on the
     target (its triangles when it is a mesh). With ``pose`` (a :class:`scanreg.eval.uncertainty.PoseCovariance`),
     each compared point's deviation gets its standard deviation due to the pose: ``dev_pose_sigma_median_<unit>``
-    overall, and per part the uncertainty of the mean (``mean_sigma_<unit>``) and of the points."""
+    overall, and per part the uncertainty of the mean (``mean_sigma_<unit>``) and of the points. The display
+    unit is ``p``'s (:meth:`EvalParams.shown`: settled by the caller, who knows the target's size)."""
+    p = p.shown()
     dev, cos, ids, qn = _signed(aligned.points, aligned.normals, cp)
     ok = compared_mask(dev, cos, p.deviation_max_distance, p.deviation_max_angle_deg)
     m = stats(dev[ok], p.deviation_scale, p.deviation_unit, p.deviation_bands)

@@ -12,6 +12,12 @@ from scanreg.geometry import ClosestPoints, Cloud, apply_T, transform_errors
 from scanreg.types import CoarseTrace, Distances, to_abs
 
 
+DISPLAY_UNITS = {"m": (1000.0, "mm"), "cm": (10.0, "mm"), "mm": (1000.0, "um"), "um": (1.0, "um")}
+"""Input unit -> (display unit per input unit, display unit) of the deviations."""
+METRES_BELOW = 5.0
+"""``units=auto``: a target whose bounding-box diagonal is below this is taken to be in metres."""
+
+
 @dataclass
 class EvalParams:
     inlier_distance: float = 3.0
@@ -38,10 +44,14 @@ class EvalParams:
     null: no normal test."""
     deviation_bands: list[float] = field(default_factory=lambda: [0.05, 0.1])
     """Report the share of compared points within ± each of these (input units)."""
-    deviation_scale: float = 1000.0
-    """Display unit per input unit (1000: mm -> µm)."""
-    deviation_unit: str = "um"
-    """Name of the display unit, used in metric names (``dev_rms_um``) and legends."""
+    units: str = "auto"
+    """Length unit of the input files (``m``, ``cm``, ``mm``, ``um``), which sets the unit deviations are shown
+    in: mm for m and cm input, µm for mm and µm input. ``auto``: guessed from the target's bounding-box diagonal
+    (below 5: metres, as no scan is 5 mm across; else millimetres), the guess named in the 3D view's title."""
+    deviation_scale: Optional[float] = None
+    """Display unit per input unit; null: from ``units`` (1000 for m -> mm and for mm -> µm)."""
+    deviation_unit: Optional[str] = None
+    """Name of the display unit, used in metric names (``dev_rms_um``) and legends; null: from ``units``."""
     max_points: int = 200000
     """The ground-truth metrics over the source's points (``overlap_share_gt``, ``gt_rmse``, ``coarse_gt_rmse``)
     are measured on a random subset of at most this many of them, drawn with the run's seed: a share's standard
@@ -100,7 +110,24 @@ class EvalParams:
     """Write ``keypoints_target.ply``, ``keypoints_source.ply`` and ``matches.ply`` (coloured; see the documentation's
     Metrics section) when the coarse stage exposes keypoints and matches. Cheap: a few thousand points."""
 
+    def shown(self, diagonal: float | None = None) -> "EvalParams":
+        """These parameters with the deviations' display unit settled (``deviation_scale``, ``deviation_unit``,
+        ``units`` from ``auto`` to the guess for a target ``diagonal`` across; without one, millimetres)."""
+        import dataclasses
+
+        units = self.units
+        if units == "auto":
+            units = "m" if diagonal is not None and diagonal < METRES_BELOW else "mm"
+        scale, unit = DISPLAY_UNITS[units]
+        return dataclasses.replace(self, units=units,
+                                   deviation_scale=scale if self.deviation_scale is None else self.deviation_scale,
+                                   deviation_unit=unit if self.deviation_unit is None else self.deviation_unit)
+
     def check(self):
+        if self.units != "auto" and self.units not in DISPLAY_UNITS:
+            raise ValueError(f"units must be auto, {', '.join(DISPLAY_UNITS)}; got {self.units!r}")
+        if self.deviation_scale is not None and not self.deviation_scale > 0:
+            raise ValueError(f"deviation_scale must be > 0 or null, got {self.deviation_scale}")
         if not 0.5 <= self.deviation_confidence < 1:
             raise ValueError(f"deviation_confidence must be in [0.5, 1), got {self.deviation_confidence}")
         if self.max_points != 0 and self.max_points < 1000:

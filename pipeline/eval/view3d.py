@@ -78,14 +78,16 @@ def _scene(domain_y: list[float]) -> dict:
 
 
 def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, on_surface, dev_view: dict | None,
-               p, seed: int = 0) -> Path:
+               p, seed: int = 0, units_note: str = "") -> Path:
     """Write the view to ``path`` and return it. ``target``/``source`` are the input geometries (source in its
     input pose), ``aligned`` the sampled source points moved by ``T``; ``on_surface`` what
     :class:`scanreg.geometry.ClosestPoints` returned for them; ``dev_view`` what
     :func:`scanreg.eval.deviation.evaluate_deviation` returned for the 3D view (None without a deviation map: the
-    colours are then the signed distances of ``aligned``, all shown)."""
+    colours are then the signed distances of ``aligned``, all shown). ``units_note`` follows the input unit in
+    the title (how it was found)."""
     rng = np.random.default_rng([seed, 77])
     k = int(p.view_max_points)
+    p = p.shown()
     scale, du = p.deviation_scale, display_unit(p.deviation_unit)
     if dev_view is not None:
         pts, dev, ok, table = dev_view["points"], dev_view["dev"], dev_view["ok"], dev_view["table"]
@@ -127,7 +129,8 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
                        "textfont": {"size": 13, "color": "black"}})
     if table:
         traces.append(_table(table, p, dev_view["label_name"], du))
-    title = f"deviation of the aligned source from the target (colour range ±{r * scale:g} {du})"
+    title = f"deviation of the aligned source from the target (colour range ±{r * scale:g} {du}"
+    title += f"; input units: {display_unit(p.units)}" + (f", {units_note}" if units_note else "") + ")"
     if table:
         title += f"; table: statistics per {label_name}" + (" (FDI numbers)" if label_name == "tooth" else "")
     thinned = [f"{k:,} of the {n:,} {name} points" for name, n in n_shown.items() if n > k]

@@ -149,7 +149,7 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     the target's surface, with ground truth the errors and the field's metrics, the landmarks' residuals, the
     pose covariance; and, into ``ctx.run_dir``, the keypoints and matches, the deviation map and the 3D view as
     ``evaluate`` asks."""
-    ev: EvalParams = stages.evaluate
+    ev: EvalParams = stages.evaluate.shown(pair.diagonal)  # (the deviations' display unit follows the input's)
     T, T0, T_gt = pair.T_target_source, pair.coarse.T_target_source, problem.T_gt
     src, tgt, spacing = source.cloud, target.cloud, pair.spacing
     out = Evaluation()
@@ -203,9 +203,17 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
         from scanreg.eval.view3d import write_view
 
         view_files.append(write_view(ctx.run_dir / "view3d.html", target.surface, source.surface, T, aligned,
-                                     on_surface, dev_view, ev, seed=ctx.seed))
+                                     on_surface, dev_view, ev, seed=ctx.seed,
+                                     units_note=units_note(stages.evaluate, pair.diagonal)))
     out.artifacts = view_files + keypoint_files
     return out
+
+
+def units_note(ev: EvalParams, diagonal: float) -> str:
+    """How the input unit was found, for the 3D view's title: guessed from the target's size, or set."""
+    if ev.units != "auto":
+        return "evaluate.units"
+    return f"guessed from the target's size, {diagonal:.3g} across; set evaluate.units if wrong"
 
 
 def pose_from_pairs(pairs: Correspondences | None, ev: EvalParams) -> PoseCovariance | None:
