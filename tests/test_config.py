@@ -239,6 +239,15 @@ def test_scanreg_stages_help_and_filter(capsys):
     assert heads == ["icp=horn", "matcher=mutual_knn"]
     assert stages_main(["icp=bogus"]) == 2
     assert capsys.readouterr().err.startswith("error: unknown icp 'bogus'")
+    # the settings that are not stages: each parameter with its default and its documentation
+    from scanreg.eval.metrics import EvalParams
+
+    assert stages_main(["evaluate"]) == 0
+    shown = capsys.readouterr().out
+    assert shown.startswith("evaluate\n  set with evaluate.PARAM=VALUE\n")
+    assert "  units = auto   (str)" in shown and "  deviation_scale = null   (float | null)" in shown
+    assert shown.count(" = ") >= len(dataclasses.fields(EvalParams))
+    assert stages_main(["evaluate=x"]) == 2 and "valid: data, repair" in capsys.readouterr().err
 
 
 def test_scanreg_help_is_the_projects_own(tmp_path):

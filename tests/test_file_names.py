@@ -8,7 +8,7 @@ import shlex
 import numpy as np
 import pytest
 
-from conftest import run_cli, shared
+from conftest import pkg_file, run_cli, shared
 from scanreg.app.arguments import (file_overrides, path_override_error, quote_value, shell_arg, split_files,
                                    with_files)
 from scanreg.errors import ConfigError
@@ -50,6 +50,16 @@ def test_positional_files_become_quoted_overrides(tmp_path, monkeypatch):
     assert split_files(["missing.ply", "other.ply"])[0] == ["missing.ply", "other.ply"]
     with pytest.raises(ConfigError, match=r"one scan given \(b c.ply\)"):
         with_files(["b c.ply"])
+    # the files and an override that names them too, or a data provider that picks its own scans: one line
+    with pytest.raises(ConfigError, match=r"^data.source is given twice: by the scan files on the command line and "
+                                          r"by data.source=c.ply; give one$"):
+        file_overrides(["a.ply", "b.ply"], ["data.source=c.ply"])
+    with pytest.raises(ConfigError, match=r"^data.scans is given twice"):
+        file_overrides(["a", "b", "c"], ["+data.scans=[d]"])
+    with pytest.raises(ConfigError, match=r"^scan files given \(a.ply, b.ply\) with data=stanford, which picks its own"):
+        file_overrides(["a.ply", "b.ply"], ["data=stanford"])
+    assert file_overrides(["a.ply", "b.ply"], ["data=files", "data.target_labels=x.json"]) == [
+        "data.source='a.ply'", "data.target='b.ply'"]
 
 
 def _fix_command(line: str, part: str = "value") -> list[str]:
@@ -190,7 +200,7 @@ def test_view_holds_the_points_and_deviations_it_was_given(tmp_path):
         return np.frombuffer(base64.b64decode(a["bdata"]), dtype="<f4")
 
     traces = {t["name"]: t for t in fig["data"]}
-    shown = traces["source after alignment: deviation [µm]"]
+    shown = traces["source after alignment: signed deviation [µm]"]
     xyz = np.c_[arr(shown["x"]), arr(shown["y"]), arr(shown["z"])]
     np.testing.assert_allclose(xyz, aligned.astype(np.float32))
     np.testing.assert_allclose(arr(shown["marker"]["color"]), (dev * 1000).astype(np.float32), rtol=1e-6)
@@ -229,3 +239,53 @@ def test_a_metre_scale_run_shows_millimetres(tmp_path):
     assert "signed deviation [mm]" in page
     assert not any(u in page for u in ("[\\u00b5m]", "[µm]", " \\u00b5m", " µm"))
     assert "input units: m, guessed from the target's size, 0.246 across" in page
+
+
+def test_the_view_colours_the_overlap_and_says_what_it_shows(tmp_path):
+    """Without a deviation map, the source points beyond ``max_distance`` (no overlap) are grey and do not set
+    the colour range; a target without normals gives unsigned distances, coloured from 0; the page is named
+    after the two files."""
+    import base64
+
+    from scanreg.eval.metrics import EvalParams
+    from scanreg.eval.view3d import write_view
+
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(0, 20, (2000, 2))
+    target = Cloud(np.c_[xy, np.zeros(len(xy))])
+    target.source = "/data/ref.ply"
+    d = np.where(np.arange(len(xy)) < 1500, rng.uniform(0, 0.004, len(xy)), rng.uniform(0.5, 2.0, len(xy)))
+    aligned = np.c_[xy, d]
+    source = Cloud(aligned)
+    source.source = "/data/scan 1.ply"
+    page = write_view(tmp_path / "v.html", target, source, np.eye(4), aligned, (np.c_[xy, np.zeros(len(xy))], d, None),
+                      None, EvalParams().shown(2.0), max_distance=0.01).read_text()
+    assert "<title>scanreg: scan 1.ply onto ref.ply</title>" in page
+    fig = json.loads(re.search(r"var fig = (\{.*\});\n", page).group(1))
+    traces = {t["name"]: t for t in fig["data"]}
+    shown = traces["source after alignment: distance [mm]"]
+    colours = np.frombuffer(base64.b64decode(shown["marker"]["color"]["bdata"]), dtype="<f4")
+    assert len(colours) == 1500 and colours.max() < 4.0 + 1e-3  # the overlap only, in mm
+    assert shown["marker"]["cmin"] == 0.0 and 3.0 <= shown["marker"]["cmax"] <= 4.0
+    grey = traces["source after alignment, not compared (farther than 10 mm from the target)"]
+    assert len(np.frombuffer(base64.b64decode(grey["x"]["bdata"]), dtype="<f4")) == 500
+    assert fig["layout"]["title"]["text"].startswith("distance of the aligned source from the target (colour range 0 to 4 mm")
+
+
+def test_a_pose_that_puts_little_of_the_source_on_the_target_is_warned_about(tmp_path, capsys):
+    """A run whose fitness is below evaluate.fitness_warn says so in one warning line (bun180 onto bun000, which
+    barely overlap, comes out at fitness 0.05-0.07 under a pose 48 degrees off: measured, too slow for here; a
+    good run is made to warn by raising the threshold to 1); a run above it does not."""
+    from scanreg.api import register
+    from scanreg.eval.metrics import low_fitness_warning
+
+    assert low_fitness_warning(0.0797, 0.1).startswith("only 8.0% of the source lies on the target after alignment")
+    assert low_fitness_warning(0.1, 0.1) is None and low_fitness_warning(0.0, 0.0) is None
+    bunny = pkg_file("pkg:pymeshfix/examples/StanfordBunny.ply")
+    v = read_mesh(bunny).vertices
+    far = v[::5] + 3 * np.ptp(v, axis=0)  # a fifth of the points far off the target: fitness about 0.83
+    for threshold, warned in ((1.0, True), (0.1, False)):
+        r = register(np.concatenate([v, far]), bunny, run_dir=tmp_path / str(threshold),
+                     overrides=["repair=none", f"evaluate.fitness_warn={threshold}"])
+        lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("warning: only")]
+        assert lines == ([f"warning: {low_fitness_warning(r.metrics['fitness'], threshold)}"] if warned else [])

@@ -77,6 +77,23 @@ def test_open_scan_detection_rule():
     assert open_scan_borders(disc, 2.0).all() and border_loops(disc)[1][0] > 3.0
 
 
+def test_a_cropped_rounded_part_keeps_its_border_open():
+    """A crop deeper than a hemisphere (a tooth crown cut off below its widest part: 75 % of a sphere, ratio
+    1.8) is an open scan under the default rule; a sphere with a hole of half its radius (0.9; 1.0 as triangulated here) is a closed model
+    with a hole."""
+    import open3d as o3d
+
+    from scanreg.stages.repair.audit import GuardParams
+
+    ratio = GuardParams().open_border_ratio
+    s = o3d.geometry.TriangleMesh.create_sphere(1.0, 60)
+    v, f = np.asarray(s.vertices), np.asarray(s.triangles)
+    crown = Mesh(v, f[v[f][:, :, 2].min(axis=1) > -0.5])  # 75 % of the sphere kept
+    assert 1.6 < border_loops(crown)[1][0] < 2.0 and open_scan_borders(crown, ratio).all()
+    holed = Mesh(v, f[~(v[f][:, :, 2] > np.cos(np.arcsin(0.5))).any(axis=1)])  # a hole of radius 1/2
+    assert 0.8 < border_loops(holed)[1][0] < 1.1 and not open_scan_borders(holed, ratio).any()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", SCANS)
 def test_every_raw_stanford_scan_passes_the_default_repair(name):

@@ -216,3 +216,23 @@ def test_a_group_whose_runs_all_failed_has_zero_successes():
     t = summarize(df, ["k"]).set_index("k")
     assert t.loc["a", "successes"] == 1 and t.loc["a", "success_rate"] == 0.5
     assert t.loc["b", "successes"] == 0 and t.loc["b", "success_rate"] == 0.0 and t.loc["b", "success_hi"] > 0
+
+
+def test_runs_without_ground_truth_are_reported_by_their_fit(tmp_path):
+    """A sweep on the user's own files (no data.gt) has no errors and no success: the tables show the fit (rms,
+    fitness) beside the times, and the report says why."""
+    from scanreg.app.report.tables import console_table, display_table
+
+    df = mlflow_like_runs("icp.name", ["horn", "gicp"])
+    df = df.drop(columns=["metrics.rotation_error_deg", "metrics.translation_error", "metrics.success"])
+    df["metrics.rms"] = [0.5, 0.7, 0.6, 0.2, 0.3, 0.1]
+    df["metrics.fitness"] = 0.8
+    t = summarize(df, ["icp.name"])
+    console = console_table(t, ["icp.name"]).splitlines()
+    assert console[0].split() == ["icp.name", "runs", "failed", "rms", "fitness", "coarse_s", "total_s"]
+    shown = display_table(t, ["icp.name"], []).set_index("icp.name")
+    assert shown.loc["horn", "rms"].startswith("0.6 ") and shown.loc["gicp", "rms"].startswith("0.2 ")
+    assert "rotation_error_deg" not in shown and "success [Wilson 95 %]" not in shown
+    write_report(df, ReportParams(), tmp_path)
+    text = (tmp_path / "report.md").read_text()
+    assert "No ground truth (`data.gt`)" in text and "Success: rotation error" not in text

@@ -72,17 +72,31 @@ def file_overrides(files: list[str], overrides: list[str]) -> list[str]:
     ``data=scanset`` are a scan set. One file alone is a usage error."""
     if not files:
         return []
-    scanset = _data_choice(overrides) == "scanset"
+    choice = _data_choice(overrides)
+    if choice not in (None, "files", "scanset"):
+        raise ConfigError(f"scan files given ({', '.join(files)}) with data={choice}, which picks its own scans: "
+                          "leave data= out to register the files, or give data=scanset for a scan set")
+    scanset = choice == "scanset"
     if not scanset and len(files) == 2 and not any(os.path.isdir(f) for f in files):
-        return [f"data.source={quote_value(files[0])}", f"data.target={quote_value(files[1])}"]
+        return _no_clash([f"data.source={quote_value(files[0])}", f"data.target={quote_value(files[1])}"], overrides)
     if scanset or len(files) >= 3 or (len(files) == 1 and os.path.isdir(files[0])):
         scans = quote_value(files[0]) if len(files) == 1 else "[" + ",".join(quote_value(f) for f in files) + "]"
-        return ([] if scanset else ["data=scanset"]) + [f"data.scans={scans}"]
+        return _no_clash(([] if scanset else ["data=scanset"]) + [f"data.scans={scans}"], overrides)
     if len(files) == 1:
         raise ConfigError(f"one scan given ({files[0]}): give the source and the target (scanreg SOURCE TARGET), "
                           "or a folder or three or more scans to register into one model")
     raise ConfigError(f"a folder among two scans ({', '.join(files)}): give two files (SOURCE TARGET), or one "
                       "folder, or three or more scans")
+
+
+def _no_clash(made: list[str], overrides: list[str]) -> list[str]:
+    """``made`` (the positional files' overrides), unless the user's ``overrides`` set one of its keys too."""
+    keys = {o.partition("=")[0] for o in made if o.startswith("data.")}
+    for o in overrides:
+        key = o.partition("=")[0].lstrip("+~")
+        if key in keys:
+            raise ConfigError(f"{key} is given twice: by the scan files on the command line and by {o}; give one")
+    return made
 
 
 def with_files(argv: list[str]) -> list[str]:

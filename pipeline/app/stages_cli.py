@@ -95,6 +95,31 @@ def describe(family: str, name: str, width: int = 100) -> list[str]:
     return lines
 
 
+def blocks() -> dict[str, type]:
+    """The config blocks that are not stage families, by their key in the config: each a Params dataclass whose
+    defaults hold as they are (``conf/config.yaml`` sets none of them)."""
+    from scanreg.app.report.params import ReportParams
+    from scanreg.eval.metrics import EvalParams
+    from scanreg.runner.settings import MultiviewParams
+
+    return {"evaluate": EvalParams, "report": ReportParams, "multiview": MultiviewParams}
+
+
+def describe_block(key: str, params: type, width: int = 100) -> list[str]:
+    """One config block (:func:`blocks`) as :func:`describe` shows a stage: each parameter with its type, its
+    default and its docstring."""
+    import typing
+
+    wrap = lambda text, indent: textwrap.wrap(text, width, initial_indent=indent, subsequent_indent=indent) or [indent]
+    lines = [key, *wrap(f"set with {key}.PARAM=VALUE", "  ")]
+    docs, hints = field_docs(params), typing.get_type_hints(params)
+    for f in dataclasses.fields(params):
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        lines += wrap(f"{f.name} = {value_text(default)}   ({type_text(hints.get(f.name, f.type))})", "  ")
+        lines += wrap(plain(docs.get(f.name, "(undocumented)")), "      ")
+    return lines
+
+
 def _one_line_parser():
     import argparse
 
@@ -117,6 +142,7 @@ examples:
   scanreg-stages                  every family, every stage
   scanreg-stages icp              the ICP variants only
   scanreg-stages icp=horn data    one stage, and the data providers
+  scanreg-stages evaluate         what is measured after registration (also: report, multiview)
   scanreg-stages --list           names and one-line summaries only
 """
 
@@ -129,15 +155,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = OneLineErrorParser(prog="scanreg-stages", description=STAGES_HELP,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("filter", nargs="*", metavar="FAMILY[=NAME]",
-                    help=f"show only these families or stages; families: {', '.join(REGISTRIES)}")
+                    help=f"show only these families or stages; families: {', '.join(REGISTRIES)}; or the "
+                         f"settings of {', '.join(blocks())}")
     ap.add_argument("--list", action="store_true", help="names and one-line summaries only")
     a = ap.parse_args(sys.argv[1:] if argv is None else argv)
     load_all()
     wanted: list[tuple[str, str]] = []
     for item in a.filter or list(REGISTRIES):
         fam, _, name = item.partition("=")
+        if fam in blocks() and not name:
+            wanted.append((fam, ""))
+            continue
         if fam not in REGISTRIES:
-            print(f"error: unknown stage family '{fam}'; valid: {', '.join(REGISTRIES)}", file=sys.stderr)
+            print(f"error: unknown stage family '{fam}'; valid: {', '.join(REGISTRIES)} (and the settings "
+                  f"{', '.join(blocks())})", file=sys.stderr)
             return 2
         if name and name not in REGISTRIES[fam].names():
             print(f"error: unknown {fam} '{name}'; valid {fam} names: {', '.join(REGISTRIES[fam].names())}",
@@ -146,7 +177,9 @@ def main(argv: list[str] | None = None) -> int:
         wanted += [(fam, n) for n in ([name] if name else REGISTRIES[fam].names())]
     out: list[str] = []
     for fam, name in wanted:
-        if a.list:
+        if not name:  # a config block
+            out += [fam] if a.list else [*describe_block(fam, blocks()[fam]), ""]
+        elif a.list:
             summary = plain((inspect.getdoc(REGISTRIES[fam].get(name)) or "").split("\n\n")[0])
             head = f"{fam}={name}"
             out += textwrap.wrap(f"{head:<26} {summary}", 100, subsequent_indent=" " * 27,

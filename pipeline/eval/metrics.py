@@ -14,6 +14,8 @@ from scanreg.types import CoarseTrace, Distances, to_abs
 
 DISPLAY_UNITS = {"m": (1000.0, "mm"), "cm": (10.0, "mm"), "mm": (1000.0, "um"), "um": (1.0, "um")}
 """Input unit -> (display unit per input unit, display unit) of the deviations."""
+METRES_PER_UNIT = {"m": 1.0, "cm": 0.01, "mm": 0.001, "um": 1e-6}
+"""The metric ``input_unit_m``: metres per input unit."""
 METRES_BELOW = 5.0
 """``units=auto``: a target whose bounding-box diagonal is below this is taken to be in metres."""
 
@@ -69,6 +71,9 @@ class EvalParams:
     the final pairs (``pose_sigma_rot_deg`` in degrees, ``pose_sigma_trans`` in input units, ``pose_condition``
     dimensionless; see pipeline/uncertainty.py) and, with ``deviation_map``, each compared point's deviation
     uncertainty. Needs target normals (a mesh target, or a cloud with normals)."""
+    fitness_warn: float = 0.1
+    """Warn (one line) when ``fitness`` is below this share (0..1; 0: never): so little of the source lies on
+    the target after alignment that, unless the scans overlap that little, the registration failed."""
     pose_condition_warn: float = 1.0e-3
     """Warn (one line naming the free motions) when ``pose_condition`` (smallest over largest eigenvalue of the
     scaled information matrix, dimensionless) is below this."""
@@ -142,8 +147,19 @@ class EvalParams:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.recall_translation_abs is not None and not self.recall_translation_abs > 0:
             raise ValueError(f"recall_translation_abs must be > 0 or null, got {self.recall_translation_abs}")
+        if not 0 <= self.fitness_warn <= 1:
+            raise ValueError(f"fitness_warn must be in [0, 1], got {self.fitness_warn}")
         if not self.pose_condition_warn >= 0:
             raise ValueError(f"pose_condition_warn must be >= 0, got {self.pose_condition_warn}")
+
+
+def low_fitness_warning(fitness: float, threshold: float) -> str | None:
+    """One line when ``fitness`` (the share of the source on the target after alignment) is below
+    ``threshold`` (``evaluate.fitness_warn``), else None."""
+    if not fitness < threshold:
+        return None
+    return (f"only {fitness:.1%} of the source lies on the target after alignment (fitness < evaluate.fitness_warn "
+            f"{threshold:g}): unless the scans overlap that little, the registration failed (see view3d.html)")
 
 
 def alignment_metrics(distances: np.ndarray, p: EvalParams, spacing: float) -> dict[str, float]:

@@ -58,11 +58,14 @@ def _plotly_js() -> str:
     return js.read_text(encoding="utf-8")
 
 
-def _write_page(path: Path, traces: list[dict], layout: dict) -> Path:
-    """One HTML page drawing ``traces`` with ``layout`` (plotly.js JSON), its JavaScript embedded."""
+def _write_page(path: Path, traces: list[dict], layout: dict, title: str = "scanreg") -> Path:
+    """One HTML page drawing ``traces`` with ``layout`` (plotly.js JSON), its JavaScript embedded; ``title``
+    names it in the browser's tab."""
+    import html
+
     fig = json.dumps({"data": traces, "layout": layout}, separators=(",", ":"))
     height = int(layout.get("height", 800))
-    page = (f'<!doctype html>\n<html>\n<head>\n<meta charset="utf-8" />\n'
+    page = (f'<!doctype html>\n<html>\n<head>\n<meta charset="utf-8" />\n<title>{html.escape(title)}</title>\n'
             f"<style>html, body {{height: 100%; margin: 0;}}</style>\n</head>\n<body>\n"
             f'<div id="view" style="height:{height}px; width:100%;"></div>\n'
             f"<script>{_plotly_js()}</script>\n"
@@ -78,13 +81,15 @@ def _scene(domain_y: list[float]) -> dict:
 
 
 def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, on_surface, dev_view: dict | None,
-               p, seed: int = 0, units_note: str = "") -> Path:
+               p, seed: int = 0, units_note: str = "", max_distance: float | None = None) -> Path:
     """Write the view to ``path`` and return it. ``target``/``source`` are the input geometries (source in its
     input pose), ``aligned`` the sampled source points moved by ``T``; ``on_surface`` what
     :class:`scanreg.geometry.ClosestPoints` returned for them; ``dev_view`` what
     :func:`scanreg.eval.deviation.evaluate_deviation` returned for the 3D view (None without a deviation map: the
     colours are then the signed distances of ``aligned``, all shown). ``units_note`` follows the input unit in
-    the title (how it was found)."""
+    the title (how it was found). Without a deviation map, the points farther than ``max_distance`` from the
+    target (input units; None: none) are grey, not compared: where the scans do not overlap, which would
+    otherwise set the colour range."""
     rng = np.random.default_rng([seed, 77])
     k = int(p.view_max_points)
     p = p.shown()
@@ -92,11 +97,14 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
     if dev_view is not None:
         pts, dev, ok, table = dev_view["points"], dev_view["dev"], dev_view["ok"], dev_view["table"]
         label_name, r = dev_view["label_name"], dev_view["range"]
-    else:
+    else:  # the distances to the target, signed by its normals when it has them; beyond the overlap: grey
         q, d, qn = on_surface
         sign = np.ones(len(d)) if qn is None else np.where(np.einsum("ij,ij->i", aligned - q, qn) < 0, -1.0, 1.0)
-        pts, dev, ok, table, label_name = aligned, sign * d, np.isfinite(d), None, "part"
+        ok = np.isfinite(d) & (d <= (np.inf if max_distance is None else max_distance))
+        pts, dev, table, label_name = aligned, sign * d, None, "part"
         r = colour_range(dev[ok], p)
+    signed = dev_view is not None or on_surface[2] is not None
+    what = "signed deviation" if signed else "distance"
 
     tp = _points(target)
     n_shown = {"target": len(tp), "source": len(pts)}
@@ -110,14 +118,16 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
               {**_scatter(sp, "source before alignment", color="rgb(240,170,80)", opacity=0.5),
                "visible": "legendonly"}]
     if (~ok).any():
-        traces.append(_scatter(pts[~ok], "source after alignment, not compared", color="rgb(200,200,200)"))
+        beyond = "" if dev_view is not None or max_distance is None else \
+            f" (farther than {max_distance * scale:.3g} {du} from the target)"
+        traces.append(_scatter(pts[~ok], f"source after alignment, not compared{beyond}", color="rgb(200,200,200)"))
     on = pts[ok]
     traces.append({
-        "type": "scatter3d", "mode": "markers", "name": f"source after alignment: deviation [{du}]",
+        "type": "scatter3d", "mode": "markers", "name": f"source after alignment: {what} [{du}]",
         "x": _typed(on[:, 0]), "y": _typed(on[:, 1]), "z": _typed(on[:, 2]),
-        "marker": {"size": 2.2, "color": _typed(dev[ok] * scale), "colorscale": RDBU_R,
-                   "cmin": -float(r * scale), "cmax": float(r * scale),
-                   "colorbar": {"title": {"text": f"signed deviation [{du}]"}, "len": 0.6, "y": 0.7 if table else 0.5}},
+        "marker": {"size": 2.2, "color": _typed(dev[ok] * scale), "colorscale": RDBU_R if signed else "Viridis",
+                   "cmin": -float(r * scale) if signed else 0.0, "cmax": float(r * scale),
+                   "colorbar": {"title": {"text": f"{what} [{du}]"}, "len": 0.6, "y": 0.7 if table else 0.5}},
         "hovertemplate": f"%{{marker.color:.1f}} {du}<extra></extra>"})
     if dev_view is not None and dev_view.get("part") is not None:
         part = dev_view["part"][j]
@@ -129,7 +139,8 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
                        "textfont": {"size": 13, "color": "black"}})
     if table:
         traces.append(_table(table, p, dev_view["label_name"], du))
-    title = f"deviation of the aligned source from the target (colour range ±{r * scale:g} {du}"
+    title = f"{'deviation' if signed else 'distance'} of the aligned source from the target (colour range " \
+            f"{'±' if signed else '0 to '}{r * scale:g} {du}"
     title += f"; input units: {display_unit(p.units)}" + (f", {units_note}" if units_note else "") + ")"
     if table:
         title += f"; table: statistics per {label_name}" + (" (FDI numbers)" if label_name == "tooth" else "")
@@ -139,7 +150,8 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
     layout = {"title": {"text": title, "font": {"size": 13}}, "height": 1000 if table else 800,
               "scene": _scene([0.3, 1.0] if table else [0.0, 1.0]), "legend": {"x": 0, "y": 1},
               "margin": {"l": 0, "r": 0, "t": 40, "b": 0}}
-    return _write_page(path, traces, layout)
+    names = [Path(g.source).name for g in (source, target) if getattr(g, "source", "")]
+    return _write_page(path, traces, layout, "scanreg: " + (" onto ".join(names) if len(names) == 2 else "3D view"))
 
 
 def _table(table: list[dict], p, label_name: str, du: str) -> dict:
@@ -174,4 +186,4 @@ def write_set_view(path: Path, merged, names: list[str], colours: np.ndarray, ma
     layout = {"title": {"text": f"the registered scans, merged ({shown}), coloured by scan", "font": {"size": 13}},
               "height": 800, "scene": _scene([0.0, 1.0]), "legend": {"x": 0, "y": 1},
               "margin": {"l": 0, "r": 0, "t": 40, "b": 0}}
-    return _write_page(path, traces, layout)
+    return _write_page(path, traces, layout, f"scanreg: {len(names)} scans in one model")

@@ -20,14 +20,15 @@ import numpy as np
 
 from scanreg.errors import InputError, ScanregError, warn
 from scanreg.eval.checks import check_geometry, check_inputs
-from scanreg.eval.metrics import (EvalParams, alignment_metrics, field_metrics, gt_metrics, surface_deviation)
+from scanreg.eval.metrics import (METRES_PER_UNIT, EvalParams, alignment_metrics, field_metrics, gt_metrics,
+                                  low_fitness_warning, surface_deviation)
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
                                       relative_motion)
 from scanreg.geometry import ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, transform_geometry
 from scanreg.process import blas_single_thread, start_isolated
 from scanreg.runner.build import Stages
 from scanreg.runner.outputs import write_keypoints
-from scanreg.types import Correspondences, PairResult, PreparedScan, Problem, Repaired, RunContext, ScanSet
+from scanreg.types import Correspondences, PairResult, PreparedScan, Problem, Repaired, RunContext, ScanSet, to_abs
 
 MIN_POINTS = 10
 """Fewest points a cloud may have after sampling (the coarse and fine stages need neighbourhoods)."""
@@ -154,11 +155,16 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     src, tgt, spacing = source.cloud, target.cloud, pair.spacing
     out = Evaluation()
     m = out.metrics
+    m["input_unit_m"] = METRES_PER_UNIT[ev.units]  # (what every length below is in: set, or guessed)
+    m["input_unit_guessed"] = float(stages.evaluate.units == "auto")
     with blas_single_thread():
         aligned = apply_T(T, src.points)
     on_target = ClosestPoints(tgt)  # the target points' search, for the fit and the field's overlap tests
     on_points = on_target(aligned)
     m.update(alignment_metrics(on_points[1], ev, spacing))
+    low = low_fitness_warning(m["fitness"], ev.fitness_warn)
+    if low:
+        warn(low)
     surface = None if target.mesh is None else ClosestPoints(tgt, target.mesh)
     on_surface = on_points if surface is None else surface(aligned)
     m.update(surface_deviation(aligned, on_surface, ev, spacing))
@@ -204,7 +210,8 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
 
         view_files.append(write_view(ctx.run_dir / "view3d.html", target.surface, source.surface, T, aligned,
                                      on_surface, dev_view, ev, seed=ctx.seed,
-                                     units_note=units_note(stages.evaluate, pair.diagonal)))
+                                     units_note=units_note(stages.evaluate, pair.diagonal),
+                                     max_distance=to_abs(ev.inlier_distance, ev.distances, spacing)))
     out.artifacts = view_files + keypoint_files
     return out
 

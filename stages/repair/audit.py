@@ -114,10 +114,11 @@ class GuardParams:
     surface plus an offset copy ``shell_thickness`` behind it, joined along the border: watertight without
     changing any scanned surface; samplers and the evaluation use the scanned side only (3-5x the time of
     ``open``)."""
-    open_border_ratio: float = 2.0
+    open_border_ratio: float = 1.5
     """``open_border=auto``: a boundary loop at least this many times as long as the square root of its
-    part's area is an outer border (dimensionless; a disc's rim 3.5, a hemisphere's 2.5, a hole of half the
-    radius in a sphere 0.9; raw Stanford scans 8.5-10.9, the holes of closed models under 0.5)."""
+    part's area is an outer border (dimensionless; a disc's rim 3.5, a hemisphere's 2.5, a tooth crown cut off
+    at 40 % of its height 1.7, a sphere with 80 % of it kept 1.6, a hole of half the radius in a sphere 0.9;
+    raw Stanford scans 8.5-10.9, the holes of closed models under 0.5)."""
     shell_thickness: float = 0.001
     """``open_border=shell``: distance of the back side behind the surface, as a share of the bounding-box
     diagonal (less where the space behind the surface is narrower, see :func:`close_as_shell`)."""

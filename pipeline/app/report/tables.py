@@ -181,6 +181,8 @@ TABLE_MEDIANS = ["rotation_error_deg", "translation_error", "coarse_rotation_err
 
 
 TABLE_TIMES = ["time_coarse_s", "time_icp_s", "time_total_s"]
+TABLE_FIT = ["rms", "fitness", "icp_iterations"]
+"""The fit's medians, shown instead of the errors when the runs have no ground truth."""
 
 
 def display_table(table: pd.DataFrame, group_by: list[str], metrics: list[str]) -> pd.DataFrame:
@@ -192,7 +194,8 @@ def display_table(table: pd.DataFrame, group_by: list[str], metrics: list[str]) 
     if "success_rate" in table:
         out["success [Wilson 95 %]"] = [fmt_success(r.get("successes"), r["runs"], r.get("success_lo"),
                                                     r.get("success_hi")) for _, r in table.iterrows()]
-    for m in [*TABLE_MEDIANS, *[m for m in metrics if m not in TABLE_MEDIANS], *TABLE_TIMES]:
+    fit = [] if f"{TABLE_MEDIANS[0]}_median" in table else TABLE_FIT  # without ground truth: how well it fits
+    for m in [*TABLE_MEDIANS, *fit, *[m for m in metrics if m not in TABLE_MEDIANS + fit], *TABLE_TIMES]:
         if f"{m}_median" in table:
             out[m] = [fmt_interval(r[f"{m}_median"], r.get(f"{m}_lo"), r.get(f"{m}_hi")) for _, r in table.iterrows()]
     return out
@@ -357,7 +360,9 @@ CONSOLE_COLUMNS = [("runs", "runs"), ("failed", "failed"), ("success_rate", "suc
 def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100) -> str:
     """The summary as a table of at most ``width`` columns: the group (its canonical label), runs, success,
     median errors and times; the rest is in report.csv."""
-    cols = [(c, h) for c, h in CONSOLE_COLUMNS if c in table]
+    columns = CONSOLE_COLUMNS if "rotation_error_deg_median" in table else \
+        CONSOLE_COLUMNS[:3] + [("rms_median", "rms"), ("fitness_median", "fitness")] + CONSOLE_COLUMNS[5:]
+    cols = [(c, h) for c, h in columns if c in table]  # (without ground truth: the fit instead of the errors)
     head = " / ".join(group_by) or "group"
     rows = [[str(r["_label"]) if "_label" in table else "all", *[fmt_value(r[c]) for c, _ in cols]]
             for _, r in table.iterrows()]
