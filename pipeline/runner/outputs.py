@@ -77,7 +77,8 @@ def summary_lines(res: Result) -> list[str]:
     lines = ["stage     time [s]"] + [f"{s:<9} {t:>8}" for s, t in rows]
     keys = ["n_source_points", "n_target_points", "source_spacing", "target_spacing", "spacing", "icp_iterations",
             "icp_rms", "icp_fitness", "icp_inlier_rms", "rms", "fitness", "p2s_mean", "p2s_median", "p2s_rms",
-            "p2s_p95_abs", "p2s_max_abs", "coarse_rotation_error_deg", "rotation_error_deg", "translation_error", "translation_error_rel", "success"]
+            "p2s_p95_abs", "p2s_max_abs", "coarse_rotation_error_deg", "rotation_error_deg", "translation_error", "translation_error_rel", "success",
+            "registration_recall"]
     keys += ["gt_overlap", "coarse_translation_error", "landmark_coarse_rms", "landmark_final_rms"]
     keys += ["pose_sigma_rot_deg", "pose_sigma_trans", "pose_condition", "pose_gt_centre_shift", "pose_bootstrap_rot_deg",
              "pose_bootstrap_trans"]
