@@ -40,7 +40,13 @@ def test_closed_cube_is_clean():
 
 def test_cube_with_one_side_removed_has_one_hole_of_four_edges():
     f = CUBE_F[2:]  # the bottom gone
-    c = census(CUBE_V, f)
+    # an open box: its rim, 4 / sqrt(5) = 1.79 times the square root of its area, is an outer border under the
+    # default rule (open_border_ratio 1.5: a crop deeper than a hemisphere is a scan's border) ...
+    opened = census(CUBE_V, f)
+    assert nonzero(opened) == {"boundary_edges": 4, "boundary_loops": 1, "outer_borders": 1}
+    assert opened.loop_outer[0] and opened.loop_length[0] == pytest.approx(4.0)
+    # ... and a hole to fill under a stricter one
+    c = census(CUBE_V, f, open_border_ratio=2.0)
     assert nonzero(c) == {"boundary_edges": 4, "boundary_loops": 1, "holes": 1}
     assert list(c.loop_edges) == [4] and c.loop_length[0] == pytest.approx(4.0)
     assert not c.loop_outer[0] and not c.clean  # a closed model's hole (short for its area), to be filled

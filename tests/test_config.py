@@ -247,7 +247,9 @@ def test_scanreg_stages_help_and_filter(capsys):
     assert shown.startswith("evaluate\n  set with evaluate.PARAM=VALUE\n")
     assert "  units = auto   (str)" in shown and "  deviation_scale = null   (float | null)" in shown
     assert shown.count(" = ") >= len(dataclasses.fields(EvalParams))
-    assert stages_main(["evaluate=x"]) == 2 and "valid: data, repair" in capsys.readouterr().err
+    assert stages_main(["evaluate=x"]) == 2
+    assert capsys.readouterr().err.startswith("error: evaluate is a block of settings, not a stage family")
+    assert stages_main(["bogus"]) == 2 and "valid: data, repair" in capsys.readouterr().err
 
 
 def test_scanreg_help_is_the_projects_own(tmp_path):

@@ -42,6 +42,9 @@ def test_positional_files_become_quoted_overrides(tmp_path, monkeypatch):
     assert rest == ["--config-dir", "confs", "icp=gicp", "-m"]
     assert with_files(["Pred_Upper_Mesh_Tag=0.obj", "b c.ply", "icp=gicp"]) == [
         "icp=gicp", "data.source='Pred_Upper_Mesh_Tag=0.obj'", "data.target='b c.ply'"]
+    # with files, Hydra's flags first, so that the overrides stay one run of arguments
+    assert with_files(["b c.ply", "x.ply", "--cfg", "job", "icp=gicp", "-m"]) == [
+        "--cfg", "job", "-m", "icp=gicp", "data.source='b c.ply'", "data.target='x.ply'"]
     # a folder, three files, or data=scanset: a scan set
     assert file_overrides(["scans"], []) == ["data=scanset", "data.scans='scans'"]
     assert file_overrides(["scans/1.ply", "scans/2.ply"], ["data=scanset"]) == ["data.scans=['scans/1.ply','scans/2.ply']"]
@@ -224,21 +227,38 @@ def test_the_deviations_are_shown_in_a_unit_that_follows_the_input():
     assert shown(EvalParams(units="cm"), 0.25) == ("cm", 10.0, "mm")
     assert shown(EvalParams(units="mm"), 0.25) == ("mm", 1000.0, "um")
     assert shown(EvalParams(deviation_scale=1.0, deviation_unit="m"), 0.25) == ("m", 1.0, "m")
+    with pytest.raises(ValueError, match="deviation_scale and deviation_unit go together"):
+        EvalParams(deviation_unit="mm").check()
     assert shown(EvalParams().shown(60.0), 0.25) == ("mm", 1000.0, "um")  # settled once, kept
     with pytest.raises(ValueError, match="units must be auto, m, cm, mm, um; got 'inch'"):
         EvalParams(units="inch").check()
 
 
 def test_a_metre_scale_run_shows_millimetres(tmp_path):
-    """The run's 3D view on metre input (the bunny pair) labels its colours in mm and says how it knew."""
-    from scanreg.api import register
+    """The run on metre input (the bunny pair): its 3D view labels its colours in mm and says how it knew,
+    greys the source beyond the fit's inlier distance (3 spacings) and colours the rest; the run logs its unit
+    and its printed summary names it."""
+    import base64
 
-    register(shared("stanford_bunny/bun045.ply"), shared("stanford_bunny/bun000.ply"), run_dir=tmp_path,
-             overrides=["repair=none"])
+    from scanreg.api import register
+    from scanreg.runner import summary_lines
+
+    res = register(shared("stanford_bunny/bun045.ply"), shared("stanford_bunny/bun000.ply"), run_dir=tmp_path,
+                   overrides=["repair=none"])
     page = (tmp_path / "view3d.html").read_text()
     assert "signed deviation [mm]" in page
     assert not any(u in page for u in ("[\\u00b5m]", "[µm]", " \\u00b5m", " µm"))
     assert "input units: m, guessed from the target's size, 0.246 across" in page
+    fig = json.loads(re.search(r"var fig = (\{.*\});\n", page).group(1))
+    traces = {t["name"].split(" (")[0]: t for t in fig["data"]}
+    grey = traces["source after alignment, not compared"]
+    assert f"farther than {3 * res.metrics['spacing'] * 1000:.3g} mm" in grey["name"]
+    n_grey = len(base64.b64decode(grey["x"]["bdata"])) // 4
+    n_on = len(base64.b64decode(traces["source after alignment: signed deviation [mm]"]["x"]["bdata"])) // 4
+    assert abs(n_grey / (n_grey + n_on) - (1 - res.metrics["fitness"])) < 0.05  # the points off the fit
+    assert res.metrics["input_unit_m"] == 1.0 and res.metrics["input_unit_guessed"] == 1.0
+    assert "lengths in m, the input's unit (guessed from the target's size; set evaluate.units)" in \
+        summary_lines(res)
 
 
 def test_the_view_colours_the_overlap_and_says_what_it_shows(tmp_path):
@@ -289,3 +309,22 @@ def test_a_pose_that_puts_little_of_the_source_on_the_target_is_warned_about(tmp
                      overrides=["repair=none", f"evaluate.fitness_warn={threshold}"])
         lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("warning: only")]
         assert lines == ([f"warning: {low_fitness_warning(r.metrics['fitness'], threshold)}"] if warned else [])
+
+
+def test_a_deviation_map_on_a_target_without_normals_is_shown_as_distances(tmp_path):
+    """With evaluate.deviation_map and a target cloud without normals the deviations carry no sign: the map
+    says so, and the 3D view shows them as distances coloured from 0."""
+    from scanreg.eval.deviation import evaluate_deviation
+    from scanreg.eval.metrics import EvalParams
+    from scanreg.eval.view3d import write_view
+    from scanreg.geometry import ClosestPoints
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 20, (3000, 2))
+    target = Cloud(np.c_[xy, np.zeros(len(xy))])
+    src = Cloud(np.c_[xy[:1500] + 0.01, rng.uniform(-0.05, 0.05, 1500)])
+    p = EvalParams(deviation_map=True).shown(28.0)
+    _, _, view = evaluate_deviation(tmp_path, src, src, ClosestPoints(target), None, p)
+    assert view["signed"] is False and (view["dev"] >= 0).all()
+    page = write_view(tmp_path / "v.html", target, src, np.eye(4), src.points, None, view, p).read_text()
+    assert "source after alignment: distance [\\u00b5m]" in page and '"cmin":0.0' in page

@@ -100,9 +100,14 @@ def _no_clash(made: list[str], overrides: list[str]) -> list[str]:
 
 
 def with_files(argv: list[str]) -> list[str]:
-    """``argv`` with its positional scan files turned into quoted overrides, placed after the user's own."""
+    """``argv`` with its positional scan files turned into quoted overrides, placed after the user's own. With
+    files, Hydra's flags (and their values) go first: its command line takes the overrides as one run of
+    arguments, which a flag between them would split (``scanreg a.ply b.ply --cfg job``)."""
     files, rest = split_files(argv)
-    return rest + file_overrides(files, rest)
+    if not files:
+        return rest
+    flags = [a for i, a in enumerate(rest) if _is_flag(rest, i)]
+    return flags + [a for i, a in enumerate(rest) if not _is_flag(rest, i)] + file_overrides(files, rest)
 
 
 def _parse(override: str):

@@ -166,6 +166,10 @@ def main(argv: list[str] | None = None) -> int:
         if fam in blocks() and not name:
             wanted.append((fam, ""))
             continue
+        if fam in blocks():
+            print(f"error: {fam} is a block of settings, not a stage family: 'scanreg-stages {fam}' lists them",
+                  file=sys.stderr)
+            return 2
         if fam not in REGISTRIES:
             print(f"error: unknown stage family '{fam}'; valid: {', '.join(REGISTRIES)} (and the settings "
                   f"{', '.join(blocks())})", file=sys.stderr)

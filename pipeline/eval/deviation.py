@@ -275,5 +275,5 @@ def evaluate_deviation(run_dir: Path, aligned: Cloud, aligned_geom, cp, labels: 
     rng = colour_range(dev[ok], p)
     paths = write_outputs(run_dir, aligned_geom, dev_v, ok_v, dev[ok], p, table, label_name, rng, marks)
     view = {"points": aligned.points, "dev": dev, "ok": ok, "sigma": sigma, "table": table, "part": part,
-            "label_name": label_name, "range": rng}
+            "label_name": label_name, "range": rng, "signed": qn is not None}
     return m, paths, view

@@ -51,9 +51,11 @@ class EvalParams:
     in: mm for m and cm input, µm for mm and µm input. ``auto``: guessed from the target's bounding-box diagonal
     (below 5: metres, as no scan is 5 mm across; else millimetres), the guess named in the 3D view's title."""
     deviation_scale: Optional[float] = None
-    """Display unit per input unit; null: from ``units`` (1000 for m -> mm and for mm -> µm)."""
+    """Display unit per input unit, set together with ``deviation_unit``; null: from ``units`` (1000 for
+    m -> mm and for mm -> µm)."""
     deviation_unit: Optional[str] = None
-    """Name of the display unit, used in metric names (``dev_rms_um``) and legends; null: from ``units``."""
+    """Name of the display unit, used in metric names (``dev_rms_um``) and legends, set together with
+    ``deviation_scale``; null: from ``units``."""
     max_points: int = 200000
     """The ground-truth metrics over the source's points (``overlap_share_gt``, ``gt_rmse``, ``coarse_gt_rmse``)
     are measured on a random subset of at most this many of them, drawn with the run's seed: a share's standard
@@ -124,15 +126,18 @@ class EvalParams:
         if units == "auto":
             units = "m" if diagonal is not None and diagonal < METRES_BELOW else "mm"
         scale, unit = DISPLAY_UNITS[units]
-        return dataclasses.replace(self, units=units,
-                                   deviation_scale=scale if self.deviation_scale is None else self.deviation_scale,
-                                   deviation_unit=unit if self.deviation_unit is None else self.deviation_unit)
+        if self.deviation_scale is not None and self.deviation_unit is not None:
+            scale, unit = self.deviation_scale, self.deviation_unit
+        return dataclasses.replace(self, units=units, deviation_scale=scale, deviation_unit=unit)
 
     def check(self):
         if self.units != "auto" and self.units not in DISPLAY_UNITS:
             raise ValueError(f"units must be auto, {', '.join(DISPLAY_UNITS)}; got {self.units!r}")
         if self.deviation_scale is not None and not self.deviation_scale > 0:
             raise ValueError(f"deviation_scale must be > 0 or null, got {self.deviation_scale}")
+        if (self.deviation_scale is None) != (self.deviation_unit is None):
+            raise ValueError("deviation_scale and deviation_unit go together (both set, e.g. 1000 and um for mm "
+                             "input, or both null: from units)")
         if not 0.5 <= self.deviation_confidence < 1:
             raise ValueError(f"deviation_confidence must be in [0.5, 1), got {self.deviation_confidence}")
         if self.max_points != 0 and self.max_points < 1000:

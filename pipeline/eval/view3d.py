@@ -103,7 +103,7 @@ def write_view(path: Path, target, source, T: np.ndarray, aligned: np.ndarray, o
         ok = np.isfinite(d) & (d <= (np.inf if max_distance is None else max_distance))
         pts, dev, table, label_name = aligned, sign * d, None, "part"
         r = colour_range(dev[ok], p)
-    signed = dev_view is not None or on_surface[2] is not None
+    signed = dev_view["signed"] if dev_view is not None else on_surface[2] is not None  # (target normals)
     what = "signed deviation" if signed else "distance"
 
     tp = _points(target)
@@ -167,7 +167,7 @@ def _table(table: list[dict], p, label_name: str, du: str) -> dict:
     fmt = [[(f"{row.get(c):.3g}" if isinstance(row.get(c), float) else str(row.get(c, ""))) for row in table]
            for c in cols]
     return {"type": "table", "domain": {"x": [0.0, 1.0], "y": [0.0, 0.28]},
-            "header": {"values": [c.replace("_um", f" [{du}]") for c in cols], "font": {"size": 10}},
+            "header": {"values": [c.replace(f"_{u}", f" [{du}]") for c in cols], "font": {"size": 10}},
             "cells": {"values": fmt, "font": {"size": 10}}}
 
 

@@ -38,7 +38,7 @@ from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, _cached, _cross_columns, _f
 MIN_COMPONENT_SHARE = 0.01
 """The repair's default ``min_component_share`` (:class:`scanreg.stages.repair.audit.GuardParams`): parts with
 less than this share of the largest part's area are removed."""
-OPEN_BORDER_RATIO = 2.0
+OPEN_BORDER_RATIO = 1.5
 """The repair's default ``open_border_ratio``: a boundary loop at least this many times as long as the square
 root of its part's area is an open scan's outer border (:func:`~scanreg.mesh.topology.open_scan_borders`)."""
 CELL_EXTENTS = 4.0

@@ -31,14 +31,14 @@ import numpy as np
 
 from scanreg.errors import ScanregError, StageError, note, warn
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
-from scanreg.mesh.census import mesh_census
+from scanreg.mesh.census import MIN_COMPONENT_SHARE, OPEN_BORDER_RATIO, mesh_census
 from scanreg.mesh.distances import area_samples, distances_to, point_distances, raycasting_scene
 from scanreg.mesh.intersect import Intersections, intersections_among
 from scanreg.mesh.shell import close_as_shell
 from scanreg.mesh.slivers import collapse_folds, collapse_slivers
-from scanreg.mesh.topology import (audit_mesh, border_loops, component_areas, forget, intersections, known,
-                                   mesh_stats, non_manifold_vertices, open_scan_borders, remember,
-                                   remember_later, self_intersecting_count)
+from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, audit_mesh, border_loops, component_areas, forget,
+                                   intersections, known, mesh_stats, non_manifold_vertices, open_scan_borders,
+                                   remember, remember_later, self_intersecting_count)
 from scanreg.process import forking, start_isolated
 from scanreg.types import Repaired, RunContext
 
@@ -51,7 +51,7 @@ class GuardParams:
     collapse would add self-intersecting faces or non-manifold edges or vertices (then the backend's mesh
     is kept); the guard checks that the
     surface did not move. The audit counts them as ``sliver_faces`` before and after."""
-    sliver_angle_deg: float = 1.0
+    sliver_angle_deg: float = SLIVER_ANGLE_DEG
     """The smallest angle, in degrees, below which a face is a sliver (for ``remove_slivers``)."""
     apply_to: str = "both"
     """Which input meshes are repaired: ``source``, ``target`` or ``both`` (a CT surface made of separate
@@ -66,7 +66,7 @@ class GuardParams:
     check_only: bool = False
     """Audit what the repair would do (the before/after table and the guard) but go on with the unrepaired
     mesh; a guard violation is then reported, not fatal."""
-    min_component_share: float = 0.01
+    min_component_share: float = MIN_COMPONENT_SHARE
     """Parts (connected components) whose area is below this share of the largest part's area are removed on
     purpose, as specks and scanner debris, and reported (``removed_components``); every other part is repaired
     and kept (a head with separate eyes, a chair's legs). Dimensionless, relative to the largest part, never
@@ -114,7 +114,7 @@ class GuardParams:
     surface plus an offset copy ``shell_thickness`` behind it, joined along the border: watertight without
     changing any scanned surface; samplers and the evaluation use the scanned side only (3-5x the time of
     ``open``)."""
-    open_border_ratio: float = 1.5
+    open_border_ratio: float = OPEN_BORDER_RATIO
     """``open_border=auto``: a boundary loop at least this many times as long as the square root of its
     part's area is an outer border (dimensionless; a disc's rim 3.5, a hemisphere's 2.5, a tooth crown cut off
     at 40 % of its height 1.7, a sphere with 80 % of it kept 1.6, a hole of half the radius in a sphere 0.9;

@@ -261,7 +261,7 @@ def success_line(df) -> str:
                 "the shift of its centroid < `multiview.success_translation` (0.25 %) of the model's bounding-box "
                 "diagonal, the frames aligned at the first scan; a failed run counts as a failure. Errors are "
                 "against the ground truth, in degrees and as shares of the diagonal; times are medians in seconds.")
-    if "metrics.rotation_error_deg" not in df.columns:
+    if "metrics.rotation_error_deg" not in df.columns and "metrics.rms" in df.columns:
         return ("No ground truth (`data.gt`): no errors and no success; the table gives the fit instead, `rms` (the "
                 "RMS distance of the source points within `evaluate.inlier_distance` of the target, input units) and "
                 "`fitness` (their share), and the stage times (medians, seconds).")
