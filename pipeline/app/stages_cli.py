@@ -52,18 +52,23 @@ def value_text(v: Any) -> str:
     return str(v)
 
 
-def yaml_defaults(family: str, name: str) -> dict[str, Any]:
-    """The parameter values ``conf/<family>/<name>.yaml`` sets (interpolations such as ``${seed}`` as
-    written); every field missing there keeps the Params default."""
-    cls = REGISTRIES[family].get(name)
+def params_defaults(params: type) -> dict[str, Any]:
+    """The defaults of the dataclass ``params`` by field (``???`` for a field without one)."""
     values: dict[str, Any] = {}
-    for f in dataclasses.fields(cls.Params):
+    for f in dataclasses.fields(params):
         if f.default is not dataclasses.MISSING:
             values[f.name] = f.default
         elif f.default_factory is not dataclasses.MISSING:
             values[f.name] = f.default_factory()
         else:
             values[f.name] = "???"
+    return values
+
+
+def yaml_defaults(family: str, name: str) -> dict[str, Any]:
+    """The parameter values ``conf/<family>/<name>.yaml`` sets (interpolations such as ``${seed}`` as
+    written); every field missing there keeps the Params default."""
+    values = params_defaults(REGISTRIES[family].get(name).Params)
     path = conf_dir() / family / f"{name}.yaml"
     if path.exists():
         from omegaconf import OmegaConf
@@ -73,26 +78,35 @@ def yaml_defaults(family: str, name: str) -> dict[str, Any]:
     return values
 
 
+def _wrap(text: str, indent: str, width: int) -> list[str]:
+    return textwrap.wrap(text, width, initial_indent=indent, subsequent_indent=indent) or [indent]
+
+
+def param_lines(params: type, values: dict[str, Any], width: int = 100) -> list[str]:
+    """Each parameter of the dataclass ``params``: its value in ``values``, its type, then its docstring,
+    wrapped at ``width`` columns."""
+    import typing
+
+    docs = field_docs(params)
+    try:
+        hints = typing.get_type_hints(params)
+    except Exception:  # noqa: BLE001  # fall back to the annotation text
+        hints = {}
+    lines = []
+    for f in dataclasses.fields(params):
+        tp = type_text(hints.get(f.name, f.type))
+        lines += _wrap(f"{f.name} = {value_text(values[f.name])}   ({tp})", "  ", width)
+        lines += _wrap(plain(docs.get(f.name, "(undocumented)")), "      ", width)
+    return lines
+
+
 def describe(family: str, name: str, width: int = 100) -> list[str]:
     """One stage for ``scanreg-stages``: its summary, then each parameter with its type, its default as the
     YAML sets it and its docstring, wrapped at ``width`` columns."""
-    import typing
-
     cls = REGISTRIES[family].get(name)
-    wrap = lambda text, indent: textwrap.wrap(text, width, initial_indent=indent, subsequent_indent=indent) or [indent]
     summary = plain((inspect.getdoc(cls) or "").split("\n\n")[0])
-    lines = [f"{family}={name}", *wrap(summary, "  ")]
-    docs = field_docs(cls.Params)
-    try:
-        hints = typing.get_type_hints(cls.Params)
-    except Exception:  # noqa: BLE001  # fall back to the annotation text
-        hints = {}
-    defaults = yaml_defaults(family, name)
-    for f in dataclasses.fields(cls.Params):
-        tp = type_text(hints.get(f.name, f.type))
-        lines += wrap(f"{f.name} = {value_text(defaults[f.name])}   ({tp})", "  ")
-        lines += wrap(plain(docs.get(f.name, "(undocumented)")), "      ")
-    return lines
+    return [f"{family}={name}", *_wrap(summary, "  ", width),
+            *param_lines(cls.Params, yaml_defaults(family, name), width)]
 
 
 def blocks() -> dict[str, type]:
@@ -108,16 +122,8 @@ def blocks() -> dict[str, type]:
 def describe_block(key: str, params: type, width: int = 100) -> list[str]:
     """One config block (:func:`blocks`) as :func:`describe` shows a stage: each parameter with its type, its
     default and its docstring."""
-    import typing
-
-    wrap = lambda text, indent: textwrap.wrap(text, width, initial_indent=indent, subsequent_indent=indent) or [indent]
-    lines = [key, *wrap(f"set with {key}.PARAM=VALUE", "  ")]
-    docs, hints = field_docs(params), typing.get_type_hints(params)
-    for f in dataclasses.fields(params):
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-        lines += wrap(f"{f.name} = {value_text(default)}   ({type_text(hints.get(f.name, f.type))})", "  ")
-        lines += wrap(plain(docs.get(f.name, "(undocumented)")), "      ")
-    return lines
+    return [key, *_wrap(f"set with {key}.PARAM=VALUE", "  ", width),
+            *param_lines(params, params_defaults(params), width)]
 
 
 def _one_line_parser():
@@ -151,28 +157,29 @@ def main(argv: list[str] | None = None) -> int:
     """``scanreg-stages [FAMILY[=NAME] ...]``: list registered stages with their parameters and docs."""
     import argparse
 
+    settings = blocks()
     OneLineErrorParser = _one_line_parser()
     ap = OneLineErrorParser(prog="scanreg-stages", description=STAGES_HELP,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("filter", nargs="*", metavar="FAMILY[=NAME]",
                     help=f"show only these families or stages; families: {', '.join(REGISTRIES)}; or the "
-                         f"settings of {', '.join(blocks())}")
+                         f"settings of {', '.join(settings)}")
     ap.add_argument("--list", action="store_true", help="names and one-line summaries only")
     a = ap.parse_args(sys.argv[1:] if argv is None else argv)
     load_all()
     wanted: list[tuple[str, str]] = []
     for item in a.filter or list(REGISTRIES):
         fam, _, name = item.partition("=")
-        if fam in blocks() and not name:
+        if fam in settings and not name:
             wanted.append((fam, ""))
             continue
-        if fam in blocks():
+        if fam in settings:
             print(f"error: {fam} is a block of settings, not a stage family: 'scanreg-stages {fam}' lists them",
                   file=sys.stderr)
             return 2
         if fam not in REGISTRIES:
             print(f"error: unknown stage family '{fam}'; valid: {', '.join(REGISTRIES)} (and the settings "
-                  f"{', '.join(blocks())})", file=sys.stderr)
+                  f"{', '.join(settings)})", file=sys.stderr)
             return 2
         if name and name not in REGISTRIES[fam].names():
             print(f"error: unknown {fam} '{name}'; valid {fam} names: {', '.join(REGISTRIES[fam].names())}",
@@ -182,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     out: list[str] = []
     for fam, name in wanted:
         if not name:  # a config block
-            out += [fam] if a.list else [*describe_block(fam, blocks()[fam]), ""]
+            out += [fam] if a.list else [*describe_block(fam, settings[fam]), ""]
         elif a.list:
             summary = plain((inspect.getdoc(REGISTRIES[fam].get(name)) or "").split("\n\n")[0])
             head = f"{fam}={name}"

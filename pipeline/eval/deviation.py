@@ -140,7 +140,8 @@ def colours(dev: np.ndarray, ok: np.ndarray, rng: float) -> np.ndarray:
 def write_outputs(run_dir: Path, geom, dev_v: np.ndarray, ok_v: np.ndarray, dev_pts: np.ndarray,
                   p, part_table: list[dict] | None, label_name: str, rng: float, marks=None) -> list[Path]:
     """The coloured PLY (``geom`` with per-vertex ``dev_v``), histogram and picture, and the part table; the
-    colours saturate at ±``rng`` (input units, :func:`colour_range`)."""
+    colours saturate at ±``rng`` (input units, :func:`colour_range`); ``p`` with its display unit settled
+    (:meth:`~scanreg.eval.metrics.EvalParams.shown`, as :func:`evaluate_deviation` passes it)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -148,7 +149,6 @@ def write_outputs(run_dir: Path, geom, dev_v: np.ndarray, ok_v: np.ndarray, dev_
 
     from scanreg.io import write_ply
 
-    p = p.shown()
     scale, unit = p.deviation_scale, p.deviation_unit
     paths = [run_dir / "deviation_map.ply", run_dir / "deviation_histogram.png", run_dir / "deviation_map.png"]
     write_ply(paths[0], geom, colors=colours(dev_v, ok_v, rng),

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
@@ -120,15 +120,13 @@ class EvalParams:
     def shown(self, diagonal: float | None = None) -> "EvalParams":
         """These parameters with the deviations' display unit settled (``deviation_scale``, ``deviation_unit``,
         ``units`` from ``auto`` to the guess for a target ``diagonal`` across; without one, millimetres)."""
-        import dataclasses
-
         units = self.units
         if units == "auto":
             units = "m" if diagonal is not None and diagonal < METRES_BELOW else "mm"
         scale, unit = DISPLAY_UNITS[units]
         if self.deviation_scale is not None and self.deviation_unit is not None:
             scale, unit = self.deviation_scale, self.deviation_unit
-        return dataclasses.replace(self, units=units, deviation_scale=scale, deviation_unit=unit)
+        return replace(self, units=units, deviation_scale=scale, deviation_unit=unit)
 
     def check(self):
         if self.units != "auto" and self.units not in DISPLAY_UNITS:

@@ -185,6 +185,11 @@ TABLE_FIT = ["rms", "fitness", "icp_iterations"]
 """The fit's medians, shown instead of the errors when the runs have no ground truth."""
 
 
+def has_errors(table: pd.DataFrame) -> bool:
+    """Whether the summary ``table`` holds errors against a ground truth (else the fit stands in for them)."""
+    return f"{TABLE_MEDIANS[0]}_median" in table
+
+
 def display_table(table: pd.DataFrame, group_by: list[str], metrics: list[str]) -> pd.DataFrame:
     """The Markdown table: the group keys, runs, failed, success with its Wilson interval, then every median with
     its interval (errors, ``metrics``, stage times)."""
@@ -194,7 +199,7 @@ def display_table(table: pd.DataFrame, group_by: list[str], metrics: list[str]) 
     if "success_rate" in table:
         out["success [Wilson 95 %]"] = [fmt_success(r.get("successes"), r["runs"], r.get("success_lo"),
                                                     r.get("success_hi")) for _, r in table.iterrows()]
-    fit = [] if f"{TABLE_MEDIANS[0]}_median" in table else TABLE_FIT  # without ground truth: how well it fits
+    fit = [] if has_errors(table) else TABLE_FIT
     for m in [*TABLE_MEDIANS, *fit, *[m for m in metrics if m not in TABLE_MEDIANS + fit], *TABLE_TIMES]:
         if f"{m}_median" in table:
             out[m] = [fmt_interval(r[f"{m}_median"], r.get(f"{m}_lo"), r.get(f"{m}_hi")) for _, r in table.iterrows()]
@@ -351,18 +356,18 @@ def curve_display(ct: pd.DataFrame, x: str, curves: list[str]) -> pd.DataFrame:
     return out
 
 
-CONSOLE_COLUMNS = [("runs", "runs"), ("failed", "failed"), ("success_rate", "success"),
-                   ("rotation_error_deg_median", "rot_deg"), ("translation_error_median", "transl"),
-                   ("time_coarse_s_median", "coarse_s"), ("time_total_s_median", "total_s")]
-"""The console's short table: (report.csv column, heading)."""
+CONSOLE_COUNTS = [("runs", "runs"), ("failed", "failed"), ("success_rate", "success")]
+CONSOLE_ERRORS = [("rotation_error_deg_median", "rot_deg"), ("translation_error_median", "transl")]
+CONSOLE_FIT = [("rms_median", "rms"), ("fitness_median", "fitness")]
+CONSOLE_TIMES = [("time_coarse_s_median", "coarse_s"), ("time_total_s_median", "total_s")]
+"""The console's short table: (report.csv column, heading); the errors, or without ground truth the fit."""
 
 
 def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100) -> str:
     """The summary as a table of at most ``width`` columns: the group (its canonical label), runs, success,
     median errors and times; the rest is in report.csv."""
-    columns = CONSOLE_COLUMNS if "rotation_error_deg_median" in table else \
-        CONSOLE_COLUMNS[:3] + [("rms_median", "rms"), ("fitness_median", "fitness")] + CONSOLE_COLUMNS[5:]
-    cols = [(c, h) for c, h in columns if c in table]  # (without ground truth: the fit instead of the errors)
+    columns = CONSOLE_COUNTS + (CONSOLE_ERRORS if has_errors(table) else CONSOLE_FIT) + CONSOLE_TIMES
+    cols = [(c, h) for c, h in columns if c in table]
     head = " / ".join(group_by) or "group"
     rows = [[str(r["_label"]) if "_label" in table else "all", *[fmt_value(r[c]) for c, _ in cols]]
             for _, r in table.iterrows()]
