@@ -176,16 +176,17 @@ def _faces_by_coordinates(m: Mesh) -> list:
     return sorted(tuple(np.roll(p, -k, axis=0).ravel()) for p, k in zip(P, first))
 
 
-def _pulled_grid(seed: int, n: int = 30) -> Mesh:
+def _pulled_grid(seed: int, n: int = 30, pulled: bool = True) -> Mesh:
     """A jittered height-field grid, faces shuffled, a third of its vertices pulled to within 1e-7..1e-3 of a
-    neighbour (needles) or of the middle of an opposite edge (caps): about 200 slivers, many side by side."""
+    neighbour (needles) or of the middle of an opposite edge (caps): about 200 slivers, many side by side
+    (``pulled=False``: none pulled)."""
     rng = np.random.default_rng(seed)
     x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
     v = np.stack([x.ravel(), y.ravel(), 0.02 * rng.standard_normal(n * n)], 1)
     q = np.arange(n * n).reshape(n, n)
     a, b, c, d = q[:-1, :-1].ravel(), q[:-1, 1:].ravel(), q[1:, 1:].ravel(), q[1:, :-1].ravel()
     f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])[rng.permutation(2 * (n - 1) ** 2)]
-    for i in rng.choice(n * n, n * n // 3, replace=False):
+    for i in rng.choice(n * n, n * n // 3, replace=False) if pulled else ():
         others = [t for t in f[rng.choice(np.flatnonzero((f == i).any(axis=1)))] if t != i]
         to = v[others[0]] if rng.random() < 0.5 else 0.5 * (v[others[0]] + v[others[1]])
         v[i] = to + rng.uniform(1e-7, 1e-3) * rng.standard_normal(3)
@@ -217,3 +218,42 @@ def test_collapse_leaves_coincident_vertices_apart():
     assert len(out.faces) == 3 and (min_angles_deg(out) >= 1).all()  # the cap (6, 7, 8) and a neighbour gone
     assert len(out.vertices) == 9  # 8 joined to 7 or 6; 0 and 3 still two
     assert len(_meshlab_collapse(Mesh(v, f)).vertices) == 8  # MeshLab joins 0 and 3 as well
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_fold_check_neighbourhood_holds_every_face_a_changed_face_can_touch(seed):
+    """collapse_folds compares the meshes on the faces near a changed face only (``_near_changes``): every face
+    that can touch a changed face (its centroid within its circumradius of that face, by libigl's exact
+    distance) is in it, on grids whose collapse changes long needles too, and where one long triangle alone
+    changes (long faces are reached through grids of points, not their centroids); and those grids
+    (``_face_grids``) are the points ``t0 + (a/n)(t1 - t0) + (b/n)(t2 - t0)``, a + b <= n, triangle by triangle."""
+    from scanreg.mesh.distances import distances_to
+    from scanreg.mesh.slivers import _centres, _changed_faces, _face_grids, _near_changes
+
+    pulled, clean = _pulled_grid(seed), _pulled_grid(seed, pulled=False)
+    m = Mesh(np.vstack([pulled.vertices, clean.vertices + [1.2, 0, 0]]),
+             np.vstack([pulled.faces, clean.faces + len(pulled.vertices)]))  # slivers on one side only
+    # and a long triangle over the clean grid, removed: it alone changes, its grid of points alone reaches
+    v = np.vstack([clean.vertices, [[0.1, 0.5, 0.05], [0.9, 0.5, 0.05], [0.5, 0.52, 0.05]]])
+    lid = Mesh(v, np.vstack([clean.faces, [[len(v) - 3, len(v) - 2, len(v) - 1]]]))
+    for before, after in ((m, collapse_slivers(Mesh(m.vertices.copy(), m.faces.copy()))),
+                          (lid, Mesh(v, clean.faces))):
+        near_b, near_a = _near_changes(before, after)
+        gone, new = _changed_faces(before, after)
+        (xb, rb), (xa, ra) = _centres(before), _centres(after)
+        rc = np.concatenate([rb[gone], ra[new]])
+        assert (rc > max(np.quantile(rb, 0.99), np.quantile(ra, 0.99))).any()  # long changed faces: gridded
+        changed = np.concatenate([before.vertices[before.faces[gone]], after.vertices[after.faces[new]]])
+        to_changed = distances_to(Mesh(changed.reshape(-1, 3), np.arange(changed.size // 3).reshape(-1, 3)))
+        for x, r, near in ((xb, rb, near_b), (xa, ra, near_a)):
+            touching = to_changed(x) <= r  # a face lies within its circumradius of its centroid
+            assert near[touching].sum() == touching.sum() > 0 and not near.all()
+    rng = np.random.default_rng(seed)
+    tris = rng.normal(size=(7, 3, 3)) * rng.uniform(0.01, 1, (7, 1, 1))
+    expected = []
+    for t in tris:
+        n = int(np.ceil(max(np.linalg.norm(t[(k + 1) % 3] - t[k]) for k in range(3)) / 0.1))
+        for b in range(n + 1):
+            for a in range(n + 1 - b):
+                expected.append(t[0] + a / n * (t[1] - t[0]) + b / n * (t[2] - t[0]))
+    assert np.allclose(_face_grids(tris, 0.1), expected, rtol=0, atol=1e-12)

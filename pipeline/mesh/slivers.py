@@ -278,20 +278,16 @@ def _near_changes(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray] | 
     tris = np.concatenate([before.vertices[fb[gone]], after.vertices[fa[new]]])
     radii = np.concatenate([rb[gone], ra[new]])
     small = radii <= bound
-    seeds, reach = [tris[small].mean(axis=1)], [radii[small]]
-    for t in tris[~small]:
-        n = int(np.ceil(max(np.linalg.norm(t[1] - t[0]), np.linalg.norm(t[2] - t[1]),
-                            np.linalg.norm(t[0] - t[2])) / bound))
-        a, b = (g.ravel() for g in np.meshgrid(np.arange(n + 1), np.arange(n + 1)))
-        a, b = a[a + b <= n] / n, b[a + b <= n] / n
-        seeds.append(t[0] + a[:, None] * (t[1] - t[0]) + b[:, None] * (t[2] - t[0]))
-        reach.append(np.full(len(a), bound))
-    seeds, reach = np.concatenate(seeds), np.concatenate(reach)
+    centroids = tris[small].mean(axis=1)
+    grid_points = _face_grids(tris[~small], bound)
+    seeds = np.concatenate([centroids, grid_points])
+    reach = np.concatenate([radii[small], np.full(len(grid_points), bound)])
     seed_tree = cKDTree(seeds)
-    n_small = int(small.sum())  # the first seeds: the small faces' centroids; then the large faces' grids
-    grid_tree = cKDTree(seeds[n_small:]) if len(seeds) > n_small else None
+    n_small = len(centroids)  # the first seeds: the small faces' centroids; then the large faces' grids
+    grid_tree = cKDTree(grid_points) if len(grid_points) else None
     # every reach is at most the bound, so a centroid within a seed's reach plus the bound lies in the seed's
     # cell of a grid of side 2 bound or in a neighbouring cell: only the centroids in those cells are looked at
+    # (those around the centroids for the centroids' reaches, those around the grid points for the grids')
     parts = [xb, x_new, seeds] if tracked else [xb, xa, seeds]  # (a kept face's centre is one of xb's)
     cell = 2 * bound
     lo = np.min([col_min(q) for q in parts if len(q)], axis=0) - cell
@@ -299,37 +295,43 @@ def _near_changes(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray] | 
         if cell > 0 else None
     gridded = dims is not None and float(np.prod(dims.astype(float))) < 2.0 ** 62
 
-    def grid(p: np.ndarray) -> np.ndarray:
-        return np.floor((p - lo) / cell).astype(np.int64)
-
     def keys(g: np.ndarray) -> np.ndarray:
         return (g[..., 0] * dims[1] + g[..., 1]) * dims[2] + g[..., 2]
 
-    if gridded:
+    def cells_around(points: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None:
+        """The keys of the cells of ``points`` and of their neighbours, and the box of cells they lie in."""
+        if not len(points):
+            return None
+        k = np.unique(keys(np.floor((points - lo) / cell).astype(np.int64)))
+        occupied = np.stack([k // (dims[1] * dims[2]), k // dims[2] % dims[1], k % dims[2]], axis=1)
         off = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3)
-        seed_cells = grid(seeds)
-        around = np.unique(keys(seed_cells[:, None] + off))
-        box = col_min(seed_cells) - 1, col_max(seed_cells) + 1  # the cells of ``around`` lie in this box
+        return np.unique(keys(occupied[:, None] + off)), (col_min(occupied) - 1, col_max(occupied) + 1)
 
-    def candidates(x: np.ndarray) -> np.ndarray:
-        """The faces whose centroid lies in a cell of ``around`` (first those in its box, column by column:
-        the same cells as ``grid``)."""
-        if not gridded:
-            return np.arange(len(x))
-        g = [np.floor((x[:, k] - lo[k]) / cell).astype(np.int64) for k in range(3)]
-        idx = np.flatnonzero((g[0] >= box[0][0]) & (g[0] <= box[1][0]) & (g[1] >= box[0][1])
-                             & (g[1] <= box[1][1]) & (g[2] >= box[0][2]) & (g[2] <= box[1][2]))
-        return idx[np.isin(keys(np.stack([q[idx] for q in g], axis=1)), around)]
+    around = (cells_around(centroids), cells_around(grid_points)) if gridded else (None, None)
+
+    def candidates(g: list[np.ndarray] | None, n: int, cells) -> np.ndarray:
+        """Of ``n`` faces whose centroids lie in the cells ``g`` (per axis), those in a cell of ``cells``
+        (:func:`cells_around`; first those in its box, axis by axis)."""
+        if g is None:
+            return np.arange(n)
+        if cells is None:
+            return np.zeros(0, np.int64)
+        keep, (b0, b1) = cells
+        idx = np.flatnonzero((g[0] >= b0[0]) & (g[0] <= b1[0]) & (g[1] >= b0[1]) & (g[1] <= b1[1])
+                             & (g[2] >= b0[2]) & (g[2] <= b1[2]))
+        return idx[np.isin(keys(np.stack([q[idx] for q in g], axis=1)), keep)]
 
     def near(x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Faces (centroids ``x``, circumradii ``r``) that can touch a changed face: centroids within the sum of
         the two reaches; faces up to the common bound found around the seeds, the few larger ones (1 %)
         looked up the other way."""
         mask = np.zeros(len(x), bool)
-        cand = candidates(x)
+        g = [np.floor((x[:, k] - lo[k]) / cell).astype(np.int64) for k in range(3)] if gridded else None
+        cand = candidates(g, len(x), around[0])
         if len(cand) and n_small:  # the small faces' own reaches
-            hits = cKDTree(x[cand]).query_ball_point(seeds[:n_small], reach[:n_small] + bound)
+            hits = cKDTree(x[cand]).query_ball_point(centroids, reach[:n_small] + bound)
             mask[cand[np.concatenate([np.asarray(h, np.int64) for h in hits])]] = True
+        cand = candidates(g, len(x), around[1])
         if len(cand) and grid_tree is not None:  # the grid points all reach the bound: the nearest one decides
             d = grid_tree.query(x[cand], distance_upper_bound=np.nextafter(2 * bound, np.inf))[0]
             mask[cand[d <= 2 * bound]] = True
@@ -359,6 +361,27 @@ def _centres(m: Mesh) -> tuple[np.ndarray, np.ndarray]:
         return c + [np.sqrt(r2)]
     cx, cy, cz, r = _per_face(m, centre_radius, 4)
     return np.stack([cx, cy, cz], axis=1), r
+
+
+def _face_grids(tris: np.ndarray, step: float) -> np.ndarray:
+    """Points covering each triangle of ``tris`` (k, 3, 3), at most ``step`` apart along its edges: with n the
+    longest edge over ``step``, rounded up, the points ``t0 + (a / n) (t1 - t0) + (b / n) (t2 - t0)`` for whole
+    a, b >= 0 with a + b <= n (b the slower), triangle after triangle."""
+    if not len(tris):
+        return np.zeros((0, 3))
+    longest = np.max([np.linalg.norm(tris[:, (k + 1) % 3] - tris[:, k], axis=1) for k in range(3)], axis=0)
+    n = np.ceil(longest / step).astype(np.int64)
+    out = np.empty((int(((n + 1) * (n + 2) // 2).sum()), 3))
+    start = np.r_[0, np.cumsum((n + 1) * (n + 2) // 2)[:-1]]
+    for m in np.unique(n):  # the triangles of one n together: one pattern of (a, b)
+        a, b = (g.ravel() for g in np.meshgrid(np.arange(m + 1), np.arange(m + 1)))
+        a, b = a[a + b <= m] / m, b[a + b <= m] / m
+        which = np.flatnonzero(n == m)
+        t = tris[which]
+        pts = t[:, None, 0] + a[None, :, None] * (t[:, None, 1] - t[:, None, 0]) \
+            + b[None, :, None] * (t[:, None, 2] - t[:, None, 0])
+        out[(start[which][:, None] + np.arange(len(a))).ravel()] = pts.reshape(-1, 3)
+    return out
 
 
 def _changed_faces(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray]:
