@@ -63,6 +63,16 @@ def test_positional_files_become_quoted_overrides(tmp_path, monkeypatch):
         file_overrides(["a.ply", "b.ply"], ["data=stanford"])
     assert file_overrides(["a.ply", "b.ply"], ["data=files", "data.target_labels=x.json"]) == [
         "data.source='a.ply'", "data.target='b.ply'"]
+    # a preset whose defaults pick a data provider that has its own scans (the command line does not show it;
+    # the files were silently replaced by the benchmark's bunny pairs): one line; one that picks a scan set
+    # takes the files as its scans; a preset given as a sweep is left to the run
+    for experiment, data in (("bunny_benchmark", "stanford"), ("dental", "dental")):
+        with pytest.raises(ConfigError, match=rf"^scan files given \(a.ply, b.ply\) with experiment={experiment}, "
+                                              rf"whose data={data} picks its own scans"):
+            with_files(["a.ply", "b.ply", f"experiment={experiment}", "icp=gicp,horn", "-m"])
+    assert file_overrides(["a.ply", "b.ply"], ["experiment=multiview_bunny"]) == ["data.scans=['a.ply','b.ply']"]
+    assert file_overrides(["a.ply", "b.ply"], ["experiment=dental,bunny_benchmark"]) == [
+        "data.source='a.ply'", "data.target='b.ply'"]
 
 
 def _fix_command(line: str, part: str = "value") -> list[str]:
@@ -328,3 +338,13 @@ def test_a_deviation_map_on_a_target_without_normals_is_shown_as_distances(tmp_p
     assert view["signed"] is False and (view["dev"] >= 0).all()
     page = write_view(tmp_path / "v.html", target, src, np.eye(4), src.points, None, view, p).read_text()
     assert "source after alignment: distance [\\u00b5m]" in page and '"cmin":0.0' in page
+
+
+def test_files_with_a_users_preset_that_picks_its_own_scans(tmp_path):
+    """A user's experiment in a ``--config-dir`` folder is looked at as the shipped ones are."""
+    (tmp_path / "experiment").mkdir()
+    (tmp_path / "experiment" / "mine.yaml").write_text("# @package _global_\ndefaults:\n  - override /data: stanford\n")
+    with pytest.raises(ConfigError, match=r"with experiment=mine, whose data=stanford picks its own scans"):
+        with_files(["a.ply", "b.ply", "--config-dir", str(tmp_path), "experiment=mine"])
+    assert with_files(["a.ply", "b.ply", f"--config-dir={tmp_path}", "icp=gicp"])[-2:] == [
+        "data.source='a.ply'", "data.target='b.ply'"]

@@ -66,16 +66,40 @@ def _data_choice(overrides: list[str]) -> str | None:
     return choice
 
 
-def file_overrides(files: list[str], overrides: list[str]) -> list[str]:
+def _preset_data_choice(overrides: list[str], config_dirs: list[str]) -> tuple[str, str] | None:
+    """``(preset override, data choice)`` when an ``experiment=`` or ``method=`` override (one name, not a sweep)
+    picks a data provider: the configuration composed as the run will compose it (a preset sets ``data`` in its
+    defaults list, which the command line does not show)."""
+    from scanreg.app.config import PRESET_GROUPS, compose
+
+    presets = [o for o in overrides if o.partition("=")[0].lstrip("+") in PRESET_GROUPS]
+    if not presets or any(re.search(r"[,\[\]()]", o.partition("=")[2]) for o in presets):
+        return None
+    try:  # the presets alone (another override may be a sweep, which one composition cannot take)
+        cfg = compose(presets, config_dirs=config_dirs, return_hydra_config=True)
+    except ConfigError:  # the run says what is wrong with it
+        return None
+    choice = cfg.hydra.runtime.choices.get("data")
+    return (presets[-1], choice) if choice not in (None, "files") else None
+
+
+def file_overrides(files: list[str], overrides: list[str], config_dirs: list[str] = ()) -> list[str]:
     """The overrides that say ``files`` (positional scan files) to the data provider: two files are the
     source and the target of ``data=files`` (the default); one folder, three or more files, or any number with
-    ``data=scanset`` are a scan set. One file alone is a usage error."""
+    ``data=scanset`` are a scan set. One file alone is a usage error, and so are files with a ``data=`` (or an
+    ``experiment=`` or ``method=`` preset whose ``data``) that picks its own scans (``config_dirs``: where
+    presets are looked for besides the shipped configs)."""
     if not files:
         return []
     choice = _data_choice(overrides)
     if choice not in (None, "files", "scanset"):
         raise ConfigError(f"scan files given ({', '.join(files)}) with data={choice}, which picks its own scans: "
                           "leave data= out to register the files, or give data=scanset for a scan set")
+    preset = _preset_data_choice(overrides, config_dirs) if choice is None else None
+    if preset is not None and preset[1] != "scanset":
+        raise ConfigError(f"scan files given ({', '.join(files)}) with {preset[0]}, whose data={preset[1]} picks "
+                          "its own scans: give the files without it, or the preset without files")
+    choice = choice or (preset[1] if preset else None)
     scanset = choice == "scanset"
     if not scanset and len(files) == 2 and not any(os.path.isdir(f) for f in files):
         return _no_clash([f"data.source={quote_value(files[0])}", f"data.target={quote_value(files[1])}"], overrides)
@@ -107,7 +131,19 @@ def with_files(argv: list[str]) -> list[str]:
     if not files:
         return rest
     flags = [a for i, a in enumerate(rest) if _is_flag(rest, i)]
-    return flags + [a for i, a in enumerate(rest) if not _is_flag(rest, i)] + file_overrides(files, rest)
+    overrides = [a for i, a in enumerate(rest) if not _is_flag(rest, i)]
+    return flags + overrides + file_overrides(files, overrides, _config_dirs(rest))
+
+
+def _config_dirs(argv: list[str]) -> list[str]:
+    """The folders of Hydra's ``--config-dir DIR`` / ``-cd DIR`` / ``--config-dir=DIR`` flags in ``argv``."""
+    dirs = []
+    for i, a in enumerate(argv):
+        if a.startswith("--config-dir="):
+            dirs.append(a.partition("=")[2])
+        elif a in ("-cd", "--config-dir") and i + 1 < len(argv):
+            dirs.append(argv[i + 1])
+    return dirs
 
 
 def _parse(override: str):
