@@ -236,3 +236,22 @@ def test_runs_without_ground_truth_are_reported_by_their_fit(tmp_path):
     write_report(df, ReportParams(), tmp_path)
     text = (tmp_path / "report.md").read_text()
     assert "No ground truth (`data.gt`)" in text and "Success: rotation error" not in text
+
+
+def test_a_group_without_ground_truth_beside_one_with_has_no_success_rate():
+    """Runs on files without data.gt tabled beside runs with ground truth (``scanreg-report --parent all``): their
+    group shows no success rate ("-"), not 0 successes."""
+    df = pd.DataFrame({"params.k": ["gt", "gt", "files"], "status": ["FINISHED"] * 3,
+                       "metrics.success": [1.0, 0.0, None], "metrics.rms": [0.1, 0.2, 0.3]})
+    t = summarize(df, ["k"]).set_index("k")
+    assert t.loc["gt", "success_rate"] == 0.5 and np.isnan(t.loc["files", "success_rate"])
+
+
+def test_file_names_from_long_group_labels_are_bounded():
+    """A group labelled by many varying parameters gives a file name under the file systems' 255 bytes, the
+    same for the same label, different for another; short labels stay as they are."""
+    from scanreg.app.report.plots import SLUG_CHARS, _slug
+
+    long = " / ".join(f"value{k}" for k in range(100))
+    assert len(_slug(long)) == SLUG_CHARS and _slug(long) == _slug(long) != _slug(long + "x")
+    assert _slug("icp.name: gicp") == "icp.name_gicp"

@@ -256,6 +256,10 @@ def test_cli_logs_the_set_with_a_child_run_per_pair(tmp_path, mlflow_uri, views)
     children = df[df.get("tags.mlflow.parentRunId") == parent.iloc[0]["run_id"]]
     assert len(children) == 10 and set(children["tags.scanreg.part"]) == {"pair"}
     assert children["metrics.edge_accepted"].sum() == parent.iloc[0]["metrics.edges_accepted"]
+    # a report of every run (scanreg-report --parent all): the set's run, not its pairs
+    from scanreg.app.report.runs import load_runs
+
+    assert list(load_runs("set", mlflow_uri, None)["run_id"]) == [parent.iloc[0]["run_id"]]
 
 
 @pytest.mark.slow

@@ -29,8 +29,20 @@ def _plt():
     return plt
 
 
+SLUG_CHARS = 80
+"""Longest slug (:func:`_slug`) kept whole; a longer one is cut and ends in a hash of the whole (file names of
+at most 255 bytes: a group labelled by many varying parameters)."""
+
+
 def _slug(s: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", s)
+    """``s`` as a file name part: runs of other characters than letters, digits, ``_.-`` as one ``_``; cut to
+    :data:`SLUG_CHARS` with a hash of the whole when longer (the same label, the same name)."""
+    slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", s)
+    if len(slug) <= SLUG_CHARS:
+        return slug
+    import hashlib
+
+    return slug[:SLUG_CHARS - 13] + "_" + hashlib.sha1(slug.encode()).hexdigest()[:12]
 
 
 def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: Path, x: str | None,

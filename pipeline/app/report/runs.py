@@ -5,7 +5,8 @@ from __future__ import annotations
 import pandas as pd
 
 def load_runs(experiment: str, uri: str | None = None, parent: str | None = None) -> pd.DataFrame:
-    """Child runs of ``parent`` (``latest``: the newest sweep), or every non-parent run of the experiment."""
+    """Child runs of ``parent`` (``latest``: the newest sweep), or every run of the experiment that is neither a
+    sweep's parent nor a part of a scan set's run (its pairs)."""
     from scanreg.app.tracking import MlflowTracking, _quiet_mlflow
 
     _quiet_mlflow()
@@ -32,6 +33,8 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
     df = mlflow.search_runs([exp.experiment_id], filter_string=flt, max_results=100000)
     if "tags.scanreg.sweep" in df:
         df = df[df["tags.scanreg.sweep"] != "parent"]
+    if "tags.scanreg.part" in df:  # a scan set's pairs: parts of its run, not runs (their parent is the set's run)
+        df = df[df["tags.scanreg.part"].isna()]
     if df.empty:
         raise SystemExit(f"error: no runs found in experiment '{experiment}'" + (f" under parent {parent}" if parent else ""))
     df = df.sort_values("start_time").reset_index(drop=True)

@@ -136,7 +136,9 @@ def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = (), how:
         row = dict(zip(group_by, key))
         row["runs"] = len(g)
         row["failed"] = int((g["status"] != "FINISHED").sum())
-        if "metrics.success" in g:  # runs with ground truth; a group whose runs all failed has 0 successes
+        # runs with ground truth; a group whose runs all failed has 0 successes; a group whose finished runs had
+        # none (files without data.gt in a table with runs that had) has no success rate ("-"), not 0
+        if "metrics.success" in g and (ok.empty or ok["metrics.success"].notna().any()):
             row.update(success_stats(g))
         for m, agg in [*AGG_METRICS, *[(e, "median") for e in extra if (e, "median") not in AGG_METRICS]]:
             c = f"metrics.{m}"
