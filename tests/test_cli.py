@@ -179,6 +179,32 @@ def test_sweep_parent_children_and_report(tmp_path, mlflow_uri):
         child = children[children["params.sampler.n_points"] == str(int(row["sampler.n_points"]))].iloc[0]
         assert row["rotation_error_deg_median"] == pytest.approx(child["metrics.rotation_error_deg"])
     assert "sampler.n_points" in (tmp_path / "rep" / "report.md").read_text()
+    # the store as a plain path (as the default is written: outputs/mlflow.db): the same report
+    plain = mlflow_uri[len("sqlite:///"):]
+    rep = run_cli(["--experiment", "sweep", "--uri", plain, "--out", str(tmp_path / "rep2")], tmp_path,
+                  module="scanreg.app.report.write")
+    assert rep.returncode == 0 and pd.read_csv(tmp_path / "rep2" / "report.csv").equals(table), rep.stderr
+    # a store that is not there is not created empty; a folder (MLflow's file store) is no store: one line each
+    for uri, code in (("nothere/mlflow.db", 1), ("mlruns", 2)):
+        rep = run_cli(["--uri", uri], tmp_path, module="scanreg.app.report.write")
+        assert rep.returncode == code and len(rep.stderr.strip().splitlines()) == 1, rep.stderr
+        assert rep.stderr.startswith("error:") and uri.split("/")[0] in rep.stderr
+    assert not (tmp_path / "nothere").exists()
+
+
+def test_tracking_store_given_as_a_path():
+    """tracking.uri / $MLFLOW_TRACKING_URI / --uri: a URI as it is, a SQLite file's plain path as sqlite:/// and
+    its absolute path, a folder (MLflow's file store, which MLflow 3 does not write) one error line naming it."""
+    from pathlib import Path
+
+    from scanreg.app.tracking import MlflowTracking, store_uri
+    from scanreg.errors import ConfigError
+
+    assert store_uri("http://host:5000", "x") == "http://host:5000"
+    assert store_uri("sqlite:///rel.db", "x") == "sqlite:///rel.db"
+    assert store_uri("other/mlflow.db", "x") == f"sqlite:///{(Path.cwd() / 'other' / 'mlflow.db').resolve()}"
+    with pytest.raises(ConfigError, match=r"^tracking.uri=mlruns: not a tracking store"):
+        MlflowTracking(MlflowTracking.Params(uri="mlruns"))
 
 
 @pytest.mark.slow

@@ -148,6 +148,25 @@ class RunRecord:
                          [str(Path(p).resolve()) for p in artifacts])
 
 
+SQLITE_SUFFIXES = (".db", ".sqlite", ".sqlite3")
+"""A tracking store given as a plain path with one of these endings is a SQLite file."""
+
+
+def store_uri(uri: str, where: str) -> str:
+    """The tracking URI ``uri`` as MLflow takes it: a URI (``scheme://...``) as it is; a plain path to a SQLite
+    file (``outputs/mlflow.db``, as the default is written) as ``sqlite:///<absolute path>``. Any other plain path
+    (a folder: MLflow's file store, which MLflow 3 no longer writes) is a :class:`~scanreg.errors.ConfigError`
+    naming ``where`` (the parameter or variable that gave it)."""
+    if "://" in uri:
+        return uri
+    if uri.lower().endswith(SQLITE_SUFFIXES):
+        return f"sqlite:///{Path(uri).expanduser().resolve()}"
+    from scanreg.errors import ConfigError
+
+    raise ConfigError(f"{where}={uri}: not a tracking store scanreg can use; give a SQLite file (a path ending in "
+                      f"{', '.join(SQLITE_SUFFIXES)}, e.g. outputs/mlflow.db) or a URI (sqlite:///..., http://...)")
+
+
 @TRACKING.register("mlflow")
 class MlflowTracking:
     """Log every run to MLflow: config as params, stage choices as tags, metrics, artifacts."""
@@ -155,14 +174,16 @@ class MlflowTracking:
     @dataclass
     class Params:
         uri: Optional[str] = None
-        """Tracking URI; null: $MLFLOW_TRACKING_URI, else sqlite:///<cwd>/outputs/mlflow.db (absolute path)."""
+        """Tracking URI; null: $MLFLOW_TRACKING_URI, else sqlite:///<cwd>/outputs/mlflow.db (absolute path). A plain
+        path to a SQLite file (``other/mlflow.db``) is taken as ``sqlite:///`` and its absolute path."""
         experiment: str = "scanreg"
         """MLflow experiment name the runs are filed under."""
 
     def __init__(self, params: Params):
         self.p = params
-        self.uri = params.uri or os.environ.get("MLFLOW_TRACKING_URI") or \
-            f"sqlite:///{(Path.cwd() / 'outputs' / 'mlflow.db').resolve()}"
+        given = params.uri or os.environ.get("MLFLOW_TRACKING_URI")
+        where = "tracking.uri" if params.uri else "MLFLOW_TRACKING_URI"
+        self.uri = store_uri(given, where) if given else f"sqlite:///{(Path.cwd() / 'outputs' / 'mlflow.db').resolve()}"
 
     def _client(self):
         _quiet_mlflow()

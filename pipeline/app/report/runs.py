@@ -2,7 +2,19 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pandas as pd
+
+
+def existing_store(tr):
+    """``tr`` (a :class:`~scanreg.app.tracking.MlflowTracking`) when its store exists: a report reads runs, and a
+    SQLite store that is not there would be created empty."""
+    if tr.uri.startswith("sqlite:///") and not Path(tr.uri[len("sqlite:///"):]).is_file():
+        raise SystemExit(f"error: no tracking store at {tr.uri[len('sqlite:///'):]} (run scanreg there first, or "
+                         "give the store with --uri or $MLFLOW_TRACKING_URI)")
+    return tr
+
 
 def load_runs(experiment: str, uri: str | None = None, parent: str | None = None) -> pd.DataFrame:
     """Child runs of ``parent`` (``latest``: the newest sweep), or every run of the experiment that is neither a
@@ -12,7 +24,7 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
     _quiet_mlflow()
     import mlflow
 
-    tr = MlflowTracking(MlflowTracking.Params(uri=uri, experiment=experiment))
+    tr = existing_store(MlflowTracking(MlflowTracking.Params(uri=uri, experiment=experiment)))
     mlflow.set_tracking_uri(tr.uri)
     exp = mlflow.get_experiment_by_name(experiment)
     if exp is None:
@@ -51,7 +63,7 @@ def latest_sweep_experiment(uri: str | None = None) -> str:
     _quiet_mlflow()
     import mlflow
 
-    tr = MlflowTracking(MlflowTracking.Params(uri=uri))
+    tr = existing_store(MlflowTracking(MlflowTracking.Params(uri=uri)))
     mlflow.set_tracking_uri(tr.uri)
     client = mlflow.MlflowClient(tr.uri)
     exps = client.search_experiments()

@@ -197,6 +197,20 @@ def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``scanreg-report``: what goes wrong is one ``error:`` line (exit 2 for the options, 1 otherwise)."""
+    from scanreg.errors import ConfigError, ScanregError, one_line
+
+    try:
+        return _main(argv)
+    except ScanregError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2 if isinstance(e, ConfigError) else 1
+    except (OSError, ValueError, KeyError, RuntimeError) as e:  # a library's or the file system's: one line
+        print(f"error: report: {one_line(e)}", file=sys.stderr)
+        return 1
+
+
+def _main(argv: list[str] | None) -> int:
     from scanreg.app.stages_cli import _one_line_parser
 
     ap = _one_line_parser()(prog="scanreg-report", description=__doc__.split("\n\n")[0])
@@ -219,6 +233,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--uri", default=None, help="tracking URI (default: $MLFLOW_TRACKING_URI or outputs/mlflow.db)")
     ap.add_argument("--out", default=None, help="folder for the report (default: outputs/reports/<experiment>)")
     a = ap.parse_args(argv)
+    if a.uri:
+        from scanreg.app.tracking import store_uri
+
+        a.uri = store_uri(a.uri, "--uri")
     base = ReportParams(enabled=True)
     if a.config:
         from omegaconf import OmegaConf
