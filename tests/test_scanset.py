@@ -182,6 +182,21 @@ def test_reconstruct_places_every_view_and_closes_the_model(tmp_path, views):
 
 
 @pytest.mark.slow
+def test_a_set_of_clouds_without_normals_is_placed_and_says_it_is_not_refined(tmp_path, views, capsys):
+    """Point clouds without normals: the joint refinement (point-to-plane) cannot pair on them; the set is
+    placed all the same and a note says the refinement was skipped (it was silent)."""
+    import scanreg
+
+    scans, truth = views
+    clouds = [barycentric_sample(s, 20000, np.random.default_rng(k))[0] for k, s in enumerate(scans)]
+    rec = scanreg.reconstruct(clouds, poses=truth, overrides=["surface=none"], run_dir=tmp_path)
+    assert rec.metrics["multiview_pairs"] == 0 and rec.metrics["success"] == 1  # measured: 0.138 deg
+    out = capsys.readouterr().out
+    assert out.count("note: scan set: 8 of the 8 scans are point clouds without normals") == 1
+    assert "joint refinement (point-to-plane) is skipped" in out
+
+
+@pytest.mark.slow
 def test_a_scan_of_another_object_is_unplaced_and_the_rest_reconstructed(tmp_path, views, capsys):
     import scanreg
 
@@ -307,3 +322,18 @@ def test_benchmark_runs_both_methods_on_the_same_files(tmp_path):
     assert sorted(row[2].strip() for row in rows) == ["open3d", "scanreg"]
     ours = next(row for row in rows if row[2].strip() == "scanreg")
     assert ours[3].strip() == "6/6", ours
+
+
+def test_a_folder_of_two_scan_formats_takes_the_common_one_and_says_what_it_left_out(tmp_path, capsys):
+    """A folder's scans are its files of the most common scan format (a README.txt beside .ply scans is no scan);
+    the files of another scan format left out are named in a note (they were dropped silently)."""
+    from scanreg.stages.data.scanset import scan_paths
+
+    for name in ("a.ply", "b.ply", "c.ply", "d.stl", "README.txt"):
+        (tmp_path / name).write_text("x")
+    assert [q.name for q in scan_paths(str(tmp_path))] == ["a.ply", "b.ply", "c.ply"]
+    out = capsys.readouterr().out
+    assert out.count("note:") == 1 and "the scans are its 3 .ply files; 2 file(s) of another scan format left out "\
+        "(README.txt, d.stl)" in out and f"data.scans={tmp_path / '*'}" in out
+    assert [q.name for q in scan_paths(str(tmp_path / "*.ply"))] == ["a.ply", "b.ply", "c.ply"]
+    assert capsys.readouterr().out == ""  # a glob takes what it matches, silently

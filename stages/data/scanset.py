@@ -9,7 +9,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from scanreg.errors import ConfigError, InputError
+from scanreg.errors import ConfigError, InputError, note
 from scanreg.geometry import bbox_diagonal, invert_T, points_of, transform_geometry
 from scanreg.io import CLOUD_EXTS, MESH_EXTS, expand_path, read_geometry, read_input, read_stanford_conf, read_transform
 from scanreg.stages.data.base import Provider
@@ -104,6 +104,11 @@ def scan_paths(spec: Any) -> list[Path]:
             exts = [q.suffix.lower() for q in found]
             ext = max(sorted(set(exts)), key=exts.count)
             out += [q for q in found if q.suffix.lower() == ext]
+            other = [q.name for q in found if q.suffix.lower() != ext]
+            if other:  # said: a set of .ply and .stl scans lost its .stl ones silently
+                note(f"data.scans {item}: the scans are its {exts.count(ext)} {ext} files; {len(other)} file(s) of "
+                     f"another scan format left out ({', '.join(other[:4])}{', ...' if len(other) > 4 else ''}); "
+                     "name them, or give a glob ('data.scans=" + str(Path(str(item)) / "*") + "'), to include them")
         elif any(c in s for c in "*?["):
             found = sorted(Path(q) for q in globbing.glob(str(p)) if Path(q).is_file())
             if not found:
