@@ -97,6 +97,17 @@ def test_wrong_type_and_unknown_parameter():
     assert p.max_iterations == 7
 
 
+def test_a_misspelt_key_is_named_with_the_one_meant():
+    """An unknown top-level key near a config group or block (``smapler.n_points``): one line that names the one
+    meant; one near nothing says only that it is unknown."""
+    with pytest.raises(ConfigError, match=r"^unknown config key 'smapler': did you mean 'sampler'\? \(add it"):
+        compose(["smapler.n_points=5"])
+    with pytest.raises(ConfigError, match=r"^unknown config key 'evalute': did you mean 'evaluate'\?"):
+        compose(["evalute.units=mm"])
+    with pytest.raises(ConfigError, match=r"^unknown config key 'zzz' \(add it with \+zzz=VALUE"):
+        compose(["zzz=1"])
+
+
 def test_check_hook_runs():
     from scanreg.stages.sampler import Barycentric
 

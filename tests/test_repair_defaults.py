@@ -112,11 +112,14 @@ def test_every_raw_stanford_scan_passes_the_default_repair(name):
 
 
 def test_closed_model_with_holes_is_capped_by_default(capsys):
-    _, a = audited(stage("meshfix"), read_mesh(BUNNY))
+    out, a = audited(stage("meshfix"), read_mesh(BUNNY))
     note = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("note: repair=meshfix")]
     assert len(note) == 1 and "every hole is capped" in note[0] and "repair.open_border=auto" in note[0]
     assert a["open_border_open"] == 0 and a["before_boundary_loops"] == 70
     assert a["after_watertight"] == 1 and a["after_components"] == 1 and a["guard_ok"] == 1
+    # a closed mesh (no border at all): nothing to cap, nothing said of borders
+    audited(stage("meshfix"), Mesh(out.vertices, out.faces, "closed"))
+    assert "outer border" not in capsys.readouterr().out
 
 
 # ---------------------------------------------------------------------------------------------- parts

@@ -337,3 +337,14 @@ def test_a_folder_of_two_scan_formats_takes_the_common_one_and_says_what_it_left
         "(README.txt, d.stl)" in out and f"data.scans={tmp_path / '*'}" in out
     assert [q.name for q in scan_paths(str(tmp_path / "*.ply"))] == ["a.ply", "b.ply", "c.ply"]
     assert capsys.readouterr().out == ""  # a glob takes what it matches, silently
+
+
+def test_poses_that_are_not_there_are_named_so(tmp_path):
+    """data.poses naming no file or folder: one line that says so (it listed every scan as without a pose)."""
+    from scanreg.errors import InputError
+    from scanreg.stages.data.scanset import read_poses
+
+    with pytest.raises(InputError, match=r"^data.poses nothere: no such file or folder"):
+        read_poses("nothere", ["a.ply", "b.ply"])
+    with pytest.raises(InputError, match=r"the pattern matches no file"):
+        read_poses(str(tmp_path / "*.txt"), ["a.ply", "b.ply"])

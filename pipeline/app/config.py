@@ -144,8 +144,22 @@ def config_error_line(e: BaseException) -> str:
         value = re.search(r"[Vv]alue '([^']*)'", str(cause or ""))
         return type_error(params_cls, param, value.group(1) if value else None, where)
     if "Could not override" in text and key:
-        return f"unknown config key '{key}' (add it with +{key}=VALUE if it is meant to be new)"
+        return f"unknown config key '{key}'{_did_you_mean(key)} (add it with +{key}=VALUE if it is meant to be new)"
     return (text + (f" ({' '.join(str(cause).split())})" if cause else ""))[:500]
+
+
+TOP_KEYS = ("seed", "verbose", "objective", "evaluate", "report", "multiview")
+"""The top-level keys of ``conf/config.yaml`` besides its config groups."""
+
+
+def _did_you_mean(key: str) -> str:
+    """``: did you mean 'KEY'?`` when the first part of an unknown ``key`` is a near miss of a config group or a
+    top-level key (``smapler.n_points``: ``sampler.n_points``), else nothing."""
+    import difflib
+
+    head, dot, rest = key.partition(".")
+    near = difflib.get_close_matches(head, [*STAGE_GROUPS, *PRESET_GROUPS, *TOP_KEYS], n=1, cutoff=0.75)
+    return f": did you mean '{near[0]}{dot}{rest}'?" if near and near[0] != head else ""
 
 
 def _registry(family: str):

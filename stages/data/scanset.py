@@ -67,7 +67,7 @@ class ScanSetProvider(Provider):
         paths = scan_paths(self.p.scans)
         scans, info = [], {}
         for k, path in enumerate(paths):
-            g, bad = read_input(str(path), f"scan {path.name}", self.p.columns)
+            g, bad = read_input(str(path), "scan", self.p.columns)
             g.source = path.name
             scans.append(g)
             info["n_invalid_points"] = info.get("n_invalid_points", 0) + bad
@@ -136,6 +136,9 @@ def read_poses(spec: str, names: list[str]) -> list[np.ndarray]:
         return [conf.get(n, by_stem.get(Path(n).stem)) for n in names]
     p = Path(s).expanduser()
     files = sorted(p.iterdir()) if p.is_dir() else [Path(q) for q in sorted(globbing.glob(str(p)))]
+    if not files:
+        raise InputError(f"data.poses {spec}: no such file or folder ({p.absolute()})" if not any(c in s for c in "*?[")
+                         else f"data.poses {spec}: the pattern matches no file")
     by_stem = {f.stem: f for f in files if f.is_file()}
     missing = [n for n in names if Path(n).stem not in by_stem]
     if missing:

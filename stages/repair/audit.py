@@ -403,7 +403,7 @@ def _planned(stage, mesh: Mesh, where: str) -> GuardParams:
         mode, max_hole = border_plan(p, mesh, stage.fills_holes(p))
     except Exception as e:  # not the backend's failure: named as the plan's
         raise StageError(f"{where}: the repair's border plan failed ({type(e).__name__}: {_first_line(e)})") from e
-    if p.open_border == "auto":
+    if p.open_border == "auto" and (mode == "open" or len(border_loops(mesh)[0])):  # (a closed mesh: nothing to say)
         note(f"{where}: " + ("an open scan (its outer border is long for its area): the border is kept "
                              "open" if mode == "open" else "no outer border: every hole is capped")
              + " (repair.open_border=auto; set cap, open or shell to choose)")
