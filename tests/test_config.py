@@ -292,3 +292,14 @@ def test_quick_help_is_hydras_text(tmp_path):
                               capture_output=True, text=True, timeout=300)
         assert hydra.returncode == 0 and ours.returncode == 0, hydra.stderr + ours.stderr
         assert ours.stdout == hydra.stdout and "Config groups" in ours.stdout
+
+
+def test_a_value_an_interpolation_passes_on_is_named_by_its_key():
+    """``seed=abc`` reaches the stages through ``${seed}``: one line naming the key and the type (it was
+    OmegaConf's 'While dereferencing interpolation ...')."""
+    from scanreg.app.main import interpolation_error_line
+
+    cfg = compose(["seed=abc"])
+    with pytest.raises(Exception) as e:
+        OmegaConf.to_container(cfg, resolve=True)
+    assert interpolation_error_line(e.value) == "seed=abc: expects an integer"

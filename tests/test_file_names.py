@@ -348,3 +348,15 @@ def test_files_with_a_users_preset_that_picks_its_own_scans(tmp_path):
         with_files(["a.ply", "b.ply", "--config-dir", str(tmp_path), "experiment=mine"])
     assert with_files(["a.ply", "b.ply", f"--config-dir={tmp_path}", "icp=gicp"])[-2:] == [
         "data.source='a.ply'", "data.target='b.ply'"]
+
+
+def test_an_unknown_option_is_one_line():
+    """A flag that is none of Hydra's (argparse printed its 8-line usage): one line; Hydra's own flags and their
+    values, and a file whose name starts with '-', are no unknown option."""
+    from scanreg.app.arguments import unknown_flag_error
+
+    assert unknown_flag_error(["a.ply", "b.ply", "--foo"]).startswith("unknown option --foo: ")
+    assert unknown_flag_error(["-x"]).startswith("unknown option -x: ")
+    for ok in (["--cfg", "job", "-m"], ["--config-dir", "-odd-dir", "icp=gicp"], ["--config-dir=x", "--info", "config"],
+               ["--help"], ["-cd", "x", "--multirun", "data.max_angle_deg=-5"]):
+        assert unknown_flag_error(ok) is None, ok

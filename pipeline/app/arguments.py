@@ -21,6 +21,22 @@ VALUE_FLAGS = ("-cn", "--config-name", "-cp", "--config-path", "-cd", "--config-
                "--package", "-i", "--info", "-sc", "--shell-completion", "--experimental-rerun")
 """Hydra's flags that take the next argument as their value (``--cfg job``, ``--config-dir DIR``)."""
 
+SWITCH_FLAGS = ("-h", "--help", "--hydra-help", "--version", "--resolve", "-r", "--run", "-m", "--multirun")
+"""Hydra's flags that take no value."""
+
+
+def unknown_flag_error(argv: list[str]) -> str | None:
+    """One line for the first argument of ``argv`` that looks like a flag and is none of Hydra's (argparse printed
+    its 8-line usage block), or None."""
+    known = (*VALUE_FLAGS, *SWITCH_FLAGS)
+    for i, a in enumerate(argv):
+        if a.startswith("-") and len(a) > 1 and not (i > 0 and argv[i - 1] in VALUE_FLAGS) \
+                and a.partition("=")[0] not in known and not os.path.lexists(a):
+            return (f"unknown option {a}: scanreg takes scan files, overrides (key=value) and Hydra's options "
+                    "(-m, --cfg job, --config-dir DIR, ...; scanreg --help)")
+    return None
+
+
 PATH_KEYS = ("data.source", "data.target", "data.gt", "data.landmarks", "data.scans", "data.poses",
              "data.folder", "hydra.run.dir", "hydra.sweep.dir", "tracking.uri")
 """Keys whose values are paths whatever they look like."""

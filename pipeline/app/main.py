@@ -71,7 +71,7 @@ def run_job(cfg: DictConfig) -> dict | float | None:
     try:
         resolved = OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)
     except Exception as e:  # noqa: BLE001 (a bad interpolation): still log what there is
-        resolved, problem = OmegaConf.to_container(cfg, resolve=False), ConfigError(f"config: {e}".splitlines()[0])
+        resolved, problem = OmegaConf.to_container(cfg, resolve=False), ConfigError(interpolation_error_line(e))
     else:
         problem = None
     try:
@@ -206,6 +206,20 @@ def _stdout_gone() -> None:
     os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
+def interpolation_error_line(e: BaseException) -> str:
+    """A config that does not resolve as one line: a value that an interpolation (``${seed}``) passes on and that
+    is not of the type it goes to, by the key the user sets (``seed=abc: expects an integer``); else OmegaConf's
+    first line."""
+    import re
+
+    text = " ".join(str(e).split())
+    m = re.search(r"interpolation '\$\{([\w.]+)\}': Value '([^']*)' of type '\w+' could not be converted to (\w+)", text)
+    if m:
+        key, value, kind = m.groups()
+        return f"{key}={value}: expects {'an' if kind[0] in 'AEIOU' else 'a'} {kind.lower()}"
+    return f"config: {e}".splitlines()[0]
+
+
 def main() -> None:
     """The Hydra application: scan files given by position (:mod:`scanreg.app.arguments`); a composition error (a
     bad override, an unknown group choice or parameter) is one ``error:`` line and exit 2; Ctrl-C or SIGTERM
@@ -214,13 +228,13 @@ def main() -> None:
 
     from hydra.errors import HydraException
 
-    from scanreg.app.arguments import path_override_error, with_files
+    from scanreg.app.arguments import path_override_error, unknown_flag_error, with_files
     from scanreg.app.startup import is_multirun, quick_help
     from scanreg.app.tracking import _sweep_outcome, end_interrupted_sweep
 
     try:  # scan files given by position become quoted overrides; a path Hydra cannot read says the fix
         argv = with_files(sys.argv[1:])
-        fix = path_override_error(argv, multirun=is_multirun(argv))
+        fix = unknown_flag_error(argv) or path_override_error(argv, multirun=is_multirun(argv))
     except ConfigError as e:
         fix = str(e)
     if fix:
