@@ -303,3 +303,15 @@ def test_a_value_an_interpolation_passes_on_is_named_by_its_key():
     with pytest.raises(Exception) as e:
         OmegaConf.to_container(cfg, resolve=True)
     assert interpolation_error_line(e.value) == "seed=abc: expects an integer"
+
+
+def test_a_sweep_jobs_line_says_its_result():
+    """A sweep prints one line per job: a pair's errors or fit, a scan set's scans placed and its worst scan's
+    rotation error (it said only the time), and the time."""
+    from scanreg.app.main import job_line
+
+    assert job_line({"rotation_error_deg": 0.0512, "translation_error_rel": 0.0003, "time_total_s": 1.23}) == \
+        "rot 0.0512°, transl 0.03 %, 1.2 s"
+    assert job_line({"rms": 0.00123, "time_total_s": 2.0}) == "rms 0.00123, 2.0 s"
+    assert job_line({"n_scans": 10.0, "scans_placed": 9.0, "scan_rotation_error_max_deg": 0.353,
+                     "time_total_s": 14.1}) == "9/10 scans placed, worst rot 0.353°, 14.1 s"

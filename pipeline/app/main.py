@@ -182,8 +182,13 @@ def _failed(e: BaseException, cfg: DictConfig, tracker, record, run_dir: Path, m
 
 
 def job_line(m: dict) -> str:
-    """A sweep job's result in a few words: its errors (with ground truth), RMS and time."""
+    """A sweep job's result in a few words: a scan set's scans placed and its worst scan's errors, a pair's errors
+    (with ground truth) or RMS; and the time."""
     parts = []
+    if "scans_placed" in m and "n_scans" in m:
+        parts.append(f"{int(m['scans_placed'])}/{int(m['n_scans'])} scans placed")
+    if "scan_rotation_error_max_deg" in m:
+        parts.append(f"worst rot {m['scan_rotation_error_max_deg']:.3g}°")
     if "rotation_error_deg" in m:
         parts.append(f"rot {m['rotation_error_deg']:.3g}°")
     if "translation_error_rel" in m:
