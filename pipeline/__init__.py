@@ -30,3 +30,8 @@ def __getattr__(name: str):
 
         return getattr(api, name)
     raise AttributeError(f"module 'scanreg' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    # the API's names for dir() and tab completion, though they load lazily
+    return sorted({*globals(), *__all__})

@@ -19,7 +19,9 @@ that the API and the CLI run exactly the same pipeline and give the same transfo
 
 from __future__ import annotations
 
+import shutil
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -87,6 +89,22 @@ def _as_input(obj: Any, role: str, folder: Path) -> str:
                      f"got {type(obj).__name__}")
 
 
+@contextmanager
+def _run_folder(run_dir: str | Path | None):
+    """The run's folder: ``run_dir``, or a new temporary one (``scanreg-*`` in the system's temporary folder,
+    kept after the call: it holds the run's artifacts), which is removed again when the call fails (it would
+    hold only the inputs and the config of a run that gave nothing)."""
+    temp = run_dir is None
+    path = Path(tempfile.mkdtemp(prefix="scanreg-")) if temp else Path(run_dir)
+    path.mkdir(parents=True, exist_ok=True)
+    try:
+        yield path
+    except BaseException:
+        if temp:
+            shutil.rmtree(path, ignore_errors=True)
+        raise
+
+
 def register(source: Any, target: Any, *, gt: Any = None, landmarks: Any = None, overrides: Sequence[str] = (),
              tracking: bool = False, run_dir: str | Path | None = None, config_dirs: Sequence[str] = ()) -> Result:
     """Register ``source`` to ``target`` with the default pipeline (or as ``overrides`` say) and return the
@@ -103,37 +121,36 @@ def register(source: Any, target: Any, *, gt: Any = None, landmarks: Any = None,
     Raises :class:`scanreg.errors.ScanregError` (``InputError``, ``ConfigError``, ``StageError``) with the same
     one-line messages the CLI prints.
     """
-    run_dir = Path(run_dir) if run_dir is not None else Path(tempfile.mkdtemp(prefix="scanreg-"))
-    run_dir.mkdir(parents=True, exist_ok=True)
-    folder = run_dir / "inputs"
-    ovs = [f"data.source={_quote(_as_input(source, 'source', folder))}",
-           f"data.target={_quote(_as_input(target, 'target', folder))}"]
-    if gt is not None:
-        if isinstance(gt, (str, Path)):
-            ovs.append(f"data.gt={_quote(str(gt))}")
-        else:
-            T = np.asarray(gt, dtype=np.float64)
-            if T.shape != (4, 4):
-                raise InputError(f"gt: expected a 4x4 transform, got shape {T.shape}")
-            folder.mkdir(parents=True, exist_ok=True)
-            np.savetxt(folder / "gt.txt", T)
-            ovs.append(f"data.gt={_quote(str(folder / 'gt.txt'))}")
-    if landmarks is not None:
-        if isinstance(landmarks, (str, Path)):
-            ovs.append(f"data.landmarks={_quote(str(landmarks))}")
-        else:
-            L = np.asarray(landmarks, dtype=np.float64)
-            if L.ndim != 2 or L.shape[1] != 6:
-                raise InputError(f"landmarks: expected rows of 6 numbers (target x y z, source x y z), got {L.shape}")
-            folder.mkdir(parents=True, exist_ok=True)
-            np.savetxt(folder / "landmarks.csv", L, delimiter=",")
-            ovs.append(f"data.landmarks={_quote(str(folder / 'landmarks.csv'))}")
-    user = list(overrides)
-    if not tracking and not any(o.split("=")[0].lstrip("+") == "tracking" for o in user):
-        user.append("tracking=none")
-    # data=files unless the caller chose otherwise; the inputs go last so that they win
-    cfg = compose(["data=files", *user, *ovs], config_dirs=config_dirs)
-    return run_config(cfg, run_dir, tracking, user)
+    with _run_folder(run_dir) as run_dir:
+        folder = run_dir / "inputs"
+        ovs = [f"data.source={_quote(_as_input(source, 'source', folder))}",
+               f"data.target={_quote(_as_input(target, 'target', folder))}"]
+        if gt is not None:
+            if isinstance(gt, (str, Path)):
+                ovs.append(f"data.gt={_quote(str(gt))}")
+            else:
+                T = np.asarray(gt, dtype=np.float64)
+                if T.shape != (4, 4):
+                    raise InputError(f"gt: expected a 4x4 transform, got shape {T.shape}")
+                folder.mkdir(parents=True, exist_ok=True)
+                np.savetxt(folder / "gt.txt", T)
+                ovs.append(f"data.gt={_quote(str(folder / 'gt.txt'))}")
+        if landmarks is not None:
+            if isinstance(landmarks, (str, Path)):
+                ovs.append(f"data.landmarks={_quote(str(landmarks))}")
+            else:
+                L = np.asarray(landmarks, dtype=np.float64)
+                if L.ndim != 2 or L.shape[1] != 6:
+                    raise InputError(f"landmarks: expected rows of 6 numbers (target x y z, source x y z), got {L.shape}")
+                folder.mkdir(parents=True, exist_ok=True)
+                np.savetxt(folder / "landmarks.csv", L, delimiter=",")
+                ovs.append(f"data.landmarks={_quote(str(folder / 'landmarks.csv'))}")
+        user = list(overrides)
+        if not tracking and not any(o.split("=")[0].lstrip("+") == "tracking" for o in user):
+            user.append("tracking=none")
+        # data=files unless the caller chose otherwise; the inputs go last so that they win
+        cfg = compose(["data=files", *user, *ovs], config_dirs=config_dirs)
+        return run_config(cfg, run_dir, tracking, user)
 
 
 def reconstruct(scans: Any, *, poses: Any = None, overrides: Sequence[str] = (), tracking: bool = False,
@@ -148,33 +165,32 @@ def reconstruct(scans: Any, *, poses: Any = None, overrides: Sequence[str] = (),
       arrays (one per scan, ``T_world_scan`` in any common frame);
     - ``overrides``, ``tracking``, ``run_dir``, ``config_dirs``: as for :func:`register`.
     """
-    run_dir = Path(run_dir) if run_dir is not None else Path(tempfile.mkdtemp(prefix="scanreg-"))
-    run_dir.mkdir(parents=True, exist_ok=True)
-    folder = run_dir / "inputs"
-    items = [scans] if isinstance(scans, (str, Path)) else list(scans)
-    paths = [_as_input(obj, f"scan{k:03d}", folder) for k, obj in enumerate(items)]
-    ovs = ["data=scanset", "data.scans=[" + ",".join(_quote(p) for p in paths) + "]"]
-    if poses is not None:
-        if isinstance(poses, (str, Path)):
-            ovs.append(f"data.poses={_quote(str(poses))}")
-        else:
-            Ts = [np.asarray(T, dtype=np.float64) for T in poses]
-            if len(Ts) != len(paths) or any(T.shape != (4, 4) for T in Ts):
-                raise InputError(f"poses: expected one 4x4 transform per scan ({len(paths)}), got "
-                                 f"{[T.shape for T in Ts]}")
-            (folder / "poses").mkdir(parents=True, exist_ok=True)
-            for path, T in zip(paths, Ts):
-                np.savetxt(folder / "poses" / f"{Path(path).stem}.txt", T)
-            ovs.append(f"data.poses={_quote(str(folder / 'poses'))}")
-    user = list(overrides)
-    if not tracking and not any(o.split("=")[0].lstrip("+") == "tracking" for o in user):
-        user.append("tracking=none")
-    cfg = compose([*user, *ovs], config_dirs=config_dirs)
-    res = run_config(cfg, run_dir, tracking, user)
-    reg = res.scanset
-    if reg is None:
-        raise InputError("reconstruct: the run registered no scan set")
-    return Reconstruction({n: T for n, T in zip(reg.names, reg.poses) if T is not None}, reg.merged, reg.surface,
+    with _run_folder(run_dir) as run_dir:
+        folder = run_dir / "inputs"
+        items = [scans] if isinstance(scans, (str, Path)) else list(scans)
+        paths = [_as_input(obj, f"scan{k:03d}", folder) for k, obj in enumerate(items)]
+        ovs = ["data=scanset", "data.scans=[" + ",".join(_quote(p) for p in paths) + "]"]
+        if poses is not None:
+            if isinstance(poses, (str, Path)):
+                ovs.append(f"data.poses={_quote(str(poses))}")
+            else:
+                Ts = [np.asarray(T, dtype=np.float64) for T in poses]
+                if len(Ts) != len(paths) or any(T.shape != (4, 4) for T in Ts):
+                    raise InputError(f"poses: expected one 4x4 transform per scan ({len(paths)}), got "
+                                     f"{[T.shape for T in Ts]}")
+                (folder / "poses").mkdir(parents=True, exist_ok=True)
+                for path, T in zip(paths, Ts):
+                    np.savetxt(folder / "poses" / f"{Path(path).stem}.txt", T)
+                ovs.append(f"data.poses={_quote(str(folder / 'poses'))}")
+        user = list(overrides)
+        if not tracking and not any(o.split("=")[0].lstrip("+") == "tracking" for o in user):
+            user.append("tracking=none")
+        cfg = compose([*user, *ovs], config_dirs=config_dirs)
+        res = run_config(cfg, run_dir, tracking, user)
+        reg = res.scanset
+        if reg is None:
+            raise InputError("reconstruct: the run registered no scan set")
+        return Reconstruction({n: T for n, T in zip(reg.names, reg.poses) if T is not None}, reg.merged, reg.surface,
                           res.metrics, reg.unplaced(), [[reg.names[k] for k in g] for g in reg.groups if g],
                           run_dir, res.artifacts, res.run_id)
 

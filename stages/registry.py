@@ -59,6 +59,13 @@ class Registry:
             if missing:
                 raise TypeError(f"{self.family} '{name}' ({cls.__name__}) lacks {', '.join(missing)} "
                                 f"(see scanreg.stages.protocols.{self.protocol.__name__})")
+            short = [m for m in _protocol_methods(self.protocol) if _takes_fewer(getattr(cls, m),
+                                                                                  getattr(self.protocol, m))]
+            if short:  # the pipeline calls them with every parameter of the protocol, by position
+                m = short[0]
+                raise TypeError(f"{self.family} '{name}' ({cls.__name__}): {m}{_signature(getattr(cls, m))} takes "
+                                f"fewer parameters than {m}{_signature(getattr(self.protocol, m))} of "
+                                f"scanreg.stages.protocols.{self.protocol.__name__}")
             cls.name = name
             cls.family = self.family
             self._classes[name] = cls
@@ -99,6 +106,33 @@ class Registry:
         """The stage ``cfg`` names, built with its validated ``Params`` (and ``helpers``: built stages it uses)."""
         cls, params = self.params(cfg)
         return cls(params, **helpers)
+
+
+def _signature(fn) -> str:
+    import inspect
+
+    try:
+        return str(inspect.signature(fn)).replace("self, ", "").replace("(self)", "()")
+    except (TypeError, ValueError):
+        return "(...)"
+
+
+def _takes_fewer(fn, proto) -> bool:
+    """Whether ``fn`` cannot take every positional parameter of the protocol's method ``proto`` (no
+    ``*args``)."""
+    import inspect
+
+    def positional(f):
+        try:
+            ps = inspect.signature(f).parameters.values()
+        except (TypeError, ValueError):
+            return None
+        if any(p.kind == p.VAR_POSITIONAL for p in ps):
+            return None
+        return sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) for p in ps)
+
+    have, need = positional(fn), positional(proto)
+    return have is not None and need is not None and have < need
 
 
 def _protocol_methods(protocol: type | None) -> list[str]:
@@ -229,9 +263,18 @@ def load_all() -> None:
                           "(pip install -e . or a wheel)?")
     plugin_dirs = []
     for ep in eps:
-        module = importlib.import_module(ep.value)
-        if not ep.value.startswith("scanreg."):
-            plugin_dirs.append(Path(module.__file__).parent / "conf")
+        if ep.value.startswith("scanreg."):
+            importlib.import_module(ep.value)
+            continue
+        try:  # a plugin that fails to load (a stage that does not meet its protocol) costs its own stages only
+            module = importlib.import_module(ep.value)
+        except Exception as e:  # noqa: BLE001
+            from scanreg.errors import one_line, warn
+
+            warn(f"stage plugin {ep.value} (entry point '{ep.name}') not loaded, its stages unavailable: "
+                 f"{one_line(e, 300)}")
+            continue
+        plugin_dirs.append(Path(module.__file__).parent / "conf")
     _store_group_entries(plugin_dirs)
     _loaded = True
 

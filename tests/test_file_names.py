@@ -53,6 +53,9 @@ def test_positional_files_become_quoted_overrides(tmp_path, monkeypatch):
     assert split_files(["missing.ply", "other.ply"])[0] == ["missing.ply", "other.ply"]
     with pytest.raises(ConfigError, match=r"one scan given \(b c.ply\)"):
         with_files(["b c.ply"])
+    # one file by position, the other named as an override (quoted for its characters): the file is the other
+    assert with_files(["data.source='scan (1).stl'", "ct.stl"]) == ["data.source='scan (1).stl'", "data.target='ct.stl'"]
+    assert with_files(["a.ply", "data.target=b.ply"]) == ["data.target=b.ply", "data.source='a.ply'"]
     # the files and an override that names them too, or a data provider that picks its own scans: one line
     with pytest.raises(ConfigError, match=r"^data.source is given twice: by the scan files on the command line and "
                                           r"by data.source=c.ply; give one$"):

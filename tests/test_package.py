@@ -125,3 +125,25 @@ def test_installed_wheel_runs_from_another_directory(wheel, tmp_path):
 def test_example_script_runs(tmp_path):
     r = run([sys.executable, str(ROOT / "examples" / "register_arrays.py")], tmp_path)
     assert "rotation error" in r.stdout
+
+
+def test_the_api_lists_its_names_and_removes_the_folder_of_a_failed_call(tmp_path, monkeypatch):
+    """dir(scanreg) shows the API though it loads lazily; a call that fails on bad input removes the temporary
+    folder it made (a loop over many inputs filled /tmp), and keeps a run_dir it was given."""
+    import numpy as np
+    import pytest
+    import scanreg
+    from scanreg.errors import InputError
+
+    assert {"register", "reconstruct", "compose", "build_stage", "run_config"} <= set(dir(scanreg))
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", None)  # (TMPDIR read again)
+    bad = np.full((100, 3), np.nan)
+    with pytest.raises(InputError):
+        scanreg.register(bad, bad)
+    assert not list(tmp_path.glob("scanreg-*"))
+    with pytest.raises(InputError):
+        scanreg.register(bad, bad, run_dir=tmp_path / "mine")
+    assert (tmp_path / "mine").is_dir()

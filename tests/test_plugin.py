@@ -45,3 +45,45 @@ def test_without_the_plugin_the_name_is_unknown(tmp_path):
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [r.stderr.strip().splitlines()[-1]]
     assert "unknown salience 'surface_variation'; valid salience choices:" in r.stderr and "cn_l3" in r.stderr
+
+
+def _plugin(root: Path, name: str, code: str) -> Path:
+    """A one-module plugin package ``name`` with its entry point, under ``root`` (as tests/plugin_example)."""
+    (root / name).mkdir(parents=True)
+    (root / name / "__init__.py").write_text(code)
+    info = root / f"{name}-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(f"[scanreg.stages]\n{name} = {name}\n")
+    return root
+
+
+def test_a_plugin_that_does_not_meet_its_protocol_costs_its_own_stages_only(tmp_path):
+    """A coarse stage with ``align`` alone (no ``describe_set``), and an ICP stage whose ``refine`` takes fewer
+    parameters than the protocol's (the pipeline passes them all by position): each plugin is named in one
+    warning line, with what it lacks, and every other command works (a plugin that failed to load made every
+    ``scanreg`` command a traceback; the short signature failed at run time as an internal error)."""
+    root = _plugin(tmp_path / "plugins", "my_coarse", (
+        "from dataclasses import dataclass\nfrom scanreg.stages.registry import COARSE\n\n"
+        "@COARSE.register('centroid')\nclass Centroid:\n    uses = ()\n\n    @dataclass\n    class Params:\n"
+        "        pass\n\n    def __init__(self, p):\n        self.p = p\n\n"
+        "    def align(self, target, source, spacing, ctx, landmarks=None):\n        raise NotImplementedError\n"))
+    _plugin(root, "my_icp", (
+        "from scanreg.stages.icp.point import Horn\nfrom scanreg.stages.registry import ICP\n\n"
+        "@ICP.register('my_icp')\nclass MyIcp(Horn):\n"
+        "    def refine(self, target, source, T_init, spacing, ctx, target_mesh=None):\n"
+        "        return super().refine(target, source, T_init, spacing, ctx, target_mesh)\n"))
+    env = dict(os.environ, PYTHONPATH=str(root))
+    env.pop("SCANREG_SWEEP", None)
+    r = subprocess.run([sys.executable, "-m", "scanreg.app", "data=synthetic", "sampler.n_points=3000", "tracking=none",
+                        "evaluate.view_html=false", "hydra.run.dir=out"], cwd=tmp_path, env=env, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0 and "Traceback" not in r.stderr + r.stdout, r.stderr
+    warned = [ln for ln in r.stdout.splitlines() if ln.startswith("warning: stage plugin")]
+    assert len(warned) == 2, r.stdout
+    assert "my_coarse" in warned[0] and "lacks describe_set, align_described" in warned[0]
+    assert "my_icp" in warned[1] and "refine(target, source, T_init, spacing, ctx, target_mesh=None) takes fewer " \
+        "parameters than refine(" in warned[1] and "start_is_estimate" in warned[1]
+    r = subprocess.run([sys.executable, "-m", "scanreg.app", "data=synthetic", "icp=my_icp"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "unknown icp 'my_icp'" in r.stderr and len(r.stderr.strip().splitlines()) == 1

@@ -123,6 +123,10 @@ def file_overrides(files: list[str], overrides: list[str], config_dirs: list[str
         scans = quote_value(files[0]) if len(files) == 1 else "[" + ",".join(quote_value(f) for f in files) + "]"
         return _no_clash(([] if scanset else ["data=scanset"]) + [f"data.scans={scans}"], overrides)
     if len(files) == 1:
+        given = {o.partition("=")[0].lstrip("+") for o in overrides} & {"data.source", "data.target"}
+        if not scanset and len(given) == 1:  # the other one named as an override (quoted for its characters)
+            role = "target" if "data.source" in given else "source"
+            return [f"data.{role}={quote_value(files[0])}"]
         raise ConfigError(f"one scan given ({files[0]}): give the source and the target (scanreg SOURCE TARGET), "
                           "or a folder or three or more scans to register into one model")
     raise ConfigError(f"a folder among two scans ({', '.join(files)}): give two files (SOURCE TARGET), or one "
