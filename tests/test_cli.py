@@ -149,8 +149,9 @@ def test_bad_input_one_line_error_and_failed_run(tmp_path, mlflow_uri, case):
     import mlflow
 
     exp = mlflow.MlflowClient(mlflow_uri).get_experiment_by_name(f"bad_{case}")
-    if case in CONFIG_CASES:  # a typo adds no run to MLflow
+    if case in CONFIG_CASES:  # a typo adds no run to MLflow, and leaves no run folder
         assert exp is None or mlflow.MlflowClient(mlflow_uri).search_runs([exp.experiment_id]) == []
+        assert not (tmp_path / "out").exists()
         return
     df = runs(mlflow_uri, f"bad_{case}")
     assert list(df["status"]) == ["FAILED"]

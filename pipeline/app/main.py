@@ -81,6 +81,7 @@ def run_job(cfg: DictConfig) -> dict | float | None:
         problem = e
     if problem is not None and not multirun:  # no run is created for a single run's config error
         _err(str(problem))
+        _unmake_run_dir(run_dir)
         raise SystemExit(EXIT_USAGE if isinstance(problem, ConfigError) else EXIT_FAILED)
     if problem is not None:  # a sweep files it as a failed job
         from scanreg.app.tracking import TRACKING
@@ -145,6 +146,21 @@ def _log(tracker, record, multirun: bool, children=()) -> str | None:
             report_progress("FAILED", msg)
             return None
         raise SystemExit(EXIT_FAILED)
+
+
+def _unmake_run_dir(run_dir: Path) -> None:
+    """Remove what Hydra made for a run that a configuration error stopped before it began (``.hydra/`` and an
+    empty ``main.log``), and the folder when nothing else is in it: a run that never ran leaves no folder."""
+    import shutil
+
+    shutil.rmtree(run_dir / ".hydra", ignore_errors=True)
+    log = run_dir / "main.log"
+    try:
+        if log.is_file() and log.stat().st_size == 0:
+            log.unlink()
+        run_dir.rmdir()  # only when empty
+    except OSError:
+        pass
 
 
 def _failed(e: BaseException, cfg: DictConfig, tracker, record, run_dir: Path, multirun: bool):
