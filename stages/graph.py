@@ -20,7 +20,8 @@ def _graph_edges(edges: list[ViewEdge]) -> list[Edge]:
 @GRAPH.register("robust")
 class RobustGraph:
     """Least squares over the verified edges with Cauchy's robust kernel (Gauss-Newton on the poses, the first
-    scan fixed), started from the maximum spanning tree of the edges' fitness; then the edge that disagrees most
+    scan fixed, the kernel's scale from a plain least-squares solve), started from the maximum spanning tree of
+    the edges' fitness; then the edge that disagrees most
     with the optimised poses, beyond ``max_rotation_deg`` or ``max_translation``, is rejected as inconsistent with
     the loops it closes, and the graph solved again, until every edge agrees. Scans no accepted edge connects to
     the first scan are not placed."""
@@ -83,10 +84,13 @@ class RobustGraph:
         inside = [e for e in live if e.i in index and e.j in index]
         sub = [Edge(index[e.i], index[e.j], e.T_i_j, e.information, e.centre) for e in inside]
         initial, _ = spanning_tree_poses(len(group), sub, np.array([e.fitness for e in inside]), index[anchor])
+        # the least-squares solution sets the kernel's scale (the typical edge's error); the robust solve starts
+        # from the tree, where a scan's strongest pair places it: several weak wrong pairs that outvote it are
+        # then the outliers, where from the least-squares solution (which follows the majority) the right pair was
         first = optimize_pose_graph(len(group), sub, initial, index[anchor], None, self.p.iterations)
         s = np.array([float(r @ e.information @ r) for r, e in zip(first.errors, sub)])
         k = self.p.kernel_scale * np.sqrt(max(float(np.median(s)), 1e-300))
-        sol = optimize_pose_graph(len(group), sub, first.poses, index[anchor], k, self.p.iterations)
+        sol = optimize_pose_graph(len(group), sub, initial, index[anchor], k, self.p.iterations)
         for m, node in enumerate(group):
             poses[node] = sol.poses[m]
         return poses, first.iterations + sol.iterations

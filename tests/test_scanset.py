@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from conftest import run_cli, runs, shared
 from scanreg.geometry import (
     ClosestPoints,
@@ -72,6 +73,29 @@ def test_robust_graph_recovers_the_poses_and_prunes_a_false_edge():
     assert not edges[4].accepted and "inconsistent" in edges[4].reason and m["graph_edges_pruned"] == 1
     rot, _ = cycle_errors(poses, [Edge(e.i, e.j, e.T_i_j, e.information) for e in edges if e.accepted])
     assert rot.max() < 0.2
+
+
+def test_robust_graph_keeps_a_scans_strong_pair_against_weak_ones_that_outvote_it():
+    """A scan whose one right pair (fitness 0.42) is outvoted by four weak wrong ones (fitness 0.13-0.23) that
+    place it 170 deg off, several degrees apart from one another (10 raw Stanford scans as clouds: bun270 went 174
+    deg off): the robust solve starts from the maximum spanning tree of the fitness, where the weak pairs are the
+    outliers, so they are the ones pruned and the scan is placed right (from the least-squares solution, which
+    follows the majority, the right pair was pruned first: 170 deg on this graph)."""
+    from scanreg.api import build_stage
+
+    rng = np.random.default_rng(0)
+    truth = [np.eye(4)] + [random_pose(rng, 180.0, 2.0) for _ in range(8)]
+    edges = [_edge(i, j, random_pose(rng, 0.05, 0.001) @ invert_T(truth[i]) @ truth[j])
+             for i in range(8) for j in range(i + 1, min(i + 4, 8))]  # 8 scans, each paired with the next 3
+    right = len(edges)
+    edges.append(_edge(1, 8, random_pose(rng, 0.05, 0.001) @ invert_T(truth[1]) @ truth[8], fitness=0.42))
+    flip = np.eye(4)
+    flip[:3, :3] = Rotation.from_rotvec(np.radians(170) * np.array([0.0, 0.0, 1.0])).as_matrix()
+    for i, f in zip((0, 2, 3, 4), (0.13, 0.17, 0.2, 0.23)):  # each 6 deg from the wrong pose, at random
+        edges.append(_edge(i, 8, random_pose(rng, 6.0, 0.01) @ invert_T(truth[i]) @ truth[8] @ flip, fitness=f))
+    poses, m = build_stage("graph", "robust").solve(9, edges, 0.01, 4.0, 0, RunContext())
+    assert max(errors_deg(poses, truth)) < 0.1 and edges[right].accepted  # measured: 0.07 deg
+    assert not any(e.accepted for e in edges[right + 1:]) and m["graph_edges_pruned"] == 4
 
 
 def test_joint_refinement_removes_a_small_misalignment(views):
