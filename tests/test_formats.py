@@ -181,6 +181,24 @@ def test_nan_normals_drop_their_points(tmp_path):
     assert dropped == 15 and g.n_points == 285 and np.allclose(g.normals, n[15:])
 
 
+def test_zero_normals_drop_their_points_not_every_normal(tmp_path, capsys):
+    """A few zero normals (a mesh's vertices that no face uses, exported with its vertex normals): those points
+    go, with a warning, and the others keep their normals (every normal was dropped, silently: raw bun270 given so
+    registered 94 deg off, with its normals 0.2 deg); every normal zero (an exporter's placeholder): an unoriented
+    cloud, nothing dropped."""
+    rng = np.random.default_rng(2)
+    pts = rng.normal(size=(300, 3))
+    n = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    n[:4] = 0.0
+    np.save(tmp_path / "z.npy", np.hstack([pts, n]))
+    np.save(tmp_path / "all_zero.npy", np.hstack([pts, 0 * n]))
+    g, dropped = read_input(str(tmp_path / "z.npy"), "source")
+    assert dropped == 4 and g.n_points == 296 and np.allclose(g.normals, n[4:])
+    assert "dropped 4 point(s) with zero normals (of 300)" in capsys.readouterr().out
+    g, dropped = read_input(str(tmp_path / "all_zero.npy"), "source")
+    assert dropped == 0 and g.n_points == 300 and g.normals is None
+
+
 def test_mesh_nan_vertices_drop_their_faces(tmp_path):
     text = ("ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nproperty float y\nproperty float z\n"
             "element face 3\nproperty list uchar int vertex_indices\nend_header\n"

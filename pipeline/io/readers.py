@@ -122,13 +122,20 @@ def _drop_invalid_cloud(c: Cloud, label: str) -> tuple[Cloud, int]:
     if normals is not None and normals.shape != pts.shape:
         raise InputError(f"{label}: {len(normals)} normals for {len(pts)} points")
     good_n = np.ones(len(pts), bool) if normals is None else rows_all(np.isfinite(normals))
-    good = good_p & good_n
+    zero_n = np.zeros(len(pts), bool)
+    if normals is not None:
+        zero_n = good_n & (np.linalg.norm(np.where(good_n[:, None], normals, 1.0), axis=1) < 1e-12)
+        if zero_n[good_n].all():  # every normal zero (an exporter's placeholder): an unoriented cloud
+            normals, good_n, zero_n = None, np.ones(len(pts), bool), np.zeros(len(pts), bool)
+    # a few zero normals (vertices no face uses, pixels without a surface): those points go, not every normal
+    good = good_p & good_n & ~zero_n
     n, n_bad = len(pts), int((~good).sum())
-    parts = [f"{int((~good_p).sum())} point(s) with NaN or infinite coordinates"]
-    if normals is not None and (~good_n & good_p).any():
-        parts = parts[:1] if (~good_p).any() else []
+    parts = [f"{int((~good_p).sum())} point(s) with NaN or infinite coordinates"] if (~good_p).any() else []
+    if (~good_n & good_p).any():
         parts.append(f"{int((~good_n & good_p).sum())} point(s) with NaN or infinite normals")
-    what = " and ".join(parts)
+    if (zero_n & good_p).any():
+        parts.append(f"{int((zero_n & good_p).sum())} point(s) with zero normals")
+    what = " and ".join(parts) or "no point"
     if n_bad and good.sum() < MIN_VALID_POINTS:
         raise InputError(f"{label}: {what} (of {n}); {int(good.sum())} valid left, at least {MIN_VALID_POINTS} "
                          "are needed")
@@ -156,7 +163,7 @@ def _clean_normals(n: np.ndarray, label: str) -> np.ndarray | None:
         raise InputError(f"{label}: normals contain NaN or infinite values")
     norm = np.linalg.norm(n, axis=1)
     if (norm < 1e-12).any():
-        return None  # zero normals: treat the cloud as unoriented
+        return None  # (the readers drop points with zero normals first; here only as a guard)
     return n / norm[:, None]
 
 
