@@ -297,7 +297,7 @@ def test_quick_help_is_hydras_text(tmp_path):
 def test_a_value_an_interpolation_passes_on_is_named_by_its_key():
     """``seed=abc`` reaches the stages through ``${seed}``: one line naming the key and the type (it was
     OmegaConf's 'While dereferencing interpolation ...')."""
-    from scanreg.app.main import interpolation_error_line
+    from scanreg.app.config import interpolation_error_line
 
     cfg = compose(["seed=abc"])
     with pytest.raises(Exception) as e:

@@ -148,18 +148,43 @@ def config_error_line(e: BaseException) -> str:
     return (text + (f" ({' '.join(str(cause).split())})" if cause else ""))[:500]
 
 
-TOP_KEYS = ("seed", "verbose", "objective", "evaluate", "report", "multiview")
-"""The top-level keys of ``conf/config.yaml`` besides its config groups."""
+def _top_level_keys() -> list[str]:
+    """The keys at the top of a run's config, as ``conf/config.yaml`` makes them: its config groups (``data``,
+    ..., ``experiment``), its blocks (``_evaluate@evaluate``) and its own keys (``seed``, ...)."""
+    from omegaconf import OmegaConf
+
+    conf = OmegaConf.load(conf_dir() / "config.yaml")
+    keys = [str(k) for k in conf if k not in ("defaults", "hydra")]
+    for entry in conf.get("defaults", []):
+        if isinstance(entry, str):
+            keys += entry.split("@")[1:]  # a block: its package
+        else:
+            keys += [str(k) for k in entry]  # a group: its name
+    return keys
 
 
 def _did_you_mean(key: str) -> str:
-    """``: did you mean 'KEY'?`` when the first part of an unknown ``key`` is a near miss of a config group or a
-    top-level key (``smapler.n_points``: ``sampler.n_points``), else nothing."""
+    """``: did you mean 'KEY'?`` when the first part of an unknown ``key`` is a near miss of a key at the top of
+    the config (``smapler.n_points``: ``sampler.n_points``), else nothing."""
     import difflib
 
     head, dot, rest = key.partition(".")
-    near = difflib.get_close_matches(head, [*STAGE_GROUPS, *PRESET_GROUPS, *TOP_KEYS], n=1, cutoff=0.75)
+    near = difflib.get_close_matches(head, _top_level_keys(), n=1, cutoff=0.75)
     return f": did you mean '{near[0]}{dot}{rest}'?" if near and near[0] != head else ""
+
+
+def interpolation_error_line(e: BaseException) -> str:
+    """A config that does not resolve as one line: a value that an interpolation (``${seed}``) passes on and that
+    is not of the type it goes to, by the key the user sets (``seed=abc: expects an integer``); else OmegaConf's
+    first line."""
+    import re
+
+    text = " ".join(str(e).split())
+    m = re.search(r"interpolation '\$\{([\w.]+)\}': Value '([^']*)' of type '\w+' could not be converted to (\w+)", text)
+    if m:
+        key, value, kind = m.groups()
+        return f"{key}={value}: expects {'an' if kind[0] in 'AEIOU' else 'a'} {kind.lower()}"
+    return f"config: {e}".splitlines()[0]
 
 
 def _registry(family: str):

@@ -19,7 +19,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from scanreg.app.config import PRESET_GROUPS, STAGE_GROUPS, config_error_line, git_revision, register_schemas
+from scanreg.app.config import (PRESET_GROUPS, STAGE_GROUPS, config_error_line, git_revision, interpolation_error_line,
+                                register_schemas)
 from scanreg.errors import ConfigError, ScanregError
 from scanreg.stages.registry import CONF_PACKAGE
 
@@ -225,20 +226,6 @@ def _stdout_gone() -> None:
     """The reader of our output went away (``scanreg --help | head``): nothing to report, and no error from the
     interpreter's own flush at exit."""
     os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-
-
-def interpolation_error_line(e: BaseException) -> str:
-    """A config that does not resolve as one line: a value that an interpolation (``${seed}``) passes on and that
-    is not of the type it goes to, by the key the user sets (``seed=abc: expects an integer``); else OmegaConf's
-    first line."""
-    import re
-
-    text = " ".join(str(e).split())
-    m = re.search(r"interpolation '\$\{([\w.]+)\}': Value '([^']*)' of type '\w+' could not be converted to (\w+)", text)
-    if m:
-        key, value, kind = m.groups()
-        return f"{key}={value}: expects {'an' if kind[0] in 'AEIOU' else 'a'} {kind.lower()}"
-    return f"config: {e}".splitlines()[0]
 
 
 def main() -> None:

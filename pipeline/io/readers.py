@@ -157,14 +157,12 @@ def read_mesh(path: str | os.PathLike, what: str = "mesh") -> Mesh:
     return g
 
 
-def _clean_normals(n: np.ndarray, label: str) -> np.ndarray | None:
+def _clean_normals(n: np.ndarray, label: str) -> np.ndarray:
+    """Normals as unit vectors (the points with NaN or zero normals already dropped, :func:`_drop_invalid_cloud`)."""
     n = np.asarray(n, dtype=np.float64)
     if n.shape[1] != 3 or not np.isfinite(n).all():
         raise InputError(f"{label}: normals contain NaN or infinite values")
-    norm = np.linalg.norm(n, axis=1)
-    if (norm < 1e-12).any():
-        return None  # (the readers drop points with zero normals first; here only as a guard)
-    return n / norm[:, None]
+    return n / np.linalg.norm(n, axis=1)[:, None]
 
 
 def read_transform(path: str | os.PathLike, what: str = "transform") -> np.ndarray:
