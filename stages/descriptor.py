@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scanreg.geometry import Cloud, estimate_normals, neighbourhoods, to_o3d
+from scanreg.geometry import Cloud, estimate_normals, neighbourhoods, orient_normals, to_o3d
 from scanreg.stages.registry import DESCRIPTOR
 from scanreg.types import Distances, to_abs
 
@@ -26,6 +26,11 @@ class FPFH:
         support_voxel: float = 3.0
         """Voxel size of the support cloud the histograms are built from (see ``distances``); 0 uses every
         point of the cloud."""
+        orient_normals: bool = True
+        """For a cloud without normals: give the estimated normals consistent signs, on the outer side of the
+        surface (:func:`scanreg.geometry.orient_normals`), as FPFH needs the same side in both scans; false:
+        the signs the estimation leaves (arbitrary, as in Open3D's recipe). A cloud with normals has its
+        estimated normals turned to them either way."""
         distances: Distances = Distances.spacing
         """Unit of the distances above: multiples of the sampling spacing, or absolute input units."""
 
@@ -48,6 +53,8 @@ class FPFH:
                 np.vstack([np.asarray(support.normals), cloud.normals[keypoints]])
             )
         both.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=to_abs(self.p.normal_radius, u, s), max_nn=30))
+        if cloud.normals is None and self.p.orient_normals:  # no sign to follow (see orient_normals)
+            both.normals = o3d.utility.Vector3dVector(orient_normals(np.asarray(both.points), np.asarray(both.normals)))
         # histograms at the keypoints only (Open3D >= 0.19 computes the SPFH of their neighbourhoods alone):
         # the same values as over the whole support cloud, in about a third of the time
         n_support = len(support.points)
@@ -124,6 +131,11 @@ class Histogram3P:
         """Radius within which a neighbour's local density is counted (see ``distances``)."""
         max_neighbors: int = 256
         """At most this many (nearest) neighbours vote."""
+        orient_normals: bool = True
+        """For a cloud without normals: give the estimated normals consistent signs, on the outer side of the
+        surface (:func:`scanreg.geometry.orient_normals`), and describe the cloud as one with those normals (the
+        frames' z along them); false: the signs the estimation leaves, and the frames' z by the neighbours'
+        offsets."""
         distances: Distances = Distances.spacing
         """Unit of the radii: multiples of the sampling spacing, or input units."""
 
@@ -137,6 +149,9 @@ class Histogram3P:
         R = to_abs(p.radius, u, s)
         pts = cloud.points
         nrm = cloud.normals if cloud.normals is not None else estimate_normals(pts)
+        if cloud.normals is None and p.orient_normals:
+            cloud = Cloud(pts, orient_normals(pts, nrm), cloud.source)
+            nrm = cloud.normals
         # One k-d tree for both searches. scipy's cKDTree returns the same neighbours, distances and order as
         # :func:`scanreg.geometry.neighbourhoods` (pykdtree), and faster at 256 neighbours; only where
         # neighbours lie at exactly equal distances (grids, not scans) may their order, and which of them the

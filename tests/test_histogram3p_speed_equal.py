@@ -97,10 +97,18 @@ def test_histogram3p_equals_the_previous_implementation_on_a_bunny_scan(bunny, p
 
 
 def test_histogram3p_equals_the_previous_implementation_without_normals(bunny):
+    """A cloud without normals: with ``orient_normals=false`` as before; by default as the cloud with its
+    estimated normals oriented (:func:`scanreg.geometry.orient_normals`)."""
+    from scanreg.geometry import estimate_normals, orient_normals
+
     *_, thin, kp, cc = bunny
     bare = Cloud(thin.points)
-    st = DESCRIPTOR.build({"name": "histogram3p"})
+    st = DESCRIPTOR.build({"name": "histogram3p", "orient_normals": False})
     got, want = st.compute(bare, kp[:100], cc), reference_histogram3p(st.p, bare, kp[:100], cc)
+    assert np.count_nonzero(want) > 0.3 * want.size and np.abs(got - want).max() < 1e-12
+    st = DESCRIPTOR.build({"name": "histogram3p"})
+    oriented = Cloud(thin.points, orient_normals(thin.points, estimate_normals(thin.points)))
+    got, want = st.compute(bare, kp[:100], cc), reference_histogram3p(st.p, oriented, kp[:100], cc)
     assert np.count_nonzero(want) > 0.3 * want.size and np.abs(got - want).max() < 1e-12
 
 

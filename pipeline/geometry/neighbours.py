@@ -68,6 +68,80 @@ def estimate_normals(points: np.ndarray, k: int = 20) -> np.ndarray:
     return np.asarray(pc.normals).copy()
 
 
+def orient_normals(points: np.ndarray, normals: np.ndarray, k: int = 10) -> np.ndarray:
+    """``normals`` (unit, signs arbitrary, as :func:`estimate_normals` gives them) with consistent signs: each
+    sign propagated from one seed along the minimum spanning tree of the ``k``-nearest-neighbour graph weighted
+    by ``1 - |n_i . n_j|`` (Hoppe et al. 1992: the flattest paths first, so that a sign crosses a sharp fold
+    last; parts of the cloud the graph leaves apart, such as an ear beside a head, joined across their gaps,
+    :func:`_joined`), then all of them turned so that they point away from the cloud's centroid on balance (the
+    sum of ``n . (p - centroid)`` positive), as the outer surface of an object seen from outside does. A
+    function of the points' positions (not of their pose), so that two scans of one object get normals on the
+    same side of its surface, which sign-sensitive descriptors (FPFH) need."""
+    from pykdtree.kdtree import KDTree
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+
+    n = len(points)
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    normals = np.array(normals, dtype=np.float64)
+    if n < 2:
+        return normals
+    kk = min(k + 1, n)
+    _, j = KDTree(points).query(points, k=kk)
+    rows, cols = np.repeat(np.arange(n), kk - 1), j.reshape(n, kk)[:, 1:].astype(np.int64).ravel()
+    rows, cols = _joined(points, normals, rows[cols != rows], cols[cols != rows])
+    # weights > 0 (a zero weight is no edge to scipy): parallel normals cost a tiny constant
+    w = 1.0 - np.abs(np.einsum("ij,ij->i", normals[rows], normals[cols])) + 1e-9
+    g = coo_matrix((w, (rows, cols)), shape=(n, n)).tocsr()
+    tree = minimum_spanning_tree(g.maximum(g.T))
+    parent = breadth_first_order(tree + tree.T, 0, directed=False)[1]
+    parent[0] = 0
+    # a point's sign flips against its parent's where their normals disagree; its flip against the seed is the
+    # parity of the flips on its path, summed by pointer jumping (about log2 of the tree's depth steps)
+    flip = np.einsum("ij,ij->i", normals, normals[parent]) < 0
+    for _ in range(int(np.ceil(np.log2(n))) + 1):
+        flip = flip ^ flip[parent]
+        parent = parent[parent]
+    out = np.where(flip[:, None], -normals, normals)
+    return -out if float(np.einsum("ij,ij->", out, points - points.mean(axis=0))) < 0 else out
+
+
+def _joined(points: np.ndarray, normals: np.ndarray, rows: np.ndarray,
+            cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The graph's edges ``rows -> cols`` and, while it falls apart in several parts, one edge from each part to
+    another (Boruvka's step: the parts at least halve each round): of the part's points at most twice the
+    shortest gap from another part, the one whose edge to its nearest point there carries a sign the surest,
+    its two normals the most nearly parallel and the edge the most nearly in both tangent planes (the surface
+    continued across the gap; not two sheets stacked, such as an ear's two sides, whose normals are parallel
+    too but whose sides are opposite)."""
+    from pykdtree.kdtree import KDTree
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(points)
+    while True:
+        n_parts, part = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)),
+                                             directed=False)
+        if n_parts == 1:
+            return rows, cols
+        extra = []
+        for c in range(n_parts):
+            inside = np.flatnonzero(part == c)
+            outside = np.flatnonzero(part != c)
+            d, j = KDTree(points[outside]).query(points[inside], k=1)
+            near = np.flatnonzero(d <= 2 * d.min())
+            a, b = inside[near], outside[j[near]]
+            gap = points[b] - points[a]
+            gap /= np.maximum(np.linalg.norm(gap, axis=1, keepdims=True), np.finfo(float).tiny)
+            parallel = np.abs(np.einsum("ij,ij->i", normals[a], normals[b]))
+            across = np.maximum(np.abs(np.einsum("ij,ij->i", normals[a], gap)),
+                                np.abs(np.einsum("ij,ij->i", normals[b], gap)))
+            best = near[np.argmax(parallel * (1.0 - across))]
+            extra.append((inside[best], outside[int(j[best])]))
+        e = np.array(extra, dtype=np.int64)
+        rows, cols = np.concatenate([rows, e[:, 0]]), np.concatenate([cols, e[:, 1]])
+
+
 def estimate_spacing(points: np.ndarray, rng: np.random.Generator, n: int = 5000) -> float:
     """Median distance from a point to its nearest other point (over a seeded subset of at most ``n``)."""
     from pykdtree.kdtree import KDTree  # the distances SciPy's tree gives, from a tree quicker to build
