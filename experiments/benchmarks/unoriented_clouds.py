@@ -129,9 +129,12 @@ def main() -> None:
 
     commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True,
                             cwd=ROOT).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                           text=True, cwd=ROOT).stdout.strip()
+    commit += " with changes in the working tree" if dirty else ""
     lines = ["# Point clouds without normals: oriented estimated normals (`descriptor.orient_normals`)", "",
-             f"`experiments/benchmarks/unoriented_clouds.py` (cases and methods: its module doc), commit {commit} "
-             f"with the working tree, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, 2 cores, wall time "
+             f"`experiments/benchmarks/unoriented_clouds.py` (cases and methods: its module doc), commit {commit}, "
+             f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, 2 cores, wall time "
              f"{wall:.0f} s.", "",
              "| case | method | success | rotation error [deg] | coarse [s] |", "|---|---|---|---|---|"]
     for group in ("bunny_xyz", "3dmatch"):
