@@ -54,7 +54,8 @@ class FPFH:
             )
         both.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=to_abs(self.p.normal_radius, u, s), max_nn=30))
         if cloud.normals is None and self.p.orient_normals:  # no sign to follow (see orient_normals)
-            both.normals = o3d.utility.Vector3dVector(orient_normals(np.asarray(both.points), np.asarray(both.normals)))
+            oriented = orient_normals(np.asarray(both.points), np.asarray(both.normals))
+            both.normals = o3d.utility.Vector3dVector(oriented)
         # histograms at the keypoints only (Open3D >= 0.19 computes the SPFH of their neighbourhoods alone):
         # the same values as over the whole support cloud, in about a third of the time
         n_support = len(support.points)
