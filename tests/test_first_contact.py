@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
+from scanreg.errors import InputError
 from scanreg.geometry import Cloud, barycentric_sample, random_pose, transform_errors
 from scanreg.io import read_mesh, write_ply, write_transform
 from scanreg.stages.data.files import check_pair
@@ -58,3 +59,21 @@ def test_source_in_mm_target_in_m(tmp_path):
     rot, trans = transform_errors(np.array(res["T_target_source"]), T)
     # measured: 0.0027 deg and 0.00054 (target units); a scale fix applied to the translation too fails
     assert res["success"] == 1 and rot < 0.01 and trans < 0.0016, (rot, trans)
+
+
+def test_a_scan_set_with_one_scan_in_other_units_stops_with_one_line(tmp_path):
+    """Four scans in metres and one in millimetres: before any registration, one line naming the scan and the
+    factor (it ran two minutes and placed 1 of 5 scans, the metre scans reported as overlapping no other)."""
+    from scanreg.stages.data.scanset import check_sizes
+
+    rng = np.random.default_rng(0)
+    scans = [Cloud(rng.uniform(0, 0.2, (200, 3)) * (1 + 0.1 * k), source=f"s{k}.xyz") for k in range(5)]
+    check_sizes(scans, 10.0)  # within the ratio: no error
+    scans[3] = Cloud(scans[3].points * 1000, source="s3.xyz")
+    with pytest.raises(InputError, match=r"scan s3.xyz is .* across .* likely mm vs m; multiply its coordinates "
+                                         r"by 0.001"):
+        check_sizes(scans, 10.0)
+    check_sizes(scans, None)  # off
+    scans[3] = Cloud(scans[3].points / 1e6, source="s3.xyz")  # one in km: multiply by 1000
+    with pytest.raises(InputError, match=r"multiply its coordinates by 1000 "):
+        check_sizes(scans, 10.0)

@@ -199,6 +199,23 @@ def test_zero_normals_drop_their_points_not_every_normal(tmp_path, capsys):
     assert dropped == 0 and g.n_points == 300 and g.normals is None
 
 
+def test_many_missing_normals_drop_the_normals_not_the_points(tmp_path, capsys):
+    """A third of the points without a normal (zero): every point kept, the cloud read as one without normals
+    (a third of a scan was dropped for it); up to 5 % still drop their points."""
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(300, 3))
+    n = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    n[:100] = 0.0
+    np.save(tmp_path / "third.npy", np.hstack([pts, n]))
+    g, dropped = read_input(str(tmp_path / "third.npy"), "source")
+    assert dropped == 0 and g.n_points == 300 and g.normals is None
+    assert "100 of 300 point(s) have zero, NaN or infinite normals: the normals are ignored" in capsys.readouterr().out
+    n[15:100] = pts[15:100] / np.linalg.norm(pts[15:100], axis=1, keepdims=True)  # 15 of 300: 5 %
+    np.save(tmp_path / "few.npy", np.hstack([pts, n]))
+    g, dropped = read_input(str(tmp_path / "few.npy"), "source")
+    assert dropped == 15 and g.normals is not None
+
+
 def test_mesh_nan_vertices_drop_their_faces(tmp_path):
     text = ("ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nproperty float y\nproperty float z\n"
             "element face 3\nproperty list uchar int vertex_indices\nend_header\n"
@@ -230,6 +247,40 @@ def test_columns_detected_from_values():
     }
     for expect, arr in cases.items():
         assert " ".join(detect_columns(arr, "t")) == expect
+
+
+def test_columns_guessed_from_values_are_said(tmp_path, capsys):
+    """Colours detected from the values (which an intensity column can mimic) come with a note naming the
+    columns; all-zero columns 4-6 are neither normals nor black colours: ignored, with a note."""
+    rng = np.random.default_rng(4)
+    xyz = rng.normal(size=(40, 3))
+    np.savetxt(tmp_path / "i.txt", np.hstack([xyz, rng.integers(0, 256, size=(40, 4))]), fmt="%.9g")
+    c = read_geometry(tmp_path / "i.txt")
+    assert "columns read as x y z r g b a from their values" in capsys.readouterr().out and "colors" in c.extra
+    np.savetxt(tmp_path / "z.xyz", np.hstack([xyz, np.zeros((40, 3))]), fmt="%.9g")
+    c = read_geometry(tmp_path / "z.xyz")
+    assert c.normals is None and "colors" not in c.extra
+    assert "columns 4-6 are all zero: ignored" in capsys.readouterr().out
+    np.savetxt(tmp_path / "n.xyz", np.hstack([xyz, xyz / np.linalg.norm(xyz, axis=1, keepdims=True)]), fmt="%.9g")
+    assert read_geometry(tmp_path / "n.xyz").normals is not None
+    assert "note" not in capsys.readouterr().out  # unit normals: not a guess worth a line
+
+
+def test_leica_pts_and_decimal_commas(tmp_path):
+    """Leica's PTS (a point-count line, then x y z intensity r g b) and a European CSV (semicolons between
+    values, decimal commas) read as meant; a bad row is quoted as the file has it."""
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(size=(30, 3))
+    rows = np.hstack([xyz, rng.integers(-2048, 2048, size=(30, 1)), rng.integers(0, 256, size=(30, 3))])
+    (tmp_path / "s.pts").write_text("30\n" + "\n".join(" ".join(f"{v:.9g}" for v in r) for r in rows) + "\n")
+    c = read_geometry(tmp_path / "s.pts")
+    assert np.allclose(c.points, xyz) and np.array_equal(c.extra["colors"], rows[:, 4:].astype(np.uint8))
+    eu = "x;y;z\n" + "\n".join(";".join(f"{v:.6f}".replace(".", ",") for v in r) for r in xyz) + "\n"
+    (tmp_path / "eu.csv").write_text(eu)
+    assert np.allclose(read_geometry(tmp_path / "eu.csv").points, xyz, atol=1e-6)
+    (tmp_path / "bad.csv").write_text(eu + "1,5;2,5\n")
+    with pytest.raises(InputError, match=r"line 32: '1,5;2,5' is not a row of 3 numbers"):
+        read_geometry(tmp_path / "bad.csv")
 
 
 def test_colours_are_read_not_taken_for_normals(tmp_path):

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.errors import InputError, one_line
+from scanreg.errors import InputError, note, one_line
 from scanreg.geometry import Cloud
 
 COLUMN_NAMES = {
@@ -76,14 +76,22 @@ def detect_columns(arr: np.ndarray, where: str) -> list[str]:
     def colours_ok(block):
         return block.shape[1] in (3, 4) and _colour_scale(block) is not None
 
+    said = "set data.columns to say what they are"
+    if n == 6 and not np.nan_to_num(rest).any():  # black, or no normals: nothing either way
+        note(f"{where}: columns 4-6 are all zero: ignored, neither normals nor colours ({said})")
+        return ["x", "y", "z", "-", "-", "-"]
     if n in (6, 7, 9, 10):
         if rest.shape[1] >= 3 and _are_normals(rest[:, :3]) and (n == 6 or colours_ok(rest[:, 3:])):
-            return ["x", "y", "z", "nx", "ny", "nz"] + ["r", "g", "b", "a"][: n - 6]
-        k = 3 if n in (6, 9) else 4
-        if colours_ok(rest[:, :k]) and (n - 3 - k == 0 or _are_normals(rest[:, k:])):
-            return ["x", "y", "z"] + ["r", "g", "b", "a"][:k] + (["nx", "ny", "nz"] if n - 3 - k else [])
-        raise InputError(f"{where}: cannot tell what its {n} columns are: after x y z they are neither unit "
-                         f"normals nor colours (0..1 or integers 0..255){hint}")
+            cols = ["x", "y", "z", "nx", "ny", "nz"] + ["r", "g", "b", "a"][: n - 6]
+        else:
+            k = 3 if n in (6, 9) else 4
+            if not (colours_ok(rest[:, :k]) and (n - 3 - k == 0 or _are_normals(rest[:, k:]))):
+                raise InputError(f"{where}: cannot tell what its {n} columns are: after x y z they are neither "
+                                 f"unit normals nor colours (0..1 or integers 0..255){hint}")
+            cols = ["x", "y", "z"] + ["r", "g", "b", "a"][:k] + (["nx", "ny", "nz"] if n - 3 - k else [])
+        if "r" in cols:  # values in 0..1 or 0..255 could be other things (an intensity): said, not guessed silently
+            note(f"{where}: columns read as {' '.join(cols)} from their values ({said} otherwise)")
+        return cols
     raise InputError(f"{where}: {n} columns; expected x y z [nx ny nz] [r g b [a]] (3, 6, 7, 9 or 10 columns){hint}")
 
 
@@ -138,18 +146,22 @@ def _read_xyz(p: Path, label: str, columns=None) -> Cloud:
     keep = [i for i in range(start, len(lines)) if lines[i].strip() and not lines[i].lstrip().startswith((b"#", b"//"))]
     if not keep:
         raise InputError(f"{label}: contains no points")
+    keep = _without_counts(lines, keep)
     body = [lines[i] for i in keep]
-    delim = b"," if b"," in body[0] else (b";" if b";" in body[0] else None)
-    text = [(ln if delim is None else ln.replace(delim, b" ")).decode("ascii", "replace") for ln in body]
+    # values split by commas or semicolons; with both, semicolons split and commas are decimal commas (0,37;-0,11)
+    decimal_comma = b";" in body[0] and b"," in body[0]
+    delim = b";" if decimal_comma else (b"," if b"," in body[0] else (b";" if b";" in body[0] else None))
+    text = [(ln if delim is None else ln.replace(delim, b" ")) for ln in body]
+    text = [(ln.replace(b",", b".") if decimal_comma else ln).decode("ascii", "replace") for ln in text]
     try:
         arr = np.loadtxt(text, dtype=np.float64, ndmin=2)
     except ValueError:
         n0 = len(text[0].split())
-        for i, t in zip(keep, text):  # the first offending line, numbered as in the file
+        for i, t in zip(keep, text):  # the first offending line, numbered and quoted as in the file
             w = t.split()
             if len(w) != n0 or not all(_NUMBER.match(x.encode()) for x in w):
-                raise InputError(f"{label}: line {i + 1}: '{t.strip()[:60]}' is not a row of {n0} numbers like "
-                                 "the first") from None
+                raise InputError(f"{label}: line {i + 1}: '{lines[i].decode('ascii', 'replace').strip()[:60]}' is "
+                                 f"not a row of {n0} numbers like the first") from None
         raise
     if columns:
         cols = _parse_columns(columns, arr.shape[1], f"{label}: data.columns")
@@ -157,9 +169,23 @@ def _read_xyz(p: Path, label: str, columns=None) -> Cloud:
         # named columns; names other than x y z nx ny nz r g b a (intensity, a scalar field...) are ignored
         cols = _parse_columns([COLUMN_NAMES.get(h.lower(), "-") for h in header], arr.shape[1],
                               f"{label}: header line")
+    elif p.suffix.lower() == ".pts" and arr.shape[1] in (4, 7):  # Leica PTS: x y z intensity [r g b]
+        cols = ["x", "y", "z", "-", "r", "g", "b"][:arr.shape[1]]
     else:
         cols = detect_columns(arr, label)
     return _cloud_from_columns(arr, cols, label)
+
+
+def _without_counts(lines: list[bytes], keep: list[int]) -> list[int]:
+    """``keep`` (numbers of the lines that hold values) without point-count lines: a line of one integer among
+    rows of three or more values, as Leica's PTS starts each scan with its count."""
+    def words(i):
+        return [w for w in re.split(rb"[\s,;]+", lines[i].strip()) if w]
+
+    rows = [i for i in keep[:3] if len(words(i)) >= 3]
+    if not rows:
+        return keep
+    return [i for i in keep if not (len(w := words(i)) == 1 and re.fullmatch(rb"\+?\d+", w[0]))]
 
 
 def _read_npy(p: Path, label: str, columns=None) -> Cloud:

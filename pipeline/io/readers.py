@@ -113,6 +113,12 @@ def _drop_invalid_mesh(m: Mesh, label: str) -> tuple[Mesh, int]:
     return validate_mesh(out), n_bad
 
 
+MISSING_NORMALS_SHARE = 0.05
+"""A cloud whose points lack a normal (zero, NaN or infinite) at up to this share loses those points (a mesh's
+vertices that no face uses, exported with its vertex normals); above it, the cloud loses its normals instead and
+keeps every point (a third of a scan's points were dropped for their zero normals)."""
+
+
 def _drop_invalid_cloud(c: Cloud, label: str) -> tuple[Cloud, int]:
     pts = np.asarray(c.points)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
@@ -126,6 +132,11 @@ def _drop_invalid_cloud(c: Cloud, label: str) -> tuple[Cloud, int]:
     if normals is not None:
         zero_n = good_n & (np.linalg.norm(np.where(good_n[:, None], normals, 1.0), axis=1) < 1e-12)
         if zero_n[good_n].all():  # every normal zero (an exporter's placeholder): an unoriented cloud
+            normals, good_n, zero_n = None, np.ones(len(pts), bool), np.zeros(len(pts), bool)
+        missing = int(((~good_n | zero_n) & good_p).sum())
+        if missing > MISSING_NORMALS_SHARE * good_p.sum():  # many: the normals go, not the points
+            warn(f"{label}: {missing} of {int(good_p.sum())} point(s) have zero, NaN or infinite normals: the "
+                 "normals are ignored (the cloud is read as one without normals) and every such point kept")
             normals, good_n, zero_n = None, np.ones(len(pts), bool), np.zeros(len(pts), bool)
     # a few zero normals (vertices no face uses, pixels without a surface): those points go, not every normal
     good = good_p & good_n & ~zero_n

@@ -21,7 +21,7 @@ import numpy as np
 from scanreg.errors import InputError, ScanregError, warn
 from scanreg.eval.checks import check_geometry, check_inputs
 from scanreg.eval.metrics import (METRES_PER_UNIT, EvalParams, alignment_metrics, field_metrics, gt_metrics,
-                                  low_fitness_warning, surface_deviation)
+                                  low_fitness_warning, sparse_pair_warning, surface_deviation)
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
                                       relative_motion)
 from scanreg.geometry import ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, transform_geometry
@@ -162,9 +162,10 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     on_target = ClosestPoints(tgt)  # the target points' search, for the fit and the field's overlap tests
     on_points = on_target(aligned)
     m.update(alignment_metrics(on_points[1], ev, spacing))
-    low = low_fitness_warning(m["fitness"], ev.fitness_warn)
-    if low:
-        warn(low)
+    for line in (sparse_pair_warning(source.spacing, target.spacing, src.n_points, tgt.n_points,
+                                     ev.spacing_ratio_warn), low_fitness_warning(m["fitness"], ev.fitness_warn)):
+        if line:
+            warn(line)
     surface = None if target.mesh is None else ClosestPoints(tgt, target.mesh)
     on_surface = on_points if surface is None else surface(aligned)
     m.update(surface_deviation(aligned, on_surface, ev, spacing))

@@ -30,6 +30,15 @@ def scale_geometry(g: Geometry, s: float) -> Geometry:
     return Cloud(g.points * s, g.normals, g.source, dict(g.extra))
 
 
+def likely_units(f: float) -> tuple[str, float]:
+    """The likely cause of two sizes ``f`` times apart (> 1): a common unit ratio within 30 % (its name and exact
+    factor), else ``different units or a different object`` and ``f`` to 3 digits."""
+    unit, factor = min(((u, k) for k, u in UNIT_FACTORS.items()), key=lambda uk: abs(np.log(f / uk[1])))
+    if abs(np.log(f / factor)) > np.log(1.3):  # no common unit ratio: suggest the measured one
+        return "different units or a different object", float(f"{f:.3g}")
+    return unit, factor
+
+
 def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> None:
     """Before any expensive stage: the two inputs' sizes agree to within ``max_size_ratio``, else one line
     naming both extents and the likely unit factor (counts and flatness: ``scanreg.eval.checks``)."""
@@ -42,9 +51,7 @@ def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> No
     if 1 / max_size_ratio <= r <= max_size_ratio:
         return
     big, f = ("source", r) if r > 1 else ("target", 1 / r)
-    unit, factor = min(((u, k) for k, u in UNIT_FACTORS.items()), key=lambda uk: abs(np.log(f / uk[1])))
-    if abs(np.log(f / factor)) > np.log(1.3):  # no common unit ratio: suggest the measured one
-        unit, factor = "different units or a different object", float(f"{f:.3g}")
+    unit, factor = likely_units(f)
     fix = (f"data.source_scale={1 / factor:g}" if big == "source" else f"data.target_scale={1 / factor:g}")
     raise InputError(
         f"{src.source or 'source'} is {ds:.4g} across (bounding-box diagonal) and {tgt.source or 'target'} {dt:.4g}: "
