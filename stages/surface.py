@@ -7,7 +7,7 @@ from typing import Optional
 
 import numpy as np
 
-from scanreg.geometry import Cloud, Mesh, to_o3d
+from scanreg.geometry import Cloud, Mesh, estimate_normals, orient_normals, to_o3d
 from scanreg.stages.registry import SURFACE
 from scanreg.types import RunContext
 
@@ -35,7 +35,8 @@ class Poisson:
         scale: float = 1.1
         """The reconstruction's cube over the points' bounding box (Open3D's ``scale``)."""
         when: str = "meshes"
-        """``meshes``: only when the scans were meshes (a cloud set gives merged points only); ``always``."""
+        """``meshes``: only when the scans were meshes (a cloud set gives merged points only); ``always`` (clouds
+        without normals: from normals estimated on the merged points, turned outward)."""
 
         def check(self):
             if self.when not in ("meshes", "always"):
@@ -59,15 +60,19 @@ class Poisson:
         return int(np.clip(np.round(np.log2(max(cells, 1.0))), self.p.min_depth, self.p.max_depth))
 
     def reconstruct(self, points: Cloud, from_meshes: bool, spacing: float, ctx: RunContext) -> Optional[Mesh]:
-        """The Poisson surface of ``points`` (None without normals, or for clouds with ``when: meshes``): its
-        largest connected part (the solver leaves small closed bubbles where the points are sparse)."""
+        """The Poisson surface of ``points`` (None for clouds with ``when: meshes``; points without normals get
+        estimated ones, turned outward, :func:`scanreg.geometry.orient_normals`): its largest connected part (the
+        solver leaves small closed bubbles where the points are sparse)."""
         import open3d as o3d
 
         if self.p.when == "meshes" and not from_meshes:
             return None
-        if points.normals is None or points.n_points < 10:
+        if points.n_points < 10:
             return None
-        pc = to_o3d(points.points, points.normals)
+        normals = points.normals
+        if normals is None:  # clouds without normals (when: always): estimated, outward (the merged model's outside)
+            normals = orient_normals(points.points, estimate_normals(points.points))
+        pc = to_o3d(points.points, normals)
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
                 pc, depth=self.depth(points.points, spacing), scale=self.p.scale, linear_fit=False, n_threads=1)

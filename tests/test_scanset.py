@@ -168,6 +168,12 @@ def test_poisson_surface_is_one_closed_part_at_a_depth_any_pose_gives(bunny):
     # the model's own volume, faces turned outwards (measured: 0.08 % apart; inside out: negative)
     assert volume(mesh) == pytest.approx(volume(bunny), rel=0.0025)
     assert stage.reconstruct(Cloud(pts, nrm), False, spacing, RunContext()) is None  # clouds: no surface
+    # clouds without normals, surface.when=always: estimated normals turned outward, the same closed model
+    always = build_stage("surface", "poisson", when="always")
+    bare = always.reconstruct(Cloud(pts), False, spacing, RunContext())
+    a = audit_mesh(bare)
+    assert a["components"] == 1 and a["boundary_edges"] == 0 and a["non_manifold_edges"] == 0
+    assert volume(bare) == pytest.approx(volume(bunny), rel=0.01)
 
 
 # ----------------------------------------------------------------- whole sets through the API

@@ -12,6 +12,10 @@ FLAT_TOLERANCE = 1e-3
 """An input whose spread off its best-fit line (plane) is below this share of its spread along its main axis is
 collinear (planar): a rigid transform is not determined by it (it may slide and turn in the plane)."""
 
+COINCIDE_SHARE = 1e-12
+"""Points spread by less than this share of their largest coordinate coincide: what is left is the rounding of
+their mean (100 copies of one point spread by 1e-14 of it, and were called collinear)."""
+
 MAX_CHECKED_POINTS = 200_000
 """Larger inputs are checked on an evenly strided subset of this many points (deterministic)."""
 
@@ -37,7 +41,7 @@ def check_geometry(g, label: str, min_points: int, n_invalid: int = 0) -> None:
         dropped = f" ({n_invalid} invalid point(s) dropped)" if n_invalid else ""
         raise InputError(f"{label}: {len(pts)} point(s){dropped}; at least {min_points} are needed")
     s = principal_spreads(pts)
-    if not s[0] > 0:
+    if not s[0] > COINCIDE_SHARE * float(np.abs(pts).max(initial=0.0)):  # (equal points: rounding in their mean)
         raise InputError(f"{label}: all points coincide: rigid registration is not determined")
     for k, what in ((1, "collinear"), (2, "planar")):
         if s[k] < FLAT_TOLERANCE * s[0]:

@@ -88,10 +88,17 @@ def summary_lines(res: Result) -> list[str]:
     if unit:
         how = "guessed from the target's size; set evaluate.units" if m.get("input_unit_guessed") else "evaluate.units"
         lines.append(f"lengths in {'µm' if unit == 'um' else unit}, the input's unit ({how})")
-    lines += [f"{k:<26} {m[k]:.6g}" for k in keys if k in m]
+    lines += [f"{k:<26} {_shown(m[k])}" for k in keys if k in m]
     for prefix, role in (("repair_", "source"), ("target_repair_", "target")):
         lines += repair_table(m, prefix, role)
     return lines
+
+
+def _shown(v: float) -> str:
+    """A number as the summary prints it: 6 significant digits, whole numbers of a million and more in full (a
+    point count of 3 007 275, not 3.00728e+06)."""
+    v = float(v)
+    return f"{int(v)}" if v.is_integer() and 1e6 <= abs(v) < 1e15 else f"{v:.6g}"
 
 
 def repair_table(m: dict, prefix: str = "repair_", role: str = "source") -> list[str]:
@@ -100,8 +107,8 @@ def repair_table(m: dict, prefix: str = "repair_", role: str = "source") -> list
     if not rep:
         return []
     lines = ["", f"{'repair (' + role + ')':<32} {'before':>12} {'after':>12}"]
-    lines += [f"{k:<32} {m[prefix + 'before_' + k]:>12.6g} {m.get(prefix + 'after_' + k, float('nan')):>12.6g}"
-              for k in rep]
+    lines += [f"{k:<32} {_shown(m[prefix + 'before_' + k]):>12} "
+              f"{_shown(m.get(prefix + 'after_' + k, float('nan'))):>12}" for k in rep]
     extra = ["hausdorff_max", "hausdorff_max_rel", "hausdorff_mean_rel", "hausdorff_added_max_rel",
              "removed_area_share", "guard_ok"]
     lines += [f"{k:<32} {m[prefix + k]:>25.6g}" for k in extra if prefix + k in m]
@@ -120,7 +127,7 @@ def set_summary_lines(res: Result) -> list[str]:
     residual to the scans it overlaps)."""
     m, reg = res.metrics, res.scanset
     lines = ["step      time [s]"] + [f"{s:<9} {m[f'time_{s}_s']:>8.3f}" for s in SET_STEPS if f"time_{s}_s" in m]
-    lines += [""] + [f"{k:<32} {m[k]:.6g}" for k in SET_KEYS if k in m]
+    lines += [""] + [f"{k:<32} {_shown(m[k])}" for k in SET_KEYS if k in m]
     cols = [c for c in ("rotation_error_deg", "translation_error_rel", "residual_rms", "residual_overlap")
             if f"scan_{c}" in res.histories]
     width = max(len(n) for n in reg.names)

@@ -265,8 +265,8 @@ class IcpBase:
         if ok.sum() < 3:
             raise StageError(
                 f"icp={self.name}: only {int(ok.sum())} source point(s) paired with the target at iteration {it} "
-                f"(pair limit {maxd if maxd is not None else 'none'}); the coarse alignment is too far off or the "
-                "distance too small"
+                f"(pair limit {f'{maxd:.4g}' if maxd is not None else 'none'}); the coarse alignment is too far off "
+                "or the distance too small"
             )
         return ok
 
