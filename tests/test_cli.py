@@ -158,6 +158,17 @@ def test_bad_input_one_line_error_and_failed_run(tmp_path, mlflow_uri, case):
     assert message in df.iloc[0]["tags.error"]
 
 
+def test_a_config_error_found_in_the_job_leaves_no_folder(tmp_path):
+    """A data provider's config error (data=scanset without data.scans) surfaces inside the job, after Hydra made
+    outputs/runs/DATE/TIME: none of them stays (the empty DATE folder did); a folder that was there stays."""
+    r = run_cli(["data=scanset", "tracking=none"], tmp_path)
+    assert r.returncode == 2 and "data.scans is not set" in r.stderr
+    assert not (tmp_path / "outputs").exists()
+    (tmp_path / "outputs" / "runs" / "old").mkdir(parents=True)
+    assert run_cli(["data=scanset", "tracking=none"], tmp_path).returncode == 2
+    assert sorted(p.name for p in (tmp_path / "outputs" / "runs").iterdir()) == ["old"]
+
+
 @pytest.mark.slow
 def test_sweep_parent_children_and_report(tmp_path, mlflow_uri):
     r = run_cli(["-m", "data=synthetic", "sampler.n_points=3000,6000", "tracking.experiment=sweep",

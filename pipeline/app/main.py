@@ -151,7 +151,8 @@ def _log(tracker, record, multirun: bool, children=()) -> str | None:
 
 def _unmake_run_dir(run_dir: Path) -> None:
     """Remove what Hydra made for a run that a configuration error stopped before it began (``.hydra/`` and an
-    empty ``main.log``), and the folder when nothing else is in it: a run that never ran leaves no folder."""
+    empty ``main.log``), and the folder when nothing else is in it, with the folders above it that it leaves
+    empty, up to the working directory (``outputs/runs/DATE/``): a run that never ran leaves no folder."""
     import shutil
 
     shutil.rmtree(run_dir / ".hydra", ignore_errors=True)
@@ -160,6 +161,11 @@ def _unmake_run_dir(run_dir: Path) -> None:
         if log.is_file() and log.stat().st_size == 0:
             log.unlink()
         run_dir.rmdir()  # only when empty
+        here = Path.cwd().resolve()
+        for parent in run_dir.resolve().parents:
+            if parent == here or here not in parent.parents:
+                break
+            parent.rmdir()  # only when empty (else OSError: stop)
     except OSError:
         pass
 
