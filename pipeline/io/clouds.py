@@ -186,17 +186,23 @@ def _parsed_at_once(body: bytes) -> np.ndarray | None:
     if len(words) == 1 and re.fullmatch(rb"\+?\d+", words[0]):  # a point count (Leica's PTS)
         body = rest
         first = body.partition(b"\n")[0]
-    decimal_comma = b";" in first and b"," in first
-    delim = b";" if decimal_comma else (b"," if b"," in first else (b";" if b";" in first else None))
-    if delim is not None:
-        body = body.replace(delim, b" ")
-    if decimal_comma:
-        body = body.replace(b",", b".")
+    body = _as_spaced(body, first)
     try:
         arr = np.loadtxt(io.BytesIO(body), dtype=np.float64, ndmin=2, comments=None, encoding="latin-1")
     except ValueError:
         return None
     return arr if arr.size else None
+
+
+def _as_spaced(text: bytes, first: bytes) -> bytes:
+    """``text`` with its values split by spaces as the first row ``first`` splits them: by commas or semicolons
+    (replaced), and with both, by semicolons with decimal commas (``0,37;-0,11``: commas made points)."""
+    if b";" in first and b"," in first:
+        return text.replace(b";", b" ").replace(b",", b".")
+    for delim in (b",", b";"):
+        if delim in first:
+            return text.replace(delim, b" ")
+    return text
 
 
 def _parsed_by_line(lines: list[bytes], start: int, label: str) -> np.ndarray:
@@ -207,11 +213,7 @@ def _parsed_by_line(lines: list[bytes], start: int, label: str) -> np.ndarray:
         raise InputError(f"{label}: contains no points")
     keep = _without_counts(lines, keep)
     body = [lines[i] for i in keep]
-    # values split by commas or semicolons; with both, semicolons split and commas are decimal commas (0,37;-0,11)
-    decimal_comma = b";" in body[0] and b"," in body[0]
-    delim = b";" if decimal_comma else (b"," if b"," in body[0] else (b";" if b";" in body[0] else None))
-    text = [(ln if delim is None else ln.replace(delim, b" ")) for ln in body]
-    text = [(ln.replace(b",", b".") if decimal_comma else ln).decode("ascii", "replace") for ln in text]
+    text = [_as_spaced(ln, body[0]).decode("ascii", "replace") for ln in body]
     try:
         arr = np.loadtxt(text, dtype=np.float64, ndmin=2)
     except ValueError:
