@@ -77,3 +77,22 @@ def test_a_scan_set_with_one_scan_in_other_units_stops_with_one_line(tmp_path):
     scans[3] = Cloud(scans[3].points / 1e6, source="s3.xyz")  # one in km: multiply by 1000
     with pytest.raises(InputError, match=r"multiply its coordinates by 1000 "):
         check_sizes(scans, 10.0)
+
+
+def test_stanford_scans_named_by_path_or_name(tmp_path):
+    """data=stanford takes a scan as the .conf names it or as a path to it in data.folder (scanreg.register passes
+    paths; it said the file was not in bun.conf while listing it); a file elsewhere is one line naming both."""
+    from scanreg.api import build_stage
+    from scanreg.errors import ConfigError
+
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    poses = {"bun045.ply": None, "bun000.ply": None}
+    st = build_stage("data", "stanford", folder=str(folder))
+    assert st._named("bun045.ply", poses, folder) == "bun045.ply"
+    assert st._named(str(folder / "bun045.ply"), poses, folder) == "bun045.ply"
+    assert st._named("bun045", poses, folder) == "bun045.ply"
+    with pytest.raises(ConfigError, match=r"is not in data.folder .* set data.folder to its folder"):
+        st._named(str(tmp_path / "bun045.ply"), poses, folder)
+    with pytest.raises(ConfigError, match=r"scan 'bun999.ply' is not in bun.conf; known: bun045.ply, bun000.ply"):
+        st._named("bun999.ply", poses, folder)

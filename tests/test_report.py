@@ -255,3 +255,78 @@ def test_file_names_from_long_group_labels_are_bounded():
     long = " / ".join(f"value{k}" for k in range(100))
     assert len(_slug(long)) == SLUG_CHARS and _slug(long) == _slug(long) != _slug(long + "x")
     assert _slug("icp.name: gicp") == "icp.name_gicp"
+
+
+def test_the_latest_sweep_is_the_newest_with_runs(tmp_path):
+    """A sweep that a typo stopped (icp=point_to_plane,gcip) leaves a FAILED parent run without runs under it: the
+    report takes the newest sweep that has runs (it said 'no runs found' and named no other)."""
+    import mlflow
+
+    from scanreg.app.report.runs import latest_sweep_experiment, load_runs
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = mlflow.MlflowClient(uri)
+    exp = client.create_experiment("scanreg")
+    good = client.create_run(exp, tags={"scanreg.sweep": "parent"})
+    for k in range(2):
+        child = client.create_run(exp, tags={"mlflow.parentRunId": good.info.run_id})
+        client.log_metric(child.info.run_id, "rotation_error_deg", 0.1 * (k + 1))
+    stopped = client.create_run(exp, tags={"scanreg.sweep": "parent"}, start_time=good.info.start_time + 1000)
+    client.set_terminated(stopped.info.run_id, "FAILED")
+    df = load_runs("scanreg", uri, parent="latest")
+    assert df.attrs["parent"] == good.info.run_id and len(df) == 2
+    assert latest_sweep_experiment(uri) == "scanreg"
+
+
+def test_a_metric_no_run_has_is_said(tmp_path, capsys):
+    """--metrics with a typo showed no column and said nothing; now a warning names the close ones."""
+    df = mlflow_like_runs("icp.name", ["horn", "gicp"])
+    df["metrics.gt_rmse"] = 0.01
+    write_report(df, ReportParams(metrics=["gt_rmse_typo"]), tmp_path, plots=False)
+    out = capsys.readouterr()
+    assert "no run has the metric 'gt_rmse_typo'; did you mean gt_rmse?" in out.out + out.err
+
+
+def test_a_changed_experiment_sweep_keeps_the_experiments_report():
+    """Re-running one job of an experiment (experiment=my_icp icp=horn data.pair=...) replaced the experiment's
+    report with a one-run one; overrides that change the runs now send the report to a folder of their own, those
+    that only change how the sweep runs or is filed do not."""
+    from omegaconf import OmegaConf
+
+    from scanreg.app.report.write import _changed_runs
+
+    def cfg(*task):
+        return OmegaConf.create({"hydra": {"overrides": {"task": list(task)}}})
+
+    assert _changed_runs(cfg("experiment=my_icp", "launch=serial", "hydra.sweep.dir=x", "tracking.experiment=e")) == []
+    assert _changed_runs(cfg("experiment=my_icp", "icp=horn", "data.pair=bun045:bun090")) == [
+        "icp=horn", "data.pair=bun045:bun090"]
+    assert _changed_runs(cfg("+experiment=my_icp", "hydra/launcher=ray", "~seed")) == ["~seed"]
+
+
+def test_default_groups_are_the_methods_with_the_cases_apart():
+    """A sweep of methods over pairs: grouped by the method (each pair's group held one run), the pairs in the
+    per-case table; a sweep over pairs alone: grouped by the pair."""
+    from scanreg.app.report.tables import default_grouping
+
+    df = pd.DataFrame({"tags.group.icp": ["horn", "gicp"] * 2, "params.icp.name": ["horn", "gicp"] * 2,
+                       "params.data.pair": ["a:b", "a:b", "b:c", "b:c"], "params.seed": ["0"] * 4})
+    assert default_grouping(df) == (["group.icp"], "data.pair")
+    assert default_grouping(df, per="data.x") == (["group.icp"], "data.x")
+    assert default_grouping(df[df["tags.group.icp"] == "horn"]) == (["data.pair"], None)
+
+
+def test_failed_runs_are_counted_by_reason_and_group(tmp_path):
+    """The failed runs' section listed each reason once; now with its count and the groups it hit."""
+    df = mlflow_like_runs("icp.name", ["horn", "gicp"])
+    df.loc[[0, 3], "status"] = "FAILED"
+    df["tags.error"] = None
+    df.loc[[0, 3], "tags.error"] = "sampler.n_points: must be > 0"
+    df["metrics.input_unit_m"] = 0.001
+    write_report(df, ReportParams(), tmp_path, plots=False)
+    text = (tmp_path / "report.md").read_text()
+    runs = pd.read_csv(tmp_path / "runs.csv")  # every run, prefixes off, for one's own statistics
+    assert len(runs) == len(df) and list(runs["status"]).count("FAILED") == 2 and "icp.name" in runs
+    groups = sorted({str(df.loc[k, "params.icp.name"]) for k in (0, 3)})
+    assert f"- sampler.n_points: must be > 0 (2 runs; {'; '.join(groups)})" in text
+    assert "degrees and input units (mm), their medians and quantiles over the runs that finished" in text

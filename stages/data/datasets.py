@@ -65,9 +65,7 @@ class Stanford(Provider):
                     raise ConfigError(f"data=stanford: scan '{n}' is not in {self.p.conf}; known: "
                                       f"{', '.join(stems)}")
             target, source = (stems.get(n, n) for n in names)
-        for scan in (source, target):
-            if scan not in poses:
-                raise ConfigError(f"data=stanford: scan '{scan}' is not in {self.p.conf}; known: {', '.join(poses)}")
+        source, target = (self._named(scan, poses, folder) for scan in (source, target))
         src = read_geometry(folder / source, "source")
         tgt = read_geometry(folder / target, "target")
         T_t_s = invert_T(poses[target]) @ poses[source]
@@ -81,6 +79,23 @@ class Stanford(Provider):
         src = transform_geometry(P, src)
         return perturb_inputs(Problem(src, tgt, T_t_s @ invert_T(P), None, {"gt_overlap": overlap},
                                              target_generated=True), self.p)
+
+
+    def _named(self, scan: str, poses: dict, folder: Path) -> str:
+        """``scan`` as the .conf names it: a name of it, or a path to that file in ``folder`` (``scanreg.register``
+        passes the files it is given as paths); else one line that says what is known."""
+        if scan in poses:
+            return scan
+        path = Path(expand_path(str(scan)))
+        stems = {Path(k).stem: k for k in poses}
+        name = path.name if path.name in poses else stems.get(path.name, stems.get(path.stem))
+        if name is not None and path.parent != Path(".") and path.parent.resolve() != folder.resolve():
+            raise ConfigError(f"data=stanford: scan {scan} is not in data.folder ({folder}), where the scans of "
+                              f"{self.p.conf} are read from: set data.folder to its folder, or use data=files "
+                              "with data.gt for files of your own")
+        if name is None:
+            raise ConfigError(f"data=stanford: scan '{scan}' is not in {self.p.conf}; known: {', '.join(poses)}")
+        return name
 
 
 @DATA.register("pairs_3dmatch")

@@ -33,7 +33,10 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
     if parent:
         flt = "tags.`scanreg.sweep` = 'parent'" + ("" if parent == "latest" else f" and attributes.run_id = '{parent}'")
         parents = mlflow.search_runs([exp.experiment_id], filter_string=flt, order_by=["start_time DESC"],
-                                     max_results=1)
+                                     max_results=1 if parent != "latest" else LATEST_SEARCHED)
+        if parent == "latest":  # the newest sweep with runs (a sweep that a typo stopped has none)
+            parents = parents[[_has_runs(mlflow.MlflowClient(tr.uri), exp.experiment_id, r)
+                               for r in parents["run_id"]]].head(1)
         if parents.empty:
             raise SystemExit(f"error: experiment '{experiment}' has no sweep"
                              + ("" if parent == "latest" else f" with parent run {parent}")
@@ -56,6 +59,16 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
     return df
 
 
+LATEST_SEARCHED = 50
+"""The newest sweep is looked for among this many newest parent runs: the first with a run under it."""
+
+
+def _has_runs(client, experiment_id: str, parent_id: str) -> bool:
+    """Whether the sweep ``parent_id`` has a run under it (one whose job started)."""
+    return bool(client.search_runs([experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent_id}'",
+                                   max_results=1))
+
+
 def latest_sweep_experiment(uri: str | None = None) -> str:
     """The MLflow experiment holding the newest sweep (parent run) of the store, for a bare ``scanreg-report``."""
     from scanreg.app.tracking import MlflowTracking, _quiet_mlflow
@@ -68,7 +81,8 @@ def latest_sweep_experiment(uri: str | None = None) -> str:
     client = mlflow.MlflowClient(tr.uri)
     exps = client.search_experiments()
     runs = client.search_runs([e.experiment_id for e in exps], filter_string="tags.`scanreg.sweep` = 'parent'",
-                              order_by=["attributes.start_time DESC"], max_results=1) if exps else []
+                              order_by=["attributes.start_time DESC"], max_results=LATEST_SEARCHED) if exps else []
+    runs = [r for r in runs if _has_runs(client, r.info.experiment_id, r.info.run_id)][:1]
     if not runs:
         names = ", ".join(sorted(e.name for e in exps if e.name != "Default")) or "none"
         raise SystemExit(f"error: no sweep in {tr.uri} (run 'scanreg -m ...' first, or name an experiment with "

@@ -66,6 +66,19 @@ def varying_keys(df: pd.DataFrame) -> list[str]:
     return keys
 
 
+def default_grouping(df: pd.DataFrame, per: str | None = None) -> tuple[list[str], str | None]:
+    """The groups a report shows when none are named: the varied keys (:func:`varying_keys`), but the data's
+    (``data.*``: the cases, such as ``data.pair``) only when nothing else varies, so that a sweep of methods
+    over cases compares the methods (each case was a group of one run); and ``per``, or the one data key dropped
+    so, whose table shows each case."""
+    keys = varying_keys(df)
+    methods = [k for k in keys if not (k.startswith("data.") or k == "group.data")]
+    if not methods:
+        return keys, per
+    cases = [k for k in keys if k not in methods]
+    return methods, per if per is not None or len(cases) != 1 else cases[0]
+
+
 def _typed(s: pd.Series) -> pd.Series:
     num = pd.to_numeric(s, errors="coerce")
     return num if num.notna().all() else s.astype(str)

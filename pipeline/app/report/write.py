@@ -18,6 +18,7 @@ from __future__ import annotations
 import re
 import sys
 from datetime import datetime, timezone
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,7 @@ from scanreg.app.report.runs import latest_sweep_experiment, load_runs
 from scanreg.app.report.stats import interval, interval_name
 from scanreg.app.report.tables import (bin_markdown, bin_table, column_for, compare, concurrency_note, console_table,
                                        curve_display, curve_table, display_table, find_column, fmt_value, per_table,
-                                       summarize, to_markdown, varying_keys)
+                                       default_grouping, summarize, to_markdown)
 
 def run_time_line(df: pd.DataFrame) -> str:
     """Wall-clock time of the sweep (first start to last end) and the sum of the runs' pipeline times."""
@@ -51,16 +52,37 @@ def configuration_line(df: pd.DataFrame) -> str:
     return "- stages: " + (", ".join(parts) or "unknown") + " (the defaults of that commit unless overridden above)"
 
 
+def _check_metrics(df: pd.DataFrame, asked: dict) -> None:
+    """A warning line for each metric asked for that no run has (a typo showed no column, silently; a sweep whose
+    runs all failed has none, and still gets its report)."""
+    import difflib
+
+    from scanreg.errors import warn
+
+    have = sorted(c[len("metrics."):] for c in df.columns if c.startswith("metrics."))
+    for option, names in asked.items():
+        for name in names or ():
+            if name not in have and name != "success":
+                close = difflib.get_close_matches(name, have, n=3)
+                warn(f"report {option} (--metrics or the experiment's report block): no run has the metric "
+                     f"'{name}'" + (f"; did you mean {', '.join(close)}?" if close else ""))
+
+
 # --------------------------------------------------------------------------------------------------- report
 def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.DataFrame | None = None,
                  plots: bool = True) -> dict:
     """Write report.md, report.csv (and per.csv, compare.csv) and PNG plots into ``out``."""
+    _check_metrics(df, {"metrics": p.metrics, "bin_metrics": p.bin_metrics, "curves": p.curves})
     out.mkdir(parents=True, exist_ok=True)
-    group_by = list(p.group_by) or varying_keys(df)
+    if not p.group_by:  # the methods, the cases apart (default_grouping)
+        group_by, per = default_grouping(df, p.per)
+        p = replace(p, group_by=group_by, per=per)
+    group_by = list(p.group_by)
     how = p.interval
     interval(np.array([0.0, 1.0]), how)  # a bad name fails before any table is written
     table = summarize(df, group_by, list(p.metrics), how)
     table.drop(columns="_label").to_csv(out / "report.csv", index=False)
+    run_columns(df).to_csv(out / "runs.csv", index=False)  # every run, for one's own statistics
     per_t = per_table(df, group_by, p.per) if p.per else None
     if per_t is not None:
         per_t.to_csv(out / "per.csv")
@@ -134,10 +156,35 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     if figs:
         lines += ["## Plots", ""] + [f"![{f.stem}]({f.name})" for f in figs] + [""]
     if n_fail:
-        reasons = df.loc[df["status"] != "FINISHED", "tags.error"] if "tags.error" in df else pd.Series(dtype=str)
-        lines += ["## Failed runs", ""] + [f"- {r}" for r in reasons.fillna("(no reason recorded)").value_counts().index] + [""]
+        lines += ["## Failed runs", ""] + failed_lines(df, group_by) + [""]
     (out / "report.md").write_text("\n".join(lines))
-    return {"table": table, "per": per_t, "paths": [out / "report.md", out / "report.csv", *figs], "warning": warn}
+    return {"table": table, "per": per_t, "paths": [out / "report.md", out / "report.csv", out / "runs.csv", *figs], "warning": warn}
+
+
+def run_columns(df: pd.DataFrame) -> pd.DataFrame:
+    """One row per run: its id, status and error, its stage choices (``group.*``), parameters and metrics, named
+    without MLflow's prefixes (a paired comparison of methods on the same cases starts from it)."""
+    keep = [c for c in ("run_id", "status", "tags.error") if c in df.columns]
+    keep += sorted(c for c in df.columns if c.startswith("tags.group."))
+    keep += sorted(c for c in df.columns if c.startswith("params."))
+    keep += sorted(c for c in df.columns if c.startswith("metrics."))
+    out = df[keep].copy()
+    out.columns = [c.removeprefix("tags.").removeprefix("params.").removeprefix("metrics.") for c in keep]
+    return out.loc[:, ~out.columns.duplicated()]
+
+
+def failed_lines(df: pd.DataFrame, group_by: list[str]) -> list[str]:
+    """Each reason a run failed for, with how many runs and which groups (a list of distinct reasons lost both)."""
+    bad = df[df["status"] != "FINISHED"]
+    reasons = (bad["tags.error"] if "tags.error" in bad else pd.Series(index=bad.index, dtype=object))
+    reasons = reasons.fillna("(no reason recorded)")
+    cols = [find_column(k, df) for k in group_by]
+    out = []
+    for reason, n in reasons.value_counts().items():
+        rows = bad[reasons == reason]
+        groups = sorted({", ".join(str(r[c]) for c in cols if c) for _, r in rows.iterrows()} - {""})
+        out.append(f"- {reason} ({n} run{'s' if n > 1 else ''}" + (f"; {'; '.join(groups)}" if groups else "") + ")")
+    return out
 
 
 def showcase_section(df: pd.DataFrame, sel: dict, out: Path) -> list[str]:
@@ -189,11 +236,26 @@ def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None
 
     p = make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
     out = Path(p.out or Path("outputs") / "reports" / experiment)
+    changed = _changed_runs(cfg)
+    if changed and not p.out:  # a part or a variant of the experiment: its own folder, the experiment's kept
+        out = out / _slug(" ".join(changed))
     df = load_runs(experiment, uri, parent_run_id)
     res = write_report(df, p, out)
     if res["warning"]:
         print(f"warning: {res['warning']}")
-    print(f"report: {res['paths'][0]}")
+    print(f"report: {res['paths'][0]}" + (f" (the sweep changed the experiment: {' '.join(changed)})"
+                                          if changed and not p.out else ""))
+
+
+PROCESS_KEYS = ("experiment", "hydra", "launch", "tracking", "verbose", "report")
+"""Overrides that change how a sweep runs or is filed, not its runs: the experiment's report is theirs."""
+
+
+def _changed_runs(cfg) -> list[str]:
+    """The command-line overrides of an experiment's sweep that change its runs (re-running one job of it, a
+    variant): its report then goes into a folder of its own instead of replacing the experiment's."""
+    task = list(cfg.hydra.overrides.task) if "hydra" in cfg else []
+    return [o for o in task if o.lstrip("+~").split("=")[0].split(".")[0].split("/")[0] not in PROCESS_KEYS]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -230,6 +292,9 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("--config", default=None, metavar="EXPERIMENT",
                     help="take the experiment name and the report settings (group-by, x, per, metrics, showcase, "
                          "title, notes, out) from conf/experiment/EXPERIMENT.yaml; other options override them")
+    ap.add_argument("--config-dir", default=None, action="append", metavar="DIR",
+                    help="a folder of your own configs (with experiment/EXPERIMENT.yaml) for --config, as "
+                         "scanreg's --config-dir; may be given more than once")
     ap.add_argument("--uri", default=None, help="tracking URI (default: $MLFLOW_TRACKING_URI or outputs/mlflow.db)")
     ap.add_argument("--out", default=None, help="folder for the report (default: outputs/reports/<experiment>)")
     a = ap.parse_args(argv)
@@ -244,7 +309,7 @@ def _main(argv: list[str] | None) -> int:
         from scanreg.app.config import compose
         from scanreg.stages.registry import make_params
 
-        cfg = compose([f"experiment={a.config}"])
+        cfg = compose([f"experiment={a.config}"], config_dirs=[str(Path(d).resolve()) for d in a.config_dir or ()])
         base = make_params(ReportParams, OmegaConf.to_container(cfg.report, resolve=True), "report")
         if a.experiment is None:
             a.experiment = cfg.tracking.experiment
@@ -264,10 +329,10 @@ def _main(argv: list[str] | None) -> int:
     res = write_report(df, p, out, other, plots=not a.no_plots)
     print(f"{len(df)} run(s) of experiment '{a.experiment}'"
           + (f", sweep {df.attrs['parent']}" if df.attrs.get("parent") else ""))
-    print(console_table(res["table"], p.group_by or varying_keys(df)))
+    print(console_table(res["table"], p.group_by or default_grouping(df)[0]))
     if res["warning"]:
         print(f"warning: {res['warning']}")
-    print(f"every column: {out / 'report.csv'}; report: {out / 'report.md'}")
+    print(f"every column: {out / 'report.csv'}; every run: {out / 'runs.csv'}; report: {out / 'report.md'}")
     return 0
 
 
@@ -285,7 +350,23 @@ def success_line(df) -> str:
                 "`fitness` (their share), and the stage times (medians, seconds).")
     return ("Success: rotation error < `evaluate.success_rotation_deg` (2°) and translation error < "
             "`evaluate.success_translation` (1 %) of the target's bounding-box diagonal; a failed run counts as a "
-            "failure. Errors are against the ground truth, in degrees and input units; times are medians in seconds.")
+            f"failure. Errors are against the ground truth, in degrees and input units{_unit_note(df)}, their "
+            "medians and quantiles over the runs that finished; times are medians in seconds.")
+
+
+def _unit_note(df: pd.DataFrame) -> str:
+    """`` (m)``: the input unit the runs logged (``input_unit_m``), when they agree; else nothing."""
+    from scanreg.eval.metrics import METRES_PER_UNIT
+
+    if "metrics.input_unit_m" not in df.columns:
+        return ""
+    vals = set(df["metrics.input_unit_m"].dropna())
+    names = {v: k for k, v in METRES_PER_UNIT.items()}
+    if len(vals) != 1 or next(iter(vals)) not in names:
+        return ""
+    unit = names[next(iter(vals))]
+    guessed = "metrics.input_unit_guessed" in df.columns and bool(df["metrics.input_unit_guessed"].fillna(0).max())
+    return f" ({'µm' if unit == 'um' else unit}{', guessed from the sizes' if guessed else ''})"
 
 
 def scanset_section(df: pd.DataFrame, group_by: list[str], out: Path) -> list[str]:
