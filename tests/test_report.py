@@ -330,3 +330,19 @@ def test_failed_runs_are_counted_by_reason_and_group(tmp_path):
     groups = sorted({str(df.loc[k, "params.icp.name"]) for k in (0, 3)})
     assert f"- sampler.n_points: must be > 0 (2 runs; {'; '.join(groups)})" in text
     assert "degrees and input units (mm), their medians and quantiles over the runs that finished" in text
+
+
+def test_per_case_errors_and_console_counts(tmp_path):
+    """--per showed success alone; the median rotation error per case and group is beside it (finished runs), and
+    the console's success is the count of runs, as report.md has it (0.5 read as a rate of what)."""
+    from scanreg.app.report.tables import console_table, per_errors
+
+    df = pd.DataFrame({"params.k": ["a", "a", "b", "b"], "params.case": ["x", "y", "x", "y"],
+                       "status": ["FINISHED", "FINISHED", "FINISHED", "FAILED"],
+                       "metrics.rotation_error_deg": [0.5, 1.5, 3.0, None], "metrics.success": [1, 1, 0, None],
+                       "metrics.translation_error": [0.1, 0.1, 0.1, None]})
+    e = per_errors(df, ["k"], "case")
+    assert e.loc["x", "a"] == 0.5 and e.loc["y", "a"] == 1.5 and e.loc["x", "b"] == 3.0 and np.isnan(e.loc["y", "b"])
+    t = summarize(df, ["k"])
+    lines = console_table(t, ["k"]).splitlines()
+    assert lines[1].split()[:4] == ["a", "2", "0", "2/2"] and lines[2].split()[:4] == ["b", "2", "1", "0/2"]

@@ -176,6 +176,19 @@ def per_table(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame:
     return t
 
 
+def per_errors(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame | None:
+    """Median rotation error (degrees, finished runs) for each value of ``per`` (rows) and each group (columns);
+    None without ground truth."""
+    if "metrics.rotation_error_deg" not in df.columns:
+        return None
+    work = df[df["status"] == "FINISHED"].copy()
+    work["_per"] = _typed(work[column_for(per, df)])
+    work["_grp"] = group_labels(work, group_by)
+    t = work.pivot_table(index="_per", columns="_grp", values="metrics.rotation_error_deg", aggfunc="median")
+    t.index.name, t.columns.name = per, None
+    return t
+
+
 def fmt_interval(v, lo, hi) -> str:
     """``median [lo, hi]`` (``–`` when missing)."""
     if v is None or (isinstance(v, float) and np.isnan(v)):
@@ -384,7 +397,12 @@ def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100) ->
     columns = CONSOLE_COUNTS + (CONSOLE_ERRORS if has_errors(table) else CONSOLE_FIT) + CONSOLE_TIMES
     cols = [(c, h) for c, h in columns if c in table]
     head = " / ".join(group_by) or "group"
-    rows = [[str(r["_label"]) if "_label" in table else "all", *[fmt_value(r[c]) for c, _ in cols]]
+    def cell(r, c):  # success as a count of the runs (as report.md has it), the rest as values
+        if c == "success_rate" and "successes" in r and pd.notna(r["successes"]) and pd.notna(r.get("runs")):
+            return f"{int(r['successes'])}/{int(r['runs'])}"
+        return fmt_value(r[c])
+
+    rows = [[str(r["_label"]) if "_label" in table else "all", *[cell(r, c) for c, _ in cols]]
             for _, r in table.iterrows()]
     widths = [max(len(h), *(len(x[i]) for x in rows)) if rows else len(h)
               for i, h in enumerate([head, *[h for _, h in cols]])]

@@ -30,7 +30,7 @@ from scanreg.app.report.runs import latest_sweep_experiment, load_runs
 from scanreg.app.report.stats import interval, interval_name
 from scanreg.app.report.tables import (bin_markdown, bin_table, column_for, compare, concurrency_note, console_table,
                                        curve_display, curve_table, display_table, find_column, fmt_value, per_table,
-                                       default_grouping, summarize, to_markdown)
+                                       default_grouping, per_errors, summarize, to_markdown)
 
 def run_time_line(df: pd.DataFrame) -> str:
     """Wall-clock time of the sweep (first start to last end) and the sum of the runs' pipeline times."""
@@ -42,11 +42,18 @@ def run_time_line(df: pd.DataFrame) -> str:
             f"own pipeline times sum to {busy / 60:.1f} min")
 
 
+SET_ONLY_GROUPS = ("graph", "surface")
+"""Stage groups that only a scan set's runs use: left out of a pair sweep's stages line."""
+
+
 def configuration_line(df: pd.DataFrame) -> str:
     """The stage choices of the runs (``tags.group.*``): one value, or the values compared."""
     parts = []
+    sets = "metrics.scans_within_tolerance" in df.columns
     for c in sorted(c for c in df.columns if c.startswith("tags.group.")):
-        vals = sorted(set(df[c].dropna().astype(str)))
+        if not sets and c[len("tags.group."):] in SET_ONLY_GROUPS:
+            continue  # a pair's runs: the scan-set stages took no part
+        vals = sorted(set(df[c].dropna().astype(str)) - {"None", "null"})
         if vals:
             parts.append(f"{c[len('tags.group.'):]}={'|'.join(vals)}")
     return "- stages: " + (", ".join(parts) or "unknown") + " (the defaults of that commit unless overridden above)"
@@ -84,8 +91,11 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     table.drop(columns="_label").to_csv(out / "report.csv", index=False)
     run_columns(df).to_csv(out / "runs.csv", index=False)  # every run, for one's own statistics
     per_t = per_table(df, group_by, p.per) if p.per else None
+    per_e = per_errors(df, group_by, p.per) if p.per else None
     if per_t is not None:
         per_t.to_csv(out / "per.csv")
+    if per_e is not None:
+        per_e.to_csv(out / "per_rotation_error.csv")
     figs = make_plots(df, table, group_by, out, p.x, per_t) if plots else []
     bt = bin_table(df, group_by, p.bin_by, list(p.bin_edges), list(p.bin_metrics), p.per, how) if p.bin_by else None
     if bt is not None:
@@ -143,6 +153,9 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
                   to_markdown(curve_display(ct, p.x, list(p.curves))), ""]
     if per_t is not None:
         lines += [f"## Success per {p.per}", "", to_markdown((per_t * 100).round(0), index=True), ""]
+    if per_e is not None:
+        lines += [f"## Median rotation error per {p.per} [deg, finished runs]", "",
+                  to_markdown(per_e.map(lambda v: fmt_value(v) if pd.notna(v) else "–"), index=True), ""]
     if compare_to is not None:
         other = summarize(compare_to, [k for k in group_by if _has_key(compare_to, k)])
         cmp = compare(table.copy(), other, [k for k in group_by if _has_key(compare_to, k)], exp,
