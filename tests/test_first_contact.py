@@ -96,3 +96,19 @@ def test_stanford_scans_named_by_path_or_name(tmp_path):
         st._named(str(tmp_path / "bun045.ply"), poses, folder)
     with pytest.raises(ConfigError, match=r"scan 'bun999.ply' is not in bun.conf; known: bun045.ply, bun000.ply"):
         st._named("bun999.ply", poses, folder)
+
+
+def test_the_summary_explains_success_beside_recall_and_prints_counts_in_full():
+    """The 3DMatch pair: success 0 beside registration_recall 1 read as a contradiction; a line says which test
+    is which. Point counts of a million and more print in full (3.00728e+06 was 3 007 275)."""
+    from scanreg.runner import summary_lines
+    from scanreg.types import Result
+
+    res = Result(np.eye(4), {"n_source_points": 3007275.0, "success": 0.0, "registration_recall": 1.0,
+                             "rotation_error_deg": 0.91}, {}, None)
+    lines = summary_lines(res)
+    assert any(ln.split() == ["n_source_points", "3007275"] for ln in lines)
+    k = next(i for i, ln in enumerate(lines) if ln.startswith("registration_recall"))
+    assert "the strict test" in lines[k + 1] and "3DMatch's looser one" in lines[k + 1]
+    res.metrics["success"] = 1.0
+    assert not any("the strict test" in ln for ln in summary_lines(res))

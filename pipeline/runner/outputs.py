@@ -88,7 +88,12 @@ def summary_lines(res: Result) -> list[str]:
     if unit:
         how = "guessed from the target's size; set evaluate.units" if m.get("input_unit_guessed") else "evaluate.units"
         lines.append(f"lengths in {'µm' if unit == 'um' else unit}, the input's unit ({how})")
-    lines += [f"{k:<26} {_shown(m[k])}" for k in keys if k in m]
+    for k in keys:
+        if k in m:
+            lines.append(f"{k:<26} {_shown(m[k])}")
+        if k == "registration_recall" and m.get("success") == 0 and m.get(k) == 1:
+            lines.append("  (success: the strict test, evaluate.success_rotation_deg and success_translation; "
+                         "registration_recall: 3DMatch's looser one, evaluate.recall_*)")
     for prefix, role in (("repair_", "source"), ("target_repair_", "target")):
         lines += repair_table(m, prefix, role)
     return lines
