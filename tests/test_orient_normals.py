@@ -116,3 +116,17 @@ def test_raw_range_scans_get_their_meshes_sides():
         pts, nrm = pts[keep], nrm[keep]
         out = orient_normals(pts, estimate_normals(pts))
         assert np.mean(np.einsum("ij,ij->i", out, nrm) > 0) >= 0.99, name
+
+
+def test_scattered_clumps_are_joined_from_one_search():
+    """A cap among 300 scattered clumps of 10 points (over JOIN_EXACT_PARTS parts: each joined by its shortest
+    edge out, from one neighbour search, instead of a search per part): the cap still comes out outward."""
+    from scanreg.geometry.neighbours import JOIN_EXACT_PARTS
+
+    pts, nrm = cap(3000, 11)
+    rng = np.random.default_rng(12)
+    clumps = np.vstack([rng.uniform(-3, 3, 3) + 0.001 * rng.normal(size=(10, 3)) for _ in range(300)])
+    assert 300 > JOIN_EXACT_PARTS
+    cloud = np.vstack([pts, clumps])
+    out = orient_normals(cloud, np.vstack([random_signs(nrm, 13), estimate_normals(clumps)]))
+    assert np.allclose(out[:3000], nrm)

@@ -124,6 +124,10 @@ def _joined(points: np.ndarray, normals: np.ndarray, rows: np.ndarray,
                                              directed=False)
         if n_parts == 1:
             return rows, cols
+        if n_parts > JOIN_EXACT_PARTS:  # scattered clumps: each part's shortest edge out, from one search
+            e = _shortest_edges_out(points, part, n_parts)
+            rows, cols = np.concatenate([rows, e[:, 0]]), np.concatenate([cols, e[:, 1]])
+            continue
         extra = []
         for c in range(n_parts):
             inside = np.flatnonzero(part == c)
@@ -140,6 +144,38 @@ def _joined(points: np.ndarray, normals: np.ndarray, rows: np.ndarray,
             extra.append((inside[best], outside[int(j[best])]))
         e = np.array(extra, dtype=np.int64)
         rows, cols = np.concatenate([rows, e[:, 0]]), np.concatenate([cols, e[:, 1]])
+
+
+JOIN_EXACT_PARTS = 64
+"""Up to this many parts, each is joined by the surest of its nearly shortest edges out (one search per part);
+beyond it (a cloud of scattered clumps: thousands of searches), by its shortest edge, all from one search."""
+
+
+def _shortest_edges_out(points: np.ndarray, part: np.ndarray, n_parts: int) -> np.ndarray:
+    """For each part, its shortest edge (point inside, point outside) to another part, as rows (k, 2): from the
+    32 nearest neighbours of every point, and for a part none of whose points has another part among them, from
+    a search of the points outside it."""
+    from pykdtree.kdtree import KDTree
+
+    n = len(points)
+    k = min(n, 33)
+    d, j = KDTree(points).query(points, k=k)
+    d, j = d.reshape(n, k), j.reshape(n, k).astype(np.int64)
+    other = part[j] != part[:, None]
+    first = other.argmax(axis=1)
+    dist = np.where(other.any(axis=1), d[np.arange(n), first], np.inf)
+    order = np.lexsort((dist, part))  # by part, shortest first
+    lead = order[np.r_[True, part[order][1:] != part[order][:-1]]]
+    edges = []
+    for i in lead:
+        if np.isfinite(dist[i]):
+            edges.append((i, j[i, first[i]]))
+        else:  # a part larger than the neighbourhoods: searched on its own
+            inside, outside = np.flatnonzero(part == part[i]), np.flatnonzero(part != part[i])
+            dd, jj = KDTree(points[outside]).query(points[inside], k=1)
+            best = int(np.argmin(dd))
+            edges.append((inside[best], outside[int(jj[best])]))
+    return np.array(edges, dtype=np.int64).reshape(-1, 2)
 
 
 def estimate_spacing(points: np.ndarray, rng: np.random.Generator, n: int = 5000) -> float:
