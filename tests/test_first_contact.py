@@ -112,3 +112,16 @@ def test_the_summary_explains_success_beside_recall_and_prints_counts_in_full():
     assert "the strict test" in lines[k + 1] and "3DMatch's looser one" in lines[k + 1]
     res.metrics["success"] = 1.0
     assert not any("the strict test" in ln for ln in summary_lines(res))
+
+
+def test_a_two_scan_set_in_two_units_names_both():
+    """Two scans: the median of two sizes is their mean, which blamed the metre scan with a factor of 499; now
+    both are named, with the likely unit and both fixes."""
+    from scanreg.stages.data.scanset import check_sizes
+
+    a = Cloud(np.random.default_rng(1).uniform(0, 0.6, (200, 3)), source="a_m.xyz")
+    b = Cloud(a.points * 1000, source="b_mm.xyz")
+    with pytest.raises(InputError, match=r"scans a_m.xyz and b_mm.xyz .* likely mm vs m; multiply the larger "
+                                         r"one's coordinates by 0.001 or the smaller one's by 1000"):
+        check_sizes([a, b], 10.0)
+    check_sizes([a, Cloud(a.points * 5, source="c")], 10.0)

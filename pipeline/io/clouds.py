@@ -183,13 +183,16 @@ def _parsed_at_once(body: bytes) -> np.ndarray | None:
         return None
     first, _, rest = body.partition(b"\n")
     words = [w for w in re.split(rb"[\s,;]+", first.strip()) if w]
+    count = None
     if len(words) == 1 and re.fullmatch(rb"\+?\d+", words[0]):  # a point count (Leica's PTS)
-        body = rest
+        body, count = rest, int(words[0])
         first = body.partition(b"\n")[0]
     body = _as_spaced(body, first)
     try:
         arr = np.loadtxt(io.BytesIO(body), dtype=np.float64, ndmin=2, comments=None, encoding="latin-1")
     except ValueError:
+        return None
+    if count is not None and count != len(arr):  # not the count of the rows after it: read line by line
         return None
     return arr if arr.size else None
 
@@ -229,14 +232,17 @@ def _parsed_by_line(lines: list[bytes], start: int, label: str) -> np.ndarray:
 
 def _without_counts(lines: list[bytes], keep: list[int]) -> list[int]:
     """``keep`` (numbers of the lines that hold values) without point-count lines: a line of one integer among
-    rows of three or more values, as Leica's PTS starts each scan with its count."""
+    rows of three or more values that is followed by that many rows (up to the next such line or the end), as
+    Leica's PTS starts each scan with its count. Another lone integer (a file cut short) stays, a bad row."""
     def words(i):
         return [w for w in re.split(rb"[\s,;]+", lines[i].strip()) if w]
 
-    rows = [i for i in keep[:3] if len(words(i)) >= 3]
-    if not rows:
+    if not any(len(words(i)) >= 3 for i in keep[:3]):
         return keep
-    return [i for i in keep if not (len(w := words(i)) == 1 and re.fullmatch(rb"\+?\d+", w[0]))]
+    lone = [k for k, i in enumerate(keep) if len(w := words(i)) == 1 and re.fullmatch(rb"\+?\d+", w[0])]
+    ends = lone[1:] + [len(keep)]
+    counts = {k for k, end in zip(lone, ends) if int(words(keep[k])[0]) == end - k - 1}
+    return [i for k, i in enumerate(keep) if k not in counts]
 
 
 def _read_npy(p: Path, label: str, columns=None) -> Cloud:

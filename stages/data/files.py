@@ -30,6 +30,11 @@ def scale_geometry(g: Geometry, s: float) -> Geometry:
     return Cloud(g.points * s, g.normals, g.source, dict(g.extra))
 
 
+MAX_SIZE_RATIO = 10.0
+"""The default ``data.max_size_ratio`` (``data=files``, ``data=scanset``): sizes further apart are taken for
+other units."""
+
+
 def likely_units(f: float) -> tuple[str, float]:
     """The likely cause of two sizes ``f`` times apart (> 1): a common unit ratio within 30 % (its name and exact
     factor), else ``different units or a different object`` and ``f`` to 3 digits."""
@@ -85,7 +90,7 @@ class Files(Provider):
         a source in mm registered to a target in m. ``data.gt`` maps the scaled source into the target."""
         target_scale: float = 1.0
         """Multiply the target's coordinates (and its landmarks) by this on reading (see ``source_scale``)."""
-        max_size_ratio: Optional[float] = 10.0
+        max_size_ratio: Optional[float] = MAX_SIZE_RATIO
         """Stop, before any repair or registration, when the bounding-box diagonals of source and target (after
         scaling) differ by more than this factor: such inputs are almost always in different units, and the
         message names the likely unit factor. null: no check (a small part registered into a large scene)."""

@@ -13,7 +13,7 @@ from scanreg.errors import ConfigError, InputError, note
 from scanreg.geometry import bbox_diagonal, invert_T, points_of, transform_geometry
 from scanreg.io import CLOUD_EXTS, MESH_EXTS, expand_path, read_geometry, read_input, read_stanford_conf, read_transform
 from scanreg.stages.data.base import Provider
-from scanreg.stages.data.files import likely_units
+from scanreg.stages.data.files import MAX_SIZE_RATIO, likely_units
 from scanreg.stages.data.perturb import PoseParams
 from scanreg.stages.registry import DATA
 from scanreg.types import RunContext, ScanSet
@@ -52,7 +52,7 @@ class ScanSetProvider(Provider):
         against (optional)."""
         columns: Optional[str] = None
         """The columns of text and .npy clouds (as ``data=files``' ``columns``)."""
-        max_size_ratio: Optional[float] = 10.0
+        max_size_ratio: Optional[float] = MAX_SIZE_RATIO
         """Stop, before any registration, when a scan's bounding-box diagonal differs from the median of the
         set's by more than this factor: such a scan is almost always in other units (the message names the
         likely factor); one scan in mm among scans in m left 4 of 5 scans unplaced after two minutes. null: no
@@ -102,6 +102,16 @@ def check_sizes(scans: list, max_size_ratio: float | None) -> None:
     if max_size_ratio is None or len(scans) < 2:
         return
     d = np.array([bbox_diagonal(points_of(g)) if len(points_of(g)) else 0.0 for g in scans])
+    if (d > 0).sum() == 2:  # two scans: which one is off cannot be told, so both are named
+        a, b = np.flatnonzero(d > 0)
+        f = max(d[a], d[b]) / min(d[a], d[b])
+        if f > max_size_ratio:
+            unit, factor = likely_units(float(f))
+            raise InputError(f"scans {scans[a].source} and {scans[b].source} are {d[a]:.4g} and {d[b]:.4g} across "
+                             f"(bounding-box diagonals): {f:.3g}x apart, likely {unit}; multiply the larger one's "
+                             f"coordinates by {1 / factor:g} or the smaller one's by {factor:g} (or set "
+                             "data.max_size_ratio=null to register the scans as they are)")
+        return
     med = float(np.median(d[d > 0])) if (d > 0).any() else 0.0
     if not med > 0:
         return

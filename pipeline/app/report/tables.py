@@ -185,6 +185,8 @@ def per_errors(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame 
     work["_per"] = _typed(work[column_for(per, df)])
     work["_grp"] = group_labels(work, group_by)
     t = work.pivot_table(index="_per", columns="_grp", values="metrics.rotation_error_deg", aggfunc="median")
+    if t.empty:  # no run finished with an error to show
+        return None
     t.index.name, t.columns.name = per, None
     return t
 
