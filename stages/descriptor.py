@@ -11,6 +11,10 @@ from scanreg.stages.registry import DESCRIPTOR
 from scanreg.types import Distances, to_abs
 
 
+FLIP_ORDER = np.r_[np.arange(10, -1, -1), np.arange(11, 22), np.arange(32, 21, -1)]
+"""FPFH's 33 bins as the same point's histogram with its normals turned over has them (:meth:`FPFH.flipped`)."""
+
+
 @DESCRIPTOR.register("fpfh")
 class FPFH:
     """Fast Point Feature Histograms (Rusu 2009, Open3D), 33 bins, over a voxel-downsampled support cloud."""
@@ -64,6 +68,17 @@ class FPFH:
             o3d.utility.IntVector(np.arange(n_support, n_support + len(kp)).tolist()),
         )
         return np.asarray(feat.data).T[-len(kp):].copy()
+
+    def flipped(self, descriptors: np.ndarray) -> np.ndarray | None:
+        """The histograms the same keypoints have with every normal turned over: FPFH's first and third 11-bin
+        features change sign with the normals (the second does not), so their bins come in reverse order
+        (exact; ``tests/test_orient_normals.py``). Two clouds whose normals were estimated and oriented each on
+        its own may lie on opposite sides of the surface (an open surface has no outside to agree on): the
+        coarse stage matches both ways (``lo_ransac``). None when the signs are the estimation's own
+        (``orient_normals`` false): no one turn relates the two clouds then."""
+        if not self.p.orient_normals:
+            return None
+        return descriptors[:, FLIP_ORDER]
 
 
 def local_frames(points: np.ndarray, normals: np.ndarray | None, keypoints: np.ndarray, radius: float,

@@ -130,3 +130,41 @@ def test_scattered_clumps_are_joined_from_one_search():
     cloud = np.vstack([pts, clumps])
     out = orient_normals(cloud, np.vstack([random_signs(nrm, 13), estimate_normals(clumps)]))
     assert np.allclose(out[:3000], nrm)
+
+
+def test_fpfh_flipped_is_the_histogram_of_turned_normals():
+    """FPFH with every normal turned over: its first and third features' bins reversed, exactly."""
+    rng = np.random.default_rng(14)
+    u = rng.uniform(0, 1, (3000, 2))
+    pts = np.c_[u, 0.2 * np.sin(5 * u[:, 0]) * np.cos(4 * u[:, 1])]
+    nrm = orient_normals(pts, estimate_normals(pts))
+    stage = FPFH(FPFH.Params(support_voxel=0.0))
+    kp = np.arange(0, 3000, 30)
+    a = stage.compute(Cloud(pts, nrm), kp, 0.01)
+    b = stage.compute(Cloud(pts, -nrm), kp, 0.01)
+    assert np.abs(stage.flipped(a) - b).max() < 1e-9 * np.abs(a).max()
+    assert stage.flipped(a).shape == a.shape and not np.allclose(stage.flipped(a), a)
+    assert FPFH(FPFH.Params(orient_normals=False)).flipped(a) is None
+
+
+def test_two_crops_of_an_open_surface_match_with_their_normals_on_opposite_sides():
+    """Two overlapping crops of a bumpy terrain, one arched and one hollowed, as bare points: each cloud's normals
+    come out on its own outer side, so up in one and down in the other; the coarse stage matches both ways and
+    keeps the turned one (inlier share 0.11-0.12 over three poses; as oriented alone, 0.02)."""
+    rng = np.random.default_rng(0)
+    bumps = np.c_[rng.uniform(0, 12, 50), rng.uniform(0, 4, 50), rng.uniform(0.1, 0.4, 50), rng.uniform(0.2, 0.6, 50)]
+
+    def crop(x0, x1, n=20000):
+        u = rng.uniform([x0, 0], [x1, 4], (n, 2))
+        h = 0.8 * np.sin(u[:, 0] * 0.5)
+        for bx, by, a, s in bumps:
+            h = h + a * np.exp(-((u[:, 0] - bx) ** 2 + (u[:, 1] - by) ** 2) / (2 * s * s))
+        return np.c_[u, h]
+
+    A, B = crop(0, 6), crop(4, 10)
+    assert (orient_normals(A, estimate_normals(A))[:, 2] > 0).mean() > 0.99
+    assert (orient_normals(B, estimate_normals(B))[:, 2] < 0).mean() > 0.99
+    T = random_pose(np.random.default_rng(0), 180, 1.0)
+    r = scanreg.register(B @ T[:3, :3].T + T[:3, 3], A, gt=np.linalg.inv(T))
+    assert r.metrics["coarse_normals_turned"] == 1 and r.metrics["coarse_inlier_ratio"] > 0.04
+    assert r.metrics["rotation_error_deg"] < 0.05

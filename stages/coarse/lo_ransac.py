@@ -211,7 +211,30 @@ class LoRansac(CoarseBase):
         return self._matched(Described(target, spacing, kt, dt), Described(source, spacing, ks, ds), self.p)
 
     def _matched(self, t: Described, s: Described, p: Params) -> CoarseResult:
-        """Descriptor matches and RANSAC between two described clouds (one spacing), with the parameters ``p``."""
+        """Descriptor matches and RANSAC between two described clouds (one spacing), with the parameters ``p``;
+        when a cloud had no normals and the descriptor says how its histograms read with the normals turned over
+        (:meth:`~scanreg.stages.descriptor.FPFH.flipped`), both ways, the one with more inliers kept (ties: as
+        oriented). Each cloud's estimated normals are oriented consistently on their own, so that one of the two
+        ways has them on the same side of the surface in both."""
+        flip = getattr(self.descriptor, "flipped", None)
+        turned = flip(t.descriptors) if flip is not None and (t.cloud.normals is None or
+                                                               s.cloud.normals is None) else None
+        if turned is None:
+            return self._matched_once(t, s, p)
+        results, errors = [], []
+        for k, dt in enumerate((t.descriptors, turned)):
+            try:
+                res = self._matched_once(Described(t.cloud, t.spacing, t.keypoints, dt), s, p)
+                res.metrics["coarse_normals_turned"] = k
+                results.append(res)
+            except StageError as e:
+                errors.append(e)
+        if not results:
+            raise errors[0]
+        return max(results, key=lambda r: r.metrics["coarse_inliers"])  # (the first of equals: as oriented)
+
+    def _matched_once(self, t: Described, s: Described, p: Params) -> CoarseResult:
+        """:meth:`_matched` with the descriptors as they are."""
         pairs = self.matcher.match(t.descriptors, s.descriptors)
         metrics = {"coarse_keypoints_target": len(t.keypoints), "coarse_keypoints_source": len(s.keypoints),
                    "coarse_correspondences": len(pairs)}
