@@ -76,7 +76,8 @@ def orient_normals(points: np.ndarray, normals: np.ndarray, k: int = 10) -> np.n
     :func:`_joined`), then all of them turned so that they point away from the cloud's centroid on balance (the
     sum of ``n . (p - centroid)`` positive), as the outer surface of an object seen from outside does. A
     function of the points' positions (not of their pose), so that two scans of one object get normals on the
-    same side of its surface, which sign-sensitive descriptors (FPFH) need."""
+    same side of its surface, which sign-sensitive descriptors (FPFH) need. An open surface has no outside: two
+    crops of it may come out on opposite sides (the coarse stage then matches both ways, ``FPFH.flipped``)."""
     from pykdtree.kdtree import KDTree
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
