@@ -188,6 +188,8 @@ def _parsed_at_once(body: bytes) -> np.ndarray | None:
         body, count = rest, int(words[0])
         first = body.partition(b"\n")[0]
     body = _as_spaced(body, first)
+    if not body.strip():
+        return None  # nothing after the count: said by the line-by-line reading ("contains no points")
     try:
         arr = np.loadtxt(io.BytesIO(body), dtype=np.float64, ndmin=2, comments=None, encoding="latin-1")
     except ValueError:
