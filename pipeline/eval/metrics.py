@@ -16,6 +16,17 @@ DISPLAY_UNITS = {"m": (1000.0, "mm"), "cm": (10.0, "mm"), "mm": (1000.0, "um"), 
 """Input unit -> (display unit per input unit, display unit) of the deviations."""
 METRES_PER_UNIT = {"m": 1.0, "cm": 0.01, "mm": 0.001, "um": 1e-6}
 """The metric ``input_unit_m``: metres per input unit."""
+
+
+def input_unit_name(metres_per_unit) -> str | None:
+    """The input unit the metric ``input_unit_m`` (metres per input unit) says, as written for people (``µm``,
+    :func:`~scanreg.eval.deviation.display_unit`); None for a value that names none."""
+    from scanreg.eval.deviation import display_unit
+
+    unit = {v: k for k, v in METRES_PER_UNIT.items()}.get(metres_per_unit)
+    return None if unit is None else display_unit(unit)
+
+
 METRES_BELOW = 5.0
 """``units=auto``: a target whose bounding-box diagonal is below this is taken to be in metres."""
 

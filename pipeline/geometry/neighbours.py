@@ -80,7 +80,7 @@ def orient_normals(points: np.ndarray, normals: np.ndarray, k: int = 10) -> np.n
     crops of it may come out on opposite sides (the coarse stage then matches both ways, ``FPFH.flipped``)."""
     from pykdtree.kdtree import KDTree
     from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
     n = len(points)
     points = np.ascontiguousarray(points, dtype=np.float64)
@@ -126,7 +126,7 @@ def _joined(points: np.ndarray, normals: np.ndarray, rows: np.ndarray,
         if n_parts == 1:
             return rows, cols
         if n_parts > JOIN_EXACT_PARTS:  # scattered clumps: each part's shortest edge out, from one search
-            e = _shortest_edges_out(points, part, n_parts)
+            e = _shortest_edges_out(points, part)
             rows, cols = np.concatenate([rows, e[:, 0]]), np.concatenate([cols, e[:, 1]])
             continue
         extra = []
@@ -152,7 +152,7 @@ JOIN_EXACT_PARTS = 64
 beyond it (a cloud of scattered clumps: thousands of searches), by its shortest edge, all from one search."""
 
 
-def _shortest_edges_out(points: np.ndarray, part: np.ndarray, n_parts: int) -> np.ndarray:
+def _shortest_edges_out(points: np.ndarray, part: np.ndarray) -> np.ndarray:
     """For each part, its shortest edge (point inside, point outside) to another part, as rows (k, 2): from the
     32 nearest neighbours of every point, and for a part none of whose points has another part among them, from
     a search of the points outside it."""

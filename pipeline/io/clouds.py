@@ -160,7 +160,7 @@ def _header_and_start(lines: list[bytes]) -> tuple[list[str] | None, int]:
         if not s:
             continue
         comment = s.startswith((b"#", b"//"))
-        words = [w for w in re.split(rb"[\s,;]+", s.lstrip(b"/#").strip()) if w]
+        words = _words(s.lstrip(b"/#"))
         if not comment and all(_NUMBER.match(w) for w in words):
             start = i
             break
@@ -182,9 +182,9 @@ def _parsed_at_once(body: bytes) -> np.ndarray | None:
     if b"#" in body or b"//" in body:
         return None
     first, _, rest = body.partition(b"\n")
-    words = [w for w in re.split(rb"[\s,;]+", first.strip()) if w]
+    words = _words(first)
     count = None
-    if len(words) == 1 and re.fullmatch(rb"\+?\d+", words[0]):  # a point count (Leica's PTS)
+    if _is_count(words):  # a point count (Leica's PTS)
         body, count = rest, int(words[0])
         first = body.partition(b"\n")[0]
     body = _as_spaced(body, first)
@@ -236,15 +236,22 @@ def _without_counts(lines: list[bytes], keep: list[int]) -> list[int]:
     """``keep`` (numbers of the lines that hold values) without point-count lines: a line of one integer among
     rows of three or more values that is followed by that many rows (up to the next such line or the end), as
     Leica's PTS starts each scan with its count. Another lone integer (a file cut short) stays, a bad row."""
-    def words(i):
-        return [w for w in re.split(rb"[\s,;]+", lines[i].strip()) if w]
-
-    if not any(len(words(i)) >= 3 for i in keep[:3]):
+    if not any(len(_words(lines[i])) >= 3 for i in keep[:3]):
         return keep
-    lone = [k for k, i in enumerate(keep) if len(w := words(i)) == 1 and re.fullmatch(rb"\+?\d+", w[0])]
+    lone = [k for k, i in enumerate(keep) if _is_count(_words(lines[i]))]
     ends = lone[1:] + [len(keep)]
-    counts = {k for k, end in zip(lone, ends) if int(words(keep[k])[0]) == end - k - 1}
+    counts = {k for k, end in zip(lone, ends) if int(_words(lines[keep[k]])[0]) == end - k - 1}
     return [i for k, i in enumerate(keep) if k not in counts]
+
+
+def _words(line: bytes) -> list[bytes]:
+    """The values of a text cloud's line (split by spaces, tabs, commas or semicolons)."""
+    return [w for w in re.split(rb"[\s,;]+", line.strip()) if w]
+
+
+def _is_count(words: list[bytes]) -> bool:
+    """Whether a line's values are one whole number (a point count, as Leica's PTS has before each scan)."""
+    return len(words) == 1 and re.fullmatch(rb"\+?\d+", words[0]) is not None
 
 
 def _read_npy(p: Path, label: str, columns=None) -> Cloud:

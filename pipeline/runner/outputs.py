@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.eval.metrics import METRES_PER_UNIT
+from scanreg.eval.metrics import input_unit_name
 from scanreg.geometry import Cloud, apply_T
 from scanreg.io import write_ply, write_transform
 from scanreg.types import CoarseTrace, Result
@@ -84,10 +84,10 @@ def summary_lines(res: Result) -> list[str]:
              "pose_bootstrap_trans"]
     keys += [k for k in m if k.startswith("dev_") and "_tooth_" not in k and "_part_" not in k]
     lines.append("")
-    unit = {v: k for k, v in METRES_PER_UNIT.items()}.get(m.get("input_unit_m"))
+    unit = input_unit_name(m.get("input_unit_m"))
     if unit:
         how = "guessed from the target's size; set evaluate.units" if m.get("input_unit_guessed") else "evaluate.units"
-        lines.append(f"lengths in {'µm' if unit == 'um' else unit}, the input's unit ({how})")
+        lines.append(f"lengths in {unit}, the input's unit ({how})")
     for k in keys:
         if k in m:
             lines.append(f"{k:<26} {_shown(m[k])}")

@@ -71,7 +71,7 @@ def _check_metrics(df: pd.DataFrame, asked: dict) -> None:
         for name in names or ():
             if name not in have and name != "success":
                 close = difflib.get_close_matches(name, have, n=3)
-                warn(f"report {option} (--metrics or the experiment's report block): no run has the metric "
+                warn(f"report.{option}{' (--metrics)' if option == 'metrics' else ''}: no run has the metric "
                      f"'{name}'" + (f"; did you mean {', '.join(close)}?" if close else ""))
 
 
@@ -171,7 +171,8 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     if n_fail:
         lines += ["## Failed runs", ""] + failed_lines(df, group_by) + [""]
     (out / "report.md").write_text("\n".join(lines))
-    return {"table": table, "per": per_t, "paths": [out / "report.md", out / "report.csv", out / "runs.csv", *figs], "warning": warn}
+    return {"table": table, "per": per_t, "group_by": group_by, "warning": warn,
+            "paths": [out / "report.md", out / "report.csv", out / "runs.csv", *figs]}
 
 
 def run_columns(df: pd.DataFrame) -> pd.DataFrame:
@@ -342,7 +343,7 @@ def _main(argv: list[str] | None) -> int:
     res = write_report(df, p, out, other, plots=not a.no_plots)
     print(f"{len(df)} run(s) of experiment '{a.experiment}'"
           + (f", sweep {df.attrs['parent']}" if df.attrs.get("parent") else ""))
-    print(console_table(res["table"], p.group_by or default_grouping(df)[0]))
+    print(console_table(res["table"], res["group_by"]))
     if res["warning"]:
         print(f"warning: {res['warning']}")
     print(f"every column: {out / 'report.csv'}; every run: {out / 'runs.csv'}; report: {out / 'report.md'}")
@@ -369,17 +370,14 @@ def success_line(df) -> str:
 
 def _unit_note(df: pd.DataFrame) -> str:
     """`` (m)``: the input unit the runs logged (``input_unit_m``), when they agree; else nothing."""
-    from scanreg.eval.metrics import METRES_PER_UNIT
+    from scanreg.eval.metrics import input_unit_name
 
-    if "metrics.input_unit_m" not in df.columns:
+    vals = set(df["metrics.input_unit_m"].dropna()) if "metrics.input_unit_m" in df.columns else set()
+    unit = input_unit_name(next(iter(vals))) if len(vals) == 1 else None
+    if unit is None:
         return ""
-    vals = set(df["metrics.input_unit_m"].dropna())
-    names = {v: k for k, v in METRES_PER_UNIT.items()}
-    if len(vals) != 1 or next(iter(vals)) not in names:
-        return ""
-    unit = names[next(iter(vals))]
     guessed = "metrics.input_unit_guessed" in df.columns and bool(df["metrics.input_unit_guessed"].fillna(0).max())
-    return f" ({'µm' if unit == 'um' else unit}{', guessed from the sizes' if guessed else ''})"
+    return f" ({unit}{', guessed from the sizes' if guessed else ''})"
 
 
 def scanset_section(df: pd.DataFrame, group_by: list[str], out: Path) -> list[str]:
