@@ -28,6 +28,10 @@ def test_the_recorded_transform_comes_out_again(case, tmp_path):
     res = reference_runs.run_case(case, reference_runs.CASES[case], tmp_path)
     assert "error" not in res, res.get("error")
     T, T_ref = np.array(res["T_target_source"]), np.array(REFERENCE[case]["T_target_source"])
-    # the same to the last few bits (the script checks bit for bit; a tolerance keeps other CPUs' BLAS in)
-    np.testing.assert_allclose(T, T_ref, rtol=0, atol=1e-12 * max(1.0, np.abs(T_ref[:3, 3]).max()))
-    assert res["rotation_error_deg"] == pytest.approx(REFERENCE[case]["rotation_error_deg"], rel=1e-9)
+    # the same to the last few bits (the script checks bit for bit; a tolerance keeps other CPUs' BLAS in), or
+    # for a case that goes through Embree's CPU-chosen kernels, as close as two CPUs were measured to agree
+    entry_rel, rotation_deg = reference_runs.CPU_DEPENDENT.get(case, (1e-12, None))
+    np.testing.assert_allclose(T, T_ref, rtol=0, atol=entry_rel * max(1.0, np.abs(T_ref[:3, 3]).max()))
+    expected = REFERENCE[case]["rotation_error_deg"]
+    assert res["rotation_error_deg"] == pytest.approx(expected, rel=1e-9 if rotation_deg is None else None,
+                                                      abs=rotation_deg)
