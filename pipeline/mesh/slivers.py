@@ -253,8 +253,6 @@ def _fold_points(mesh: Mesh) -> np.ndarray:
 def _near_changes(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray] | None:
     """Masks of the faces of ``before`` and of ``after`` near a face that is in one mesh and not in the other
     (:func:`collapse_folds`); None when no face differs."""
-    from scipy.spatial import cKDTree
-
     fb, fa = before.faces, after.faces
     track = known(after, "collapsed_from")  # set by collapse_slivers: the faces it changed
     tracked = track is not None and track[0][0] is before.vertices and track[0][1] is before.faces
@@ -282,9 +280,9 @@ def _near_changes(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray] | 
     grid_points = _face_grids(tris[~small], bound)
     seeds = np.concatenate([centroids, grid_points])
     reach = np.concatenate([radii[small], np.full(len(grid_points), bound)])
-    seed_tree = cKDTree(seeds)
+    seed_tree = _unbalanced_tree(seeds)
     n_small = len(centroids)  # the first seeds: the small faces' centroids; then the large faces' grids
-    grid_tree = cKDTree(grid_points) if len(grid_points) else None
+    grid_tree = _unbalanced_tree(grid_points) if len(grid_points) else None
     # every reach is at most the bound, so a centroid within a seed's reach plus the bound lies in the seed's
     # cell of a grid of side 2 bound or in a neighbouring cell: only the centroids in those cells are looked at
     # (those around the centroids for the centroids' reaches, those around the grid points for the grids')
@@ -324,20 +322,23 @@ def _near_changes(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray] | 
     def near(x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Faces (centroids ``x``, circumradii ``r``) that can touch a changed face: centroids within the sum of
         the two reaches; faces up to the common bound found around the seeds, the few larger ones (1 %)
-        looked up the other way."""
+        looked up the other way. Each search looks only at the faces no search before it has found (the
+        cheapest first)."""
         mask = np.zeros(len(x), bool)
-        g = [np.floor((x[:, k] - lo[k]) / cell).astype(np.int64) for k in range(3)] if gridded else None
-        cand = candidates(g, len(x), around[0])
-        if len(cand) and n_small:  # the small faces' own reaches
-            hits = cKDTree(x[cand]).query_ball_point(centroids, reach[:n_small] + bound)
-            mask[cand[np.concatenate([np.asarray(h, np.int64) for h in hits])]] = True
-        cand = candidates(g, len(x), around[1])
-        if len(cand) and grid_tree is not None:  # the grid points all reach the bound: the nearest one decides
-            d = grid_tree.query(x[cand], distance_upper_bound=np.nextafter(2 * bound, np.inf))[0]
-            mask[cand[d <= 2 * bound]] = True
         big = np.flatnonzero(r > bound)
         if len(big):  # every reach is at most the bound
             mask[big[seed_tree.query_ball_point(x[big], r[big] + bound, return_length=True) > 0]] = True
+        g = [np.floor((x[:, k] - lo[k]) / cell).astype(np.int64) for k in range(3)] if gridded else None
+        cand = candidates(g, len(x), around[1])
+        cand = cand[~mask[cand]]
+        if len(cand) and grid_tree is not None:  # the grid points all reach the bound: the nearest one decides
+            d = grid_tree.query(x[cand], distance_upper_bound=np.nextafter(2 * bound, np.inf))[0]
+            mask[cand[d <= 2 * bound]] = True
+        cand = candidates(g, len(x), around[0])
+        cand = cand[~mask[cand]]
+        if len(cand) and n_small:  # the small faces' own reaches
+            hits = _unbalanced_tree(x[cand]).query_ball_point(centroids, reach[:n_small] + bound)
+            mask[cand[np.concatenate([np.asarray(h, np.int64) for h in hits])]] = True
         return mask
 
     near_b = near(xb, rb)
@@ -347,6 +348,16 @@ def _near_changes(before: Mesh, after: Mesh) -> tuple[np.ndarray, np.ndarray] | 
     else:
         near_a = near(xa, ra)
     return near_b, near_a
+
+
+def _unbalanced_tree(points: np.ndarray):
+    """A k-d tree of ``points`` split at the middle of each cell (scipy's ``balanced_tree=False``) rather than at
+    the median: the same answers, but quicker to build and to search where the points cluster, as the grids
+    along a raw scan's long border faces do (the fold check's neighbourhood in half the time on the raw
+    Stanford scans: experiments/benchmarks/repair_speed.md)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points, balanced_tree=False, compact_nodes=False)
 
 
 def _centres(m: Mesh) -> tuple[np.ndarray, np.ndarray]:
