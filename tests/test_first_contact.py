@@ -79,7 +79,7 @@ def test_a_scan_set_with_one_scan_in_other_units_stops_with_one_line(tmp_path):
         check_sizes(scans, 10.0)
 
 
-def test_stanford_scans_named_by_path_or_name(tmp_path):
+def test_stanford_scans_named_by_path_or_name(tmp_path, monkeypatch):
     """data=stanford takes a scan as the .conf names it or as a path to it in data.folder (scanreg.register passes
     paths; it said the file was not in bun.conf while listing it); a file elsewhere is one line naming both."""
     from scanreg.api import build_stage
@@ -94,6 +94,12 @@ def test_stanford_scans_named_by_path_or_name(tmp_path):
     assert st._named("bun045", poses, folder) == "bun045.ply"
     with pytest.raises(ConfigError, match=r"is not in data.folder .* set data.folder to its folder"):
         st._named(str(tmp_path / "bun045.ply"), poses, folder)
+    # './bun045.ply' is a file in the working directory (here not data.folder), not the bare name
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=r"scan ./bun045.ply is not in data.folder"):
+        st._named("./bun045.ply", poses, folder)
+    monkeypatch.chdir(folder)
+    assert st._named("./bun045.ply", poses, folder) == "bun045.ply"
     with pytest.raises(ConfigError, match=r"scan 'bun999.ply' is not in bun.conf; known: bun045.ply, bun000.ply"):
         st._named("bun999.ply", poses, folder)
 

@@ -3,6 +3,8 @@ scans) and ``data=pairs_3dmatch`` (a 3DMatch RGB-D fragment pair)."""
 
 from __future__ import annotations
 
+import os
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -89,7 +91,8 @@ class Stanford(Provider):
         path = Path(expand_path(str(scan)))
         stems = {Path(k).stem: k for k in poses}
         name = path.name if path.name in poses else stems.get(path.name, stems.get(path.stem))
-        if name is not None and path.parent != Path(".") and path.parent.resolve() != folder.resolve():
+        given_as_path = "/" in str(scan) or os.sep in str(scan)  # ('./bun000.ply' too: a file here, not a name)
+        if name is not None and given_as_path and path.parent.resolve() != folder.resolve():
             raise ConfigError(f"data=stanford: scan {scan} is not in data.folder ({folder}), where the scans of "
                               f"{self.p.conf} are read from: set data.folder to its folder, or use data=files "
                               "with data.gt for files of your own")
