@@ -346,3 +346,66 @@ def test_per_case_errors_and_console_counts(tmp_path):
     t = summarize(df, ["k"])
     lines = console_table(t, ["k"]).splitlines()
     assert lines[1].split()[:4] == ["a", "2", "0", "2/2"] and lines[2].split()[:4] == ["b", "2", "1", "0/2"]
+
+
+def test_holm_and_mcnemar_and_wilcoxon_by_hand():
+    """Holm's adjustment, McNemar's exact test and the signed-rank test against direct computations."""
+    from math import comb
+
+    from scanreg.app.report.paired import holm, mcnemar_exact, wilcoxon_p
+
+    # Holm: sorted 0.01, 0.02, 0.04 times 3, 2, 1 -> 0.03, 0.04, 0.04 (made non-decreasing); NaN kept
+    assert np.allclose(holm([0.04, 0.01, float("nan"), 0.02]), [0.04, 0.03, np.nan, 0.04], equal_nan=True)
+    assert holm([0.9, 0.8]) == [1.0, 1.0]
+    assert np.allclose(holm([0.01, 0.011, 0.04]), [0.03, 0.03, 0.04])  # 0.022 raised to the 0.03 before it
+    # McNemar exact: 1 of 9 discordant cases one way: 2 * P(X <= 1), X ~ Bin(9, 1/2)
+    assert mcnemar_exact(8, 1) == pytest.approx(2 * (comb(9, 0) + comb(9, 1)) / 2 ** 9)
+    assert mcnemar_exact(0, 0) == 1.0
+    # signed ranks of 6 differences, all of one sign: the exact two-sided p is 2 / 2^6
+    assert wilcoxon_p(np.array([0.1, 0.2, 0.3, 0.4, 0.5, 0.6])) == pytest.approx(2 / 64)
+    assert wilcoxon_p(np.zeros(4)) == 1.0 and np.isnan(wilcoxon_p(np.zeros(0)))
+
+
+def test_paired_section_pairs_runs_by_case(tmp_path):
+    """Two methods on the same 8 cases (pair x pose seed): the paired table pairs each case's runs, counts the
+    cases only one solved, and takes the median of the differences on the cases both finished; a method on other
+    cases does not pair; a case run twice in a group leaves the section out."""
+    from scanreg.app.report.paired import paired_table
+
+    rows = []
+    for method, err in (("a", 1.0), ("b", 0.5)):
+        for i, (pair, seed) in enumerate([(p, s) for p in ("p1", "p2", "p3", "p4") for s in ("0", "1")]):
+            ok = not (method == "a" and i in (0, 1, 2))  # a fails 3 cases that b solves
+            rows.append({"params.method.name": method, "params.data.pair": pair, "params.data.pose_seed": seed,
+                         "params.seed": "0", "status": "FAILED" if method == "a" and i == 0 else "FINISHED",
+                         "metrics.success": float(ok), "metrics.rotation_error_deg": err + 0.01 * i,
+                         "metrics.time_total_s": 2.0 if method == "a" else 1.0 + 0.1 * i,
+                         "start_time": pd.Timestamp("2026-01-01", tz="UTC")})
+    df = pd.DataFrame(rows)
+    df.loc[df["status"] == "FAILED", ["metrics.rotation_error_deg", "metrics.time_total_s"]] = np.nan
+    df.attrs.update(experiment="t", uri="sqlite:///x.db", parent=None, parent_tags={})
+    labels = df["params.method.name"]
+    t = paired_table(df, labels, ["method.name"], ["rotation_error_deg", "time_total_s"])
+    r = t.iloc[0]
+    assert (r["first"], r["second"], r["cases"]) == ("a", "b", 8)
+    assert (r["both_succeeded"], r["first_only"], r["second_only"], r["neither"]) == (5, 0, 3, 0)
+    assert r["success_p"] == pytest.approx(2 / 8)  # 0 of 3 discordant cases one way: 2 * (1/2)^3
+    # b - a on the 7 cases both finished: -0.5 each (same offsets), b lower in all 7
+    assert r["rotation_error_deg_n"] == 7 and r["rotation_error_deg_diff_median"] == pytest.approx(-0.5)
+    assert (r["rotation_error_deg_second_lower"], r["rotation_error_deg_first_lower"]) == (7, 0)
+    assert r["rotation_error_deg_p"] == pytest.approx(2 / 2 ** 7)
+    expected = np.median([1.0 + 0.1 * i - 2.0 for i in range(1, 8)])
+    assert r["time_total_s_diff_median"] == pytest.approx(expected)
+    # the report writes it
+    write_report(df, ReportParams(group_by=["method.name"]), tmp_path, plots=False)
+    text = (tmp_path / "report.md").read_text()
+    assert "## Paired comparison on the same cases" in text and "0 / 3 (0.250)" in text
+    assert pd.read_csv(tmp_path / "paired.csv")["cases"].tolist() == [8]
+    # a third method on other cases: no pair with it; a case twice in one group: no section
+    c = df[df["params.method.name"] == "b"].copy()
+    c["params.method.name"], c["params.data.pair"] = "c", "q" + c["params.data.pair"]
+    both = pd.concat([df, c], ignore_index=True)
+    t3 = paired_table(both, both["params.method.name"], ["method.name"], ["rotation_error_deg"])
+    assert t3[["first", "second"]].values.tolist() == [["a", "b"]]
+    twice = pd.concat([df, df.iloc[:1]], ignore_index=True)
+    assert paired_table(twice, twice["params.method.name"], ["method.name"], ["rotation_error_deg"]) is None

@@ -33,6 +33,10 @@ class ReportParams:
     """The interval shown beside every median: ``bootstrap`` (percentile 95 % confidence interval of the median,
     2000 seeded resamples of the group's runs) or ``iqr`` (interquartile range, 25th to 75th percentile). Success
     rates always get the Wilson 95 % score interval."""
+    paired: list[str] = field(default_factory=lambda: ["rotation_error_deg", "time_total_s"])
+    """Metrics compared case by case between every two groups, when the runs share cases (the same data keys
+    and seeds): the median paired difference with its interval and Wilcoxon's signed-rank test, beside
+    McNemar's exact test of success (:mod:`scanreg.app.report.paired`); empty: no paired section."""
     bin_by: Optional[str] = None
     """A per-run metric (e.g. ``gt_overlap``, a share 0..1) whose bins get their own success table and plot; null:
     none."""
