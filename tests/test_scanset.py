@@ -378,3 +378,31 @@ def test_poses_that_are_not_there_are_named_so(tmp_path):
         read_poses("nothere", ["a.ply", "b.ply"])
     with pytest.raises(InputError, match=r"the pattern matches no file"):
         read_poses(str(tmp_path / "*.txt"), ["a.ply", "b.ply"])
+
+
+def test_scans_of_the_same_file_name_in_two_folders_keep_a_pose_each(tmp_path):
+    """Per-scan export folders (a/scan.ply, b/scan.ply): the set named both 'scan.ply', and poses.json kept one pose
+    for the two; each is named by as many folders as tell them apart, and poses by stem cannot be matched."""
+    from scanreg.errors import InputError
+    from scanreg.stages.data.scanset import read_poses, scan_names
+
+    names = scan_names([tmp_path / "x" / "a" / "scan.ply", tmp_path / "x" / "b" / "scan.ply", tmp_path / "c.ply",
+                        tmp_path / "y" / "a" / "d.ply", tmp_path / "z" / "a" / "d.ply"])
+    assert names == ["a/scan.ply", "b/scan.ply", "c.ply", "y/a/d.ply", "z/a/d.ply"]
+    with pytest.raises(InputError, match=r"a/scan.ply, b/scan.ply have the same file stem"):
+        read_poses(str(tmp_path), names[:2])
+
+
+def test_a_set_of_scans_of_one_name_writes_a_pose_each(tmp_path, views):
+    """The same on the command line: a pose each in poses.json, the world named by its folder."""
+    scans, _ = views
+    for k, folder in enumerate(("a", "b", "c")):
+        (tmp_path / folder).mkdir()
+        write_ply(tmp_path / folder / "scan.ply", scans[k])
+    out = tmp_path / "out"
+    r = run_cli([str(tmp_path / f / "scan.ply") for f in ("a", "b", "c")]
+                + ["surface=none", "tracking=none", f"hydra.run.dir={out}"], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    poses = json.loads((out / "poses.json").read_text())
+    assert sorted(poses["poses"]) == ["a/scan.ply", "b/scan.ply", "c/scan.ply"]
+    assert poses["world"] in poses["poses"]

@@ -74,12 +74,12 @@ class ScanSetProvider(Provider):
         self.require()
         paths = scan_paths(self.p.scans)
         scans, info = [], {}
-        for k, path in enumerate(paths):
+        names = scan_names(paths)
+        for path, name in zip(paths, names):
             g, bad = read_input(str(path), "scan", self.p.columns)
-            g.source = path.name
+            g.source = name
             scans.append(g)
             info["n_invalid_points"] = info.get("n_invalid_points", 0) + bad
-        names = [p.name for p in paths]
         check_sizes(scans, self.p.max_size_ratio)
         poses = read_poses(self.p.poses, names) if self.p.poses else None
         if self.p.max_angle_deg > 0 or self.p.max_translation > 0:
@@ -166,8 +166,32 @@ def scan_paths(spec: Any) -> list[Path]:
     return out
 
 
+def scan_names(paths: list[Path]) -> list[str]:
+    """One name per scan for the tables, ``poses.json`` and the messages: its file name, or where two scans'
+    file names are the same (``a/scan.ply``, ``b/scan.ply``: per-scan export folders), as many of the folders
+    above it as tell them apart."""
+    parts = [Path(p).parts for p in paths]
+    depth = [1] * len(paths)
+    while True:
+        names = ["/".join(q[-d:]) for q, d in zip(parts, depth)]
+        seen: dict[str, list[int]] = {}
+        for k, n in enumerate(names):
+            seen.setdefault(n, []).append(k)
+        clash = [k for ks in seen.values() if len(ks) > 1 for k in ks if depth[k] < len(parts[k])]
+        if not clash:
+            break
+        for k in clash:
+            depth[k] += 1
+    return names
+
+
 def read_poses(spec: str, names: list[str]) -> list[np.ndarray]:
     """Each scan's ``T_world_scan`` from a Stanford ``.conf`` or from one 4x4 file per scan (by file stem)."""
+    stems = [Path(n).stem for n in names]
+    twice = sorted({n for n, st in zip(names, stems) if stems.count(st) > 1})
+    if twice:
+        raise InputError(f"data.poses {spec}: the scans {', '.join(twice)} have the same file stem, so their poses "
+                         "cannot be told apart by name; give the scans distinct file names")
     s = expand_path(spec)
     if s.endswith(".conf"):
         conf = read_stanford_conf(s)
