@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scanreg.geometry import Cloud, estimate_normals, neighbourhoods, orient_normals, to_o3d
+from scanreg.geometry import Cloud, estimate_normals, far_offset, neighbourhoods, orient_normals, to_o3d
 from scanreg.stages.registry import DESCRIPTOR
 from scanreg.types import Distances, to_abs
 
@@ -46,11 +46,12 @@ class FPFH:
         import open3d as o3d
 
         u, s = self.p.distances, spacing
-        support = to_o3d(cloud.points, cloud.normals)
+        off = far_offset(cloud.points)  # (zero near the origin)
+        support = to_o3d(cloud.points - off, cloud.normals)
         voxel = to_abs(self.p.support_voxel, u, s)
         if voxel > 0:
             support = support.voxel_down_sample(voxel)
-        kp = cloud.points[keypoints]
+        kp = cloud.points[keypoints] - off
         both = to_o3d(np.vstack([np.asarray(support.points), kp]))
         if cloud.normals is not None:  # orient estimated normals like the given ones
             both.normals = o3d.utility.Vector3dVector(

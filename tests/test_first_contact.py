@@ -131,3 +131,34 @@ def test_a_two_scan_set_in_two_units_names_both():
                                          r"one's coordinates by 0.001 or the smaller one's by 1000"):
         check_sizes([a, b], 10.0)
     check_sizes([a, Cloud(a.points * 5, source="c")], 10.0)
+
+
+def test_a_scan_in_survey_coordinates_registers_as_one_at_the_origin():
+    """A user's trial: the bunny moved 4.2e6 m from the origin (UTM-like coordinates) registered 139 deg off
+    (Open3D's normals and ISS saliency, from sums of coordinates and their products, lost the neighbourhoods'
+    shapes to rounding), and a right pose failed 'success' because the translation error was measured at the
+    origin (a rotation error of 1e-8 rad moves it by 4 cm there). Both are measured near the data now; the same
+    pair near the origin gives the same error."""
+    import scanreg
+    from scanreg.geometry import Mesh, apply_T, far_offset, make_T
+
+    mesh = read_mesh("pkg:pymeshlab/tests/sample_meshes/bunny.obj")
+    pts = barycentric_sample(mesh, 20000, np.random.default_rng(0))[0]
+    T_gt = random_pose(np.random.default_rng(1), 40.0, 0.05)
+    offset = np.array([5e5, 4.2e6, 100.0])
+    far = pts + offset
+    assert np.array_equal(far_offset(pts), np.zeros(3)) and np.allclose(far_offset(far), offset, atol=1.0)
+    # the far cloud's pose onto the target (the mesh's vertices moved by T_gt): the offset back, then T_gt
+    T = T_gt @ make_T(np.eye(3), -offset)
+    mesh = Mesh(apply_T(T_gt, mesh.vertices), mesh.faces)
+    target = mesh.vertices
+    res = scanreg.register(far, target, gt=T, overrides=["evaluate.view_html=false"])
+    near = scanreg.register(pts, target, gt=T_gt, overrides=["evaluate.view_html=false"])
+    assert res.metrics["success"] == 1 and near.metrics["success"] == 1
+    # as near the origin (the samples are not the target's vertices: 0.0012 deg in both, 1e-9 deg apart)
+    assert res.metrics["rotation_error_deg"] == pytest.approx(near.metrics["rotation_error_deg"], abs=1e-6)
+    assert near.metrics["rotation_error_deg"] < 0.0035
+    assert res.metrics["translation_error_rel"] < 3 * 7.2e-6  # (near: 7.2e-6 of the diagonal)
+    # the translation error at a point: how far the two transforms move it apart
+    R = transform_errors(make_T(np.eye(3), [0, 0, 1e-3]), np.eye(4), at=offset)
+    assert R == (0.0, pytest.approx(1e-3))

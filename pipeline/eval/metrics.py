@@ -213,8 +213,12 @@ def alignment_metrics(distances: np.ndarray, p: EvalParams, spacing: float) -> d
     }
 
 
-def gt_metrics(T: np.ndarray, T_gt: np.ndarray, diagonal: float, p: EvalParams, prefix: str = "") -> dict[str, float]:
-    rot, trans = transform_errors(T, T_gt)
+def gt_metrics(T: np.ndarray, T_gt: np.ndarray, diagonal: float, p: EvalParams, prefix: str = "",
+               at: np.ndarray | None = None) -> dict[str, float]:
+    """The errors of ``T`` against the ground truth ``T_gt`` and the success and recall tests on them; the
+    translation error at the origin, or at ``at`` (a source far from the origin: its centre,
+    :func:`~scanreg.geometry.far_offset`)."""
+    rot, trans = transform_errors(T, T_gt, at)
     out = {
         f"{prefix}rotation_error_deg": rot,
         f"{prefix}translation_error": trans,

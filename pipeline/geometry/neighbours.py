@@ -61,7 +61,7 @@ class ClosestPoints:
 
 def estimate_normals(points: np.ndarray, k: int = 20) -> np.ndarray:
     """Unit normals from the ``k`` nearest neighbours (Open3D), unoriented."""
-    pc = to_o3d(points)
+    pc = to_o3d(points - far_offset(points))
     import open3d as o3d
 
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
@@ -202,6 +202,27 @@ def neighbourhoods(points: np.ndarray, radius: float, max_neighbors: int, querie
     valid = j < len(points)
     j = np.where(valid, j, 0)
     return j, np.where(valid, d, np.inf), valid
+
+
+FAR_FROM_ORIGIN = 100.0
+"""Points whose bounding box's centre lies more than this many of its diagonals from the origin are moved near
+the origin before Open3D estimates normals, FPFH histograms or ISS keypoints of them (:func:`far_offset`)."""
+
+
+def far_offset(points: np.ndarray) -> np.ndarray:
+    """What to subtract from ``points`` before Open3D's normals, FPFH histograms or ISS keypoints are computed of
+    them: their bounding box's centre when that lies more than :data:`FAR_FROM_ORIGIN` diagonals from the origin,
+    else zero. Open3D sums coordinates and their products to form a neighbourhood's covariance, which loses
+    the neighbourhood's shape to rounding far from the origin (survey or UTM coordinates: a bunny at 4.2e6 m
+    registered 139 deg off); these results do not depend on where the points are, and points near the origin
+    are handed over unchanged, bit for bit."""
+    if not len(points):
+        return np.zeros(3)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    if float(np.linalg.norm(centre)) > FAR_FROM_ORIGIN * max(float(np.linalg.norm(hi - lo)), 1e-300):
+        return centre
+    return np.zeros(3)
 
 
 def to_o3d(points: np.ndarray, normals: np.ndarray | None = None):

@@ -47,10 +47,15 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(s, np.clip(c, -1.0, 1.0))))
 
 
-def transform_errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
-    """(rotation error in degrees, translation error in input units) of ``T_est`` against ``T_gt``."""
+def transform_errors(T_est: np.ndarray, T_gt: np.ndarray, at: np.ndarray | None = None) -> tuple[float, float]:
+    """(rotation error in degrees, translation error in input units) of ``T_est`` against ``T_gt``. The
+    translation error is how far the two move the origin apart, or with ``at`` that point (a scan far from the
+    origin: there a rotation error of 1e-8 rad moves the origin by 1e-8 times the distance)."""
     dR = T_est[:3, :3] @ T_gt[:3, :3].T
-    return rotation_angle_deg(dR), float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]))
+    if at is None or not np.any(at):
+        return rotation_angle_deg(dR), float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]))
+    moved = (T_est[:3, :3] - T_gt[:3, :3]) @ np.asarray(at, float) + (T_est[:3, 3] - T_gt[:3, 3])
+    return rotation_angle_deg(dR), float(np.linalg.norm(moved))
 
 
 def random_pose(rng: np.random.Generator, max_angle_deg: float, max_translation: float,

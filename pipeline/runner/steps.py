@@ -24,7 +24,8 @@ from scanreg.eval.metrics import (METRES_PER_UNIT, EvalParams, alignment_metrics
                                   low_fitness_warning, sparse_pair_warning, surface_deviation)
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
                                       relative_motion)
-from scanreg.geometry import ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, transform_geometry
+from scanreg.geometry import (ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, far_offset,
+                              transform_geometry)
 from scanreg.process import blas_single_thread, start_isolated
 from scanreg.runner.build import Stages
 from scanreg.runner.outputs import write_keypoints
@@ -171,8 +172,9 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     m.update(surface_deviation(aligned, on_surface, ev, spacing))
     masks = None
     if T_gt is not None:
-        m.update(gt_metrics(T0, T_gt, pair.diagonal, ev, prefix="coarse_"))
-        m.update(gt_metrics(T, T_gt, pair.diagonal, ev))
+        at = far_offset(src.points)  # (zero: at the origin, unless the source lies far from it)
+        m.update(gt_metrics(T0, T_gt, pair.diagonal, ev, prefix="coarse_", at=at))
+        m.update(gt_metrics(T, T_gt, pair.diagonal, ev, at=at))
         gt_points = src.thinned(ev.max_points, ctx.rng(GT_SAMPLE_SALT)).points  # (every point up to max_points)
         with blas_single_thread():  # its products of (N, 3) arrays by 3 x 3: rows apart, no gain from threads
             fm, masks = field_metrics(pair.coarse.trace, T0, T, T_gt, gt_points, tgt.points, ev, spacing, on_target)
