@@ -54,6 +54,13 @@ def test_the_warning_names_the_sparse_scan_above_the_ratio():
     assert "target is 5x sparser than the source" in sparse_pair_warning(1.0, 5.0, 10, 10, 4.0)
     assert sparse_pair_warning(2.8, 1.0, 1500, 12000, 4.0) is None  # 8 times the points: no warning
     assert sparse_pair_warning(100.0, 1.0, 10, 10, 0.0) is None  # 0: never
+    # a user's trial: a crop in cm beside the whole in mm (9.4x the size, under data.max_size_ratio) was told
+    # to give the source more points; the line names the units first when the sparse scan is also larger
+    line = sparse_pair_warning(0.02521, 0.003143, 20000, 20000, 4.0, source_diagonal=2.35, target_diagonal=0.25)
+    assert "it is also 9.4x as large, so the two may be in different units (likely mm vs cm: set " \
+           "data.source_scale=0.1); else the pair" in line
+    assert "different units" not in sparse_pair_warning(0.025, 0.003, 2000, 20000, 4.0, 0.25, 0.25)  # same size
+    assert "different units" not in sparse_pair_warning(0.05, 0.003, 2000, 20000, 4.0, 2.5, 0.25)  # 17x: no unit
 
 
 @pytest.mark.slow

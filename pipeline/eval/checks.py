@@ -8,6 +8,20 @@ import numpy as np
 from scanreg.errors import InputError
 from scanreg.geometry import Mesh, points_of
 
+UNIT_FACTORS = {1000.0: "mm vs m", 10.0: "mm vs cm", 100.0: "cm vs m", 25.4: "mm vs inches",
+                39.37: "inches vs m", 304.8: "mm vs feet", 12.0: "inches vs feet"}
+"""Common ratios between length units, to name the likely cause of a size mismatch."""
+
+
+def likely_units(f: float) -> tuple[str, float]:
+    """The likely cause of two sizes ``f`` times apart (> 1): a common unit ratio within 30 % (its name and exact
+    factor), else ``different units or a different object`` and ``f`` to 3 digits."""
+    unit, factor = min(((u, k) for k, u in UNIT_FACTORS.items()), key=lambda uk: abs(np.log(f / uk[1])))
+    if abs(np.log(f / factor)) > np.log(1.3):  # no common unit ratio: suggest the measured one
+        return "different units or a different object", float(f"{f:.3g}")
+    return unit, factor
+
+
 FLAT_TOLERANCE = 1e-3
 """An input whose spread off its best-fit line (plane) is below this share of its spread along its main axis is
 collinear (planar): a rigid transform is not determined by it (it may slide and turn in the plane)."""

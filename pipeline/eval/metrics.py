@@ -8,6 +8,7 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
+from scanreg.eval.checks import UNIT_FACTORS, likely_units
 from scanreg.geometry import ClosestPoints, Cloud, apply_T, transform_errors
 from scanreg.types import CoarseTrace, Distances, to_abs
 
@@ -188,18 +189,31 @@ def low_fitness_warning(fitness: float, threshold: float) -> str | None:
 
 
 def sparse_pair_warning(source_spacing: float, target_spacing: float, n_source: int, n_target: int,
-                        threshold: float) -> str | None:
+                        threshold: float, source_diagonal: float = 0.0, target_diagonal: float = 0.0) -> str | None:
     """One line when one scan's spacing is more than ``threshold`` (``evaluate.spacing_ratio_warn``) times the
-    other's, else None."""
+    other's, else None. When the sparser scan is also at least :data:`UNITS_HINT_SIZE_RATIO` times as large
+    (bounding-box diagonals) and the spacings are a common unit ratio apart, the line says so first: a partial
+    scan in cm beside one in mm passes the size check (a crop is smaller) and looks sparser."""
     lo, hi = sorted((source_spacing, target_spacing))
     if not threshold > 0 or not lo > 0 or not hi > threshold * lo:
         return None
     sparse, dense = ("source", "target") if source_spacing > target_spacing else ("target", "source")
     n = n_source if sparse == "source" else n_target
-    return (f"the {sparse} is {hi / lo:.0f}x sparser than the {dense} (spacing {hi:.4g} against {lo:.4g}; {n} "
-            f"points): the pair is registered and measured at the sparser scan's spacing, so a high fitness says "
-            f"little and a wrong pose can score well; give the {sparse} more points if it has them (a mesh: "
-            f"sampler.n_points), and check view3d.html (evaluate.spacing_ratio_warn {threshold:g})")
+    line = (f"the {sparse} is {hi / lo:.0f}x sparser than the {dense} (spacing {hi:.4g} against {lo:.4g}; {n} "
+            f"points): ")
+    big, small = (source_diagonal, target_diagonal) if sparse == "source" else (target_diagonal, source_diagonal)
+    unit, factor = likely_units(hi / lo)
+    if small > 0 and big >= UNITS_HINT_SIZE_RATIO * small and unit in UNIT_FACTORS.values():
+        line += (f"it is also {big / small:.3g}x as large, so the two may be in different units (likely {unit}: "
+                 f"set data.{sparse}_scale={1 / factor:g}); else ")
+    return line + (f"the pair is registered and measured at the sparser scan's spacing, so a high fitness says "
+                   f"little and a wrong pose can score well; give the {sparse} more points if it has them (a mesh: "
+                   f"sampler.n_points), and check view3d.html (evaluate.spacing_ratio_warn {threshold:g})")
+
+
+UNITS_HINT_SIZE_RATIO = 3.0
+""":func:`sparse_pair_warning` names other units as a likely cause when the sparser scan is at least this many
+times as large as the other (a scan of the same object is about as large, or a crop smaller)."""
 
 
 def alignment_metrics(distances: np.ndarray, p: EvalParams, spacing: float) -> dict[str, float]:

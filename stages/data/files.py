@@ -8,17 +8,13 @@ from typing import Optional
 import numpy as np
 
 from scanreg.errors import ConfigError, InputError
+from scanreg.eval.checks import likely_units
 from scanreg.geometry import Cloud, Geometry, Mesh, apply_T, bbox_diagonal, invert_T, points_of, transform_geometry
 from scanreg.io import expand_path, read_input, read_landmarks, read_transform
 from scanreg.stages.data.perturb import PoseParams
 from scanreg.stages.data.base import Provider
 from scanreg.stages.registry import DATA
 from scanreg.types import Problem, RunContext
-
-
-UNIT_FACTORS = {1000.0: "mm vs m", 10.0: "mm vs cm", 100.0: "cm vs m", 25.4: "mm vs inches",
-                39.37: "inches vs m", 304.8: "mm vs feet", 12.0: "inches vs feet"}
-"""Common ratios between length units, to name the likely cause of a size mismatch."""
 
 
 def scale_geometry(g: Geometry, s: float) -> Geometry:
@@ -33,15 +29,6 @@ def scale_geometry(g: Geometry, s: float) -> Geometry:
 MAX_SIZE_RATIO = 10.0
 """The default ``data.max_size_ratio`` (``data=files``, ``data=scanset``): sizes further apart are taken for
 other units."""
-
-
-def likely_units(f: float) -> tuple[str, float]:
-    """The likely cause of two sizes ``f`` times apart (> 1): a common unit ratio within 30 % (its name and exact
-    factor), else ``different units or a different object`` and ``f`` to 3 digits."""
-    unit, factor = min(((u, k) for k, u in UNIT_FACTORS.items()), key=lambda uk: abs(np.log(f / uk[1])))
-    if abs(np.log(f / factor)) > np.log(1.3):  # no common unit ratio: suggest the measured one
-        return "different units or a different object", float(f"{f:.3g}")
-    return unit, factor
 
 
 def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> None:
