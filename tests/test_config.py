@@ -106,6 +106,12 @@ def test_a_misspelt_key_is_named_with_the_one_meant():
         compose(["evalute.units=mm"])
     with pytest.raises(ConfigError, match=r"^unknown config key 'zzz' \(add it with \+zzz=VALUE"):
         compose(["zzz=1"])
+    # a stage's parameter without its stage (a user's trial: told to add +max_iterations, which is then ignored)
+    with pytest.raises(ConfigError, match=r"^unknown config key 'max_iterations': did you mean "
+                                          r"'coarse.max_iterations' or 'icp.max_iterations'\?"):
+        compose(["max_iterations=5"])
+    with pytest.raises(ConfigError, match=r"did you mean 'evaluate.success_rotation_deg'\?"):
+        compose(["success_rotation_deg=1"])
 
 
 def test_check_hook_runs():

@@ -170,7 +170,27 @@ def _did_you_mean(key: str) -> str:
 
     head, dot, rest = key.partition(".")
     near = difflib.get_close_matches(head, _top_level_keys(), n=1, cutoff=0.75)
-    return f": did you mean '{near[0]}{dot}{rest}'?" if near and near[0] != head else ""
+    if near and near[0] != head:
+        return f": did you mean '{near[0]}{dot}{rest}'?"
+    owners = [] if dot else _parameter_owners(head)  # a stage's parameter given without its stage
+    return f": did you mean {' or '.join(repr(f'{o}.{head}') for o in owners)}?" if owners else ""
+
+
+def _parameter_owners(name: str) -> list[str]:
+    """The config blocks (stage families, ``evaluate``, ``report``) that have a parameter called ``name``."""
+    from dataclasses import fields, is_dataclass
+
+    from scanreg.stages.registry import REGISTRIES
+
+    register_schemas()  # (the stages registered)
+    out = []
+    for family, reg in REGISTRIES.items():
+        for stage in reg.names():
+            params = getattr(reg.get(stage), "Params", None)
+            if is_dataclass(params) and name in {f.name for f in fields(params)}:
+                out.append(family)
+                break
+    return out + [b for b in ("evaluate", "report") if name in {f.name for f in fields(_block_params(b))}]
 
 
 def interpolation_error_line(e: BaseException) -> str:
