@@ -162,3 +162,18 @@ def test_a_scan_in_survey_coordinates_registers_as_one_at_the_origin():
     # the translation error at a point: how far the two transforms move it apart
     R = transform_errors(make_T(np.eye(3), [0, 0, 1e-3]), np.eye(4), at=offset)
     assert R == (0.0, pytest.approx(1e-3))
+
+
+def test_a_ground_truth_given_the_other_way_round_is_named():
+    """A user's trial: data.gt held T_source_target; fitness 1 and a rotation error of twice the move, and nothing
+    said why. A pose that fails against the ground truth but passes against its inverse says so."""
+    from scanreg.eval.metrics import EvalParams, gt_metrics, inverted_gt_warning
+    from scanreg.geometry import invert_T
+
+    p = EvalParams()
+    T = random_pose(np.random.default_rng(3), 40.0, 0.1)
+    m = gt_metrics(T, invert_T(T), 1.0, p)
+    assert m["success"] == 0 and "data.gt seems to hold T_source_target" in inverted_gt_warning(T, invert_T(T), m, 1.0, p)
+    assert inverted_gt_warning(T, T, gt_metrics(T, T, 1.0, p), 1.0, p) is None  # right: nothing to say
+    wrong = random_pose(np.random.default_rng(4), 90.0, 0.1)  # wrong either way: the failure stands alone
+    assert inverted_gt_warning(wrong, T, gt_metrics(wrong, T, 1.0, p), 1.0, p) is None

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from scanreg.eval.checks import UNIT_FACTORS, likely_units
-from scanreg.geometry import ClosestPoints, Cloud, apply_T, transform_errors
+from scanreg.geometry import ClosestPoints, Cloud, apply_T, invert_T, transform_errors
 from scanreg.types import CoarseTrace, Distances, to_abs
 
 
@@ -242,6 +242,21 @@ def gt_metrics(T: np.ndarray, T_gt: np.ndarray, diagonal: float, p: EvalParams, 
         out["success"] = float(rot < p.success_rotation_deg and trans < p.success_translation * diagonal)
     out[f"{prefix}registration_recall"] = registration_recall(rot, trans, diagonal, p)
     return out
+
+
+def inverted_gt_warning(T: np.ndarray, T_gt: np.ndarray, m: dict, diagonal: float, p: EvalParams,
+                        at: np.ndarray | None = None) -> str | None:
+    """One line when a pose that failed against the ground truth (``m``: its :func:`gt_metrics`) passes against
+    the ground truth's inverse: the file most likely holds ``T_source_target`` (a user's trial: fitness 1,
+    rotation error exactly twice the move, nothing said why)."""
+    if m.get("success", 1.0) or T_gt is None:
+        return None
+    inv = gt_metrics(T, invert_T(T_gt), diagonal, p, at=at)
+    if not inv["success"]:
+        return None
+    return (f"the pose is {m['rotation_error_deg']:.3g} deg off the ground truth but {inv['rotation_error_deg']:.2g} "
+            "deg off its inverse: data.gt seems to hold T_source_target; it must be T_target_source, which maps "
+            "source points into the target frame (invert the matrix)")
 
 
 # ------------------------------------------------------------------------------- the field's registration metrics

@@ -21,7 +21,7 @@ import numpy as np
 from scanreg.errors import InputError, ScanregError, warn
 from scanreg.eval.checks import check_geometry, check_inputs
 from scanreg.eval.metrics import (METRES_PER_UNIT, EvalParams, alignment_metrics, field_metrics, gt_metrics,
-                                  low_fitness_warning, sparse_pair_warning, surface_deviation)
+                                  inverted_gt_warning, low_fitness_warning, sparse_pair_warning, surface_deviation)
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
                                       relative_motion)
 from scanreg.geometry import (ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, far_offset,
@@ -176,6 +176,9 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
         at = far_offset(src.points)  # (zero: at the origin, unless the source lies far from it)
         m.update(gt_metrics(T0, T_gt, pair.diagonal, ev, prefix="coarse_", at=at))
         m.update(gt_metrics(T, T_gt, pair.diagonal, ev, at=at))
+        line = inverted_gt_warning(T, T_gt, m, pair.diagonal, ev, at)
+        if line:
+            warn(line)
         gt_points = src.thinned(ev.max_points, ctx.rng(GT_SAMPLE_SALT)).points  # (every point up to max_points)
         with blas_single_thread():  # its products of (N, 3) arrays by 3 x 3: rows apart, no gain from threads
             fm, masks = field_metrics(pair.coarse.trace, T0, T, T_gt, gt_points, tgt.points, ev, spacing, on_target)
