@@ -117,8 +117,11 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
     from_meshes = all(isinstance(g, Mesh) for g in problem.scans)
     res.surface = stages.surface.reconstruct(res.merged, from_meshes, spacing, ctx)
     if res.surface is None and not from_meshes and getattr(stages.surface.p, "when", None) == "meshes":
-        note("no surface reconstructed: the scans are point clouds (surface.when=meshes); set surface.when=always to "
-             "reconstruct one from the merged points")
+        clouds = sum(not isinstance(g, Mesh) for g in problem.scans)
+        what = "the scans are point clouds" if clouds == len(problem.scans) else \
+            f"{clouds} of the {len(problem.scans)} scans are point clouds"
+        note(f"no surface reconstructed: {what} (surface.when=meshes); set surface.when=always to reconstruct one "
+             "from the merged points")
     if res.surface is not None:
         res.surface = stages.repair.repair(res.surface, ctx).mesh
     t5 = time.perf_counter_ns()
