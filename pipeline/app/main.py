@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from scanreg.app.config import (PRESET_GROUPS, STAGE_GROUPS, config_error_line, git_revision, interpolation_error_line,
                                 register_schemas)
-from scanreg.errors import ConfigError, ScanregError
+from scanreg.errors import ConfigError, ScanregError, warn
 from scanreg.stages.registry import CONF_PACKAGE
 
 # The exit codes (documentation: Getting started, Errors and exit codes); 0: done.
@@ -93,6 +93,9 @@ def run_job(cfg: DictConfig) -> dict | float | None:
             pass
     record = RunRecord(run_name=(" ".join(hc.overrides.task) or "defaults")[:250], params=flatten(resolved),
                        tags=_tags(hc, run_dir))
+    if not multirun and (run_dir / "config.yaml").exists():  # (a reused hydra.run.dir: files are not deleted)
+        warn(f"{run_dir} holds an earlier run's results: this run replaces the files it writes, and any other "
+             "file of the earlier run stays beside them (give a new hydra.run.dir to keep runs apart)")
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(resolved))
     try:
         if problem is not None:
