@@ -19,6 +19,7 @@ pairs (Holm 1979), per metric, so that "any difference" is not found by testing 
 from __future__ import annotations
 
 from itertools import combinations
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -163,3 +164,13 @@ def paired_markdown(table: pd.DataFrame, metrics: list[str]) -> list[str]:
             f"{r[f'{m}_second_lower']} / {r[f'{m}_first_lower']} ({_p(r[col])})"
             for _, r in table.iterrows()]
     return lines + [to_markdown(show), ""]
+
+
+def paired_section(df: pd.DataFrame, labels: pd.Series, group_by: list[str], metrics: list[str], out: Path) -> list[str]:
+    """The report's paired section (:func:`paired_table`, written to ``out``/paired.csv) as markdown lines; none
+    when there is nothing to pair or no metric is asked for."""
+    table = paired_table(df, labels, group_by, metrics) if metrics else None
+    if table is None:
+        return []
+    table.to_csv(out / "paired.csv", index=False)
+    return ["## Paired comparison on the same cases", "", *paired_markdown(table, metrics)]

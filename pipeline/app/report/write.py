@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from scanreg.app.report.params import ReportParams
-from scanreg.app.report.paired import paired_markdown, paired_table
+from scanreg.app.report.paired import paired_section
 from scanreg.app.report.plots import _slug, make_plots, plot_bins, plot_curves
 from scanreg.app.report.runs import latest_sweep_experiment, load_runs
 from scanreg.app.report.stats import interval, interval_name
@@ -97,9 +97,6 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         per_t.to_csv(out / "per.csv")
     if per_e is not None:
         per_e.to_csv(out / "per_rotation_error.csv")
-    pt = paired_table(df, group_labels(df, group_by), group_by, list(p.paired)) if p.paired else None
-    if pt is not None:
-        pt.to_csv(out / "paired.csv", index=False)
     figs = make_plots(df, table, group_by, out, p.x, per_t) if plots else []
     bt = bin_table(df, group_by, p.bin_by, list(p.bin_edges), list(p.bin_metrics), p.per, how) if p.bin_by else None
     if bt is not None:
@@ -160,8 +157,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     if per_e is not None:
         lines += [f"## Median rotation error per {p.per} [deg, finished runs]", "",
                   to_markdown(per_e.map(lambda v: fmt_value(v) if pd.notna(v) else "–"), index=True), ""]
-    if pt is not None:
-        lines += ["## Paired comparison on the same cases", "", *paired_markdown(pt, list(p.paired))]
+    lines += paired_section(df, group_labels(df, group_by), group_by, list(p.paired), out)
     if compare_to is not None:
         other = summarize(compare_to, [k for k in group_by if _has_key(compare_to, k)])
         cmp = compare(table.copy(), other, [k for k in group_by if _has_key(compare_to, k)], exp,
