@@ -21,7 +21,7 @@ from typing import Optional
 import numpy as np
 
 from scanreg.errors import StageError
-from scanreg.geometry import Cloud, far_offset, neighbourhoods, voxel_representatives
+from scanreg.geometry import Cloud, far_offset, neighbourhoods, to_o3d, voxel_representatives
 from scanreg.stages.registry import SALIENCE
 from scanreg.types import Distances, to_abs
 
@@ -196,7 +196,7 @@ class ISS:
 
         p, u, s = self.p, self.p.distances, spacing
         points = cloud.points - far_offset(cloud.points)  # (the same points near the origin)
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        pc = to_o3d(points)
         kp = o3d.geometry.keypoint.compute_iss_keypoints(
             pc, salient_radius=to_abs(p.salient_radius, u, s), non_max_radius=to_abs(p.non_max_radius, u, s),
             gamma_21=p.gamma_21, gamma_32=p.gamma_32, min_neighbors=p.min_neighbors)

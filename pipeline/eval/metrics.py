@@ -249,7 +249,7 @@ def inverted_gt_warning(T: np.ndarray, T_gt: np.ndarray, m: dict, diagonal: floa
     """One line when a pose that failed against the ground truth (``m``: its :func:`gt_metrics`) passes against
     the ground truth's inverse: the file most likely holds ``T_source_target`` (a user's trial: fitness 1,
     rotation error exactly twice the move, nothing said why)."""
-    if m.get("success", 1.0) or T_gt is None:
+    if m.get("success", 1.0):
         return None
     inv = gt_metrics(T, invert_T(T_gt), diagonal, p, at=at)
     if not inv["success"]:

@@ -164,7 +164,7 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     on_points = on_target(aligned)
     m.update(alignment_metrics(on_points[1], ev, spacing))
     for line in (sparse_pair_warning(source.spacing, target.spacing, src.n_points, tgt.n_points,
-                                     ev.spacing_ratio_warn, bbox_diagonal(src.points), bbox_diagonal(tgt.points)),
+                                     ev.spacing_ratio_warn, bbox_diagonal(src.points), pair.diagonal),
                  low_fitness_warning(m["fitness"], ev.fitness_warn)):
         if line:
             warn(line)

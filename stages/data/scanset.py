@@ -10,10 +10,10 @@ from typing import Any, Optional
 import numpy as np
 
 from scanreg.errors import ConfigError, InputError, note
+from scanreg.eval.checks import likely_units
 from scanreg.geometry import bbox_diagonal, invert_T, points_of, transform_geometry
 from scanreg.io import CLOUD_EXTS, MESH_EXTS, expand_path, read_geometry, read_input, read_stanford_conf, read_transform
 from scanreg.stages.data.base import Provider
-from scanreg.eval.checks import likely_units
 from scanreg.stages.data.files import MAX_SIZE_RATIO
 from scanreg.stages.data.perturb import PoseParams
 from scanreg.stages.registry import DATA

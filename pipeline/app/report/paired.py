@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 
 from scanreg.app.report.stats import bootstrap_median_ci
+from scanreg.app.report.tables import fmt_value, is_seed_key, to_markdown
 
 MAX_GROUPS = 8
 """With more groups than this (28 pairs), the paired section is left out: the per-case table says more."""
@@ -39,7 +40,7 @@ def case_keys(df: pd.DataFrame, group_by: list[str]) -> list[str]:
         if not c.startswith("params.") or c in own:
             continue
         k = c[len("params."):]
-        if (k.startswith("data.") or k == "seed" or k.endswith(("_seed", ".seed"))) and df[c].nunique(dropna=False) > 1:
+        if (k.startswith("data.") or is_seed_key(k)) and df[c].nunique(dropna=False) > 1:
             keys.append(c)
     return keys
 
@@ -138,8 +139,6 @@ def _p(v: float) -> str:
 
 def paired_markdown(table: pd.DataFrame, metrics: list[str]) -> list[str]:
     """The paired section's lines: what it tests, then one table row per pair of groups."""
-    from scanreg.app.report.tables import fmt_value, to_markdown
-
     multiple = len(table) > 1
     lines = [
         "Runs paired by their case (the same data keys and seeds: `" + "`, `".join(k[len("params."):] for k in

@@ -61,9 +61,15 @@ def varying_keys(df: pd.DataFrame) -> list[str]:
             k = c[len("params."):]
             if k.split(".")[0] in switched:
                 continue
-            if k.split(".")[-1] not in IGNORED_VARYING and not k.endswith(("_seed", ".seed")):
+            if not is_seed_key(k):
                 keys.append(k)
     return keys
+
+
+def is_seed_key(key: str) -> bool:
+    """Whether a config key is a seed (``seed``, ``data.pose_seed``, ``data.perturb_seed``): repeats of one method,
+    not a method of its own (:func:`varying_keys`), and part of what names a case (the paired comparison)."""
+    return key.split(".")[-1] in IGNORED_VARYING or key.endswith("_seed")
 
 
 def default_grouping(df: pd.DataFrame, per: str | None = None) -> tuple[list[str], str | None]:
