@@ -22,7 +22,7 @@ from scanreg.geometry import (
 from scanreg.geometry.multiview import refine_jointly
 from scanreg.geometry.posegraph import Edge, cycle_errors
 from scanreg.io import read_mesh, write_ply
-from scanreg.runner.scanset import overlap_share
+from scanreg.runner.scanset import overlap_share, spacing_levels
 from scanreg.stages.data.views import Views, grid_mesh, render_views
 from scanreg.types import RunContext, ViewEdge
 
@@ -241,6 +241,35 @@ def test_a_scan_of_another_object_is_unplaced_and_the_rest_reconstructed(tmp_pat
     assert rec.mesh is not None and rec.metrics["surface_closed_manifold"] == 1
     poses = json.loads((tmp_path / "poses.json").read_text())
     assert "scan005.ply" not in poses["poses"] and "scan005.ply" in poses["unplaced"]
+
+
+def test_spacing_levels_group_like_scans_under_the_coarsest():
+    # 1.5 takes 1.0 (within 2x); 0.4 starts a finer level that takes 0.3 and the scan without a spacing
+    assert spacing_levels([1.0, 1.5, 0.4, 0.3, 0.0], 2.0) == [1.5, 1.5, 0.4, 0.4, 0.4]
+    assert spacing_levels([1.0, 0.6, 0.9], 2.0) == [1.0, 1.0, 1.0]  # scans alike: the largest, as always
+    assert spacing_levels([1.0, 0.6, 0.9], 1.5) == [1.0, 0.6, 1.0]
+
+
+@pytest.mark.slow
+def test_a_coarser_scan_of_another_object_leaves_the_others_as_they_are(tmp_path, views, capsys):
+    """A scan of another object sampled about 5x as coarsely as the bunny views (the airplane, rendered and
+    scaled 3x): unplaced, and the views keep the spacing and the poses they have without it, bit for bit
+    (it set the spacing of the whole set)."""
+    import scanreg
+
+    scans, _ = views
+    plane = read_mesh("pkg:pymeshlab/tests/sample_meshes/airplane.obj")
+    other = render_views(plane, Views.Params(n_views=1, seed=0))[0][0]
+    other = Mesh(other.vertices * 3.0, other.faces)
+    alone = scanreg.reconstruct([_o3d(s) for s in scans[:5]], overrides=["surface=none"], run_dir=tmp_path / "a")
+    capsys.readouterr()
+    mixed = scanreg.reconstruct([_o3d(s) for s in scans[:5]] + [_o3d(other)], overrides=["surface=none"],
+                                run_dir=tmp_path / "b")
+    assert list(mixed.unplaced) == ["scan005.ply"]
+    assert mixed.metrics["spacing"] == alone.metrics["spacing"]
+    assert sorted(mixed.poses) == sorted(alone.poses)
+    assert all(np.array_equal(mixed.poses[n], alone.poses[n]) for n in alone.poses)
+    assert "1 of the 6 scans are sampled more coarsely than the finest ones (scan005.ply (" in capsys.readouterr().out
 
 
 @pytest.mark.slow

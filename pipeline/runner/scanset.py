@@ -31,6 +31,7 @@ from scanreg.types import PreparedScan, RunContext, ScanSet, ViewEdge
 
 if TYPE_CHECKING:
     from scanreg.runner.build import Stages
+    from scanreg.stages.protocols import Described  # the coarse stages' description of a scan (the contract's type)
 
 
 @dataclass
@@ -76,18 +77,20 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
     t0 = time.perf_counter_ns()
     scans = [prepare_scan(g, stages, ctx, name, salt=1, role="scan", repair=params.repair_scans)
              for g, name in zip(problem.scans, problem.names)]
-    spacing = max(s.spacing for s in scans)
-    if not spacing > 0:
+    if not max(s.spacing for s in scans) > 0:
         raise InputError("scan set: all points coincide; cannot estimate a sampling spacing")
+    levels = spacing_levels([s.spacing for s in scans], params.spacing_ratio)
+    _note_levels(problem.names, levels)
     diagonal = max(bbox_diagonal(s.cloud.points) for s in scans)
     t1 = time.perf_counter_ns()
-    described = stages.coarse.describe_set([s.cloud for s in scans], spacing, ctx)
+    described = describe_levels(stages, scans, levels, ctx)
     search = [ClosestPoints(s.cloud) for s in scans]
-    edges = register_pairs(candidate_pairs(scans, problem.order, params), scans, described, search, stages, spacing,
+    edges = register_pairs(candidate_pairs(scans, problem.order, params), scans, described, search, stages, levels,
                            params, ctx)
     t2 = time.perf_counter_ns()
     groups = [g for g in components(len(scans), [Edge(e.i, e.j, e.T_i_j, e.information) for e in edges if e.accepted])]
     anchor = groups[0][0]
+    spacing = max(levels[k] for k in groups[0])  # the main group's: the graph, the refinement, merge and surface
     poses, graph_metrics = stages.graph.solve(len(scans), edges, spacing, diagonal, anchor, ctx)
     res = SetRegistration(problem.names, poses, _groups(poses, edges, len(scans)), [], edges, scans, spacing)
     res.group_poses = [_group_poses(g, edges) for g in res.groups[1:]]
@@ -129,6 +132,45 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
                     "refine": (t4 - t3) / 1e9, "surface": (t5 - t4) / 1e9})
     res.metrics = {**graph_metrics, **refine_metrics, "spacing": spacing}
     return res
+
+
+def spacing_levels(spacings: list[float], ratio: float) -> list[float]:
+    """Each scan's sampling spacing in the set: the coarsest scan's for every scan within ``ratio`` of it, then
+    the same among the finer rest, and so on (a scan whose points all coincide takes the finest). Scans alike
+    share one spacing, the largest of theirs."""
+    level, top = [0.0] * len(spacings), 0.0
+    for k in sorted(range(len(spacings)), key=lambda k: (-spacings[k], k)):
+        if top == 0.0 or 0.0 < spacings[k] * ratio < top:
+            top = spacings[k]
+        level[k] = top
+    return level
+
+
+def _note_levels(names: list[str], levels: list[float]) -> None:
+    """Tell the user which scans are registered at a coarser spacing than the rest."""
+    if len(set(levels)) < 2:
+        return
+    fine = min(levels)
+    coarse = [f"{n} ({lv / fine:.1f}x)" for n, lv in zip(names, levels) if lv > fine]
+    note(f"scan set: {len(coarse)} of the {len(names)} scans are sampled more coarsely than the finest ones "
+         f"({', '.join(coarse[:3])}{', ...' if len(coarse) > 3 else ''} their spacing): pairs with them are "
+         "registered at their spacing, the others at their own (multiview.spacing_ratio)")
+
+
+def describe_levels(stages: Stages, scans: list[PreparedScan], levels: list[float],
+                    ctx: RunContext) -> dict[float, list[Optional[Described]]]:
+    """The coarse stage's descriptions at every spacing a pair of scans takes (the larger of its scans'): at a
+    spacing, the scans at it or finer described together (one call of ``describe_set``, as for a set of one
+    spacing); None for a scan coarser than it."""
+    out: dict[float, list[Optional[Described]]] = {}
+    for level in sorted(set(levels), reverse=True):
+        members = [k for k, lv in enumerate(levels) if lv <= level]
+        if len(members) < 2:
+            continue
+        out[level] = [None] * len(scans)
+        for k, d in zip(members, stages.coarse.describe_set([scans[k].cloud for k in members], level, ctx)):
+            out[level][k] = d
+    return out
 
 
 def _groups(poses: list[Optional[np.ndarray]], edges: list[ViewEdge], n: int) -> list[list[int]]:
@@ -184,22 +226,23 @@ def shape_histogram(points: np.ndarray, bins: int = 32, samples: int = 2000, see
     return np.histogram(d, bins=bins, range=(0.0, 3.0))[0] / samples
 
 
-def register_pairs(candidates: list[tuple[int, int]], scans: list[PreparedScan], described: list,
-                   search: list[ClosestPoints], stages: Stages, spacing: float, p: MultiviewParams,
-                   ctx: RunContext) -> list[ViewEdge]:
+def register_pairs(candidates: list[tuple[int, int]], scans: list[PreparedScan],
+                   described: dict[float, list[Optional[Described]]], search: list[ClosestPoints], stages: Stages,
+                   levels: list[float], p: MultiviewParams, ctx: RunContext) -> list[ViewEdge]:
     """Every candidate pair registered and verified, in order. Once accepted pairs connect two scans, their
     relative pose is predicted along them: the pair is skipped when the prediction leaves under half
     ``min_fitness`` of the points in the overlap, else the fine stage starts from it (and the coarse stage runs
     only when that fails); the coarse stage runs from any pose only between scans not yet connected
-    (``predict`` off: for every pair). In a set larger than ``all_pairs``, a scan the candidates leave outside
+    (``predict`` off: for every pair). A pair is registered at the larger of its scans' spacings (``levels``,
+    :func:`spacing_levels`), from the descriptions at it (:func:`describe_levels`). In a set larger than ``all_pairs``, a scan the candidates leave outside
     the largest joined group then gets up to ``rescue_pairs`` pairs more (:func:`rescue_pairs`)."""
     chains = _Chains(len(scans))
     edges: list[ViewEdge] = []
-    _register_in_turn(candidates, chains, edges, scans, described, search, stages, spacing, p, ctx)
+    _register_in_turn(candidates, chains, edges, scans, described, search, stages, levels, p, ctx)
     if len(scans) > p.all_pairs and p.rescue_pairs > 0:
         tried = {(e.i, e.j) for e in edges}
         _register_in_turn(rescue_pairs(chains, shape_distances(scans), tried, p.rescue_pairs), chains, edges, scans,
-                          described, search, stages, spacing, p, ctx)
+                          described, search, stages, levels, p, ctx)
     return edges
 
 
@@ -219,18 +262,18 @@ def rescue_pairs(chains: _Chains, dist: np.ndarray, tried: set[tuple[int, int]],
     return out
 
 
-def _register_in_turn(candidates, chains: _Chains, edges: list[ViewEdge], scans, described, search, stages, spacing,
+def _register_in_turn(candidates, chains: _Chains, edges: list[ViewEdge], scans, described, search, stages, levels,
                       p: MultiviewParams, ctx: RunContext) -> None:
     """:func:`register_pairs`' loop: ``candidates`` registered in turn into ``edges``, joining ``chains``."""
     for i, j in candidates:
         start = chains.relative(i, j) if p.predict else None
-        if start is not None and overlap_share(search[i], scans[j].cloud, start, p.inlier_distance * spacing) < \
-                p.min_fitness / 2:
+        distance = p.inlier_distance * max(levels[i], levels[j])
+        if start is not None and overlap_share(search[i], scans[j].cloud, start, distance) < p.min_fitness / 2:
             edges.append(_rejected(i, j, "predicted by the accepted pairs not to overlap", {"pair_skipped": 1.0}))
             continue
-        edge = register_edge(i, j, scans, described, search, stages, spacing, p, ctx, start)
+        edge = register_edge(i, j, scans, described, search, stages, levels, p, ctx, start)
         if start is not None and not edge.accepted:  # the prediction may be wrong: from any pose
-            edge = register_edge(i, j, scans, described, search, stages, spacing, p, ctx)
+            edge = register_edge(i, j, scans, described, search, stages, levels, p, ctx)
             edge.metrics["pair_retried"] = 1.0
         if edge.accepted and edge.fitness >= p.predict_min_fitness:  # a weak pair may be false: it predicts nothing
             chains.join(i, j, edge.T_i_j)
@@ -260,18 +303,20 @@ class _Chains:
                 self.root[k], self.pose[k] = ri, T_ri_rj @ self.pose[k]
 
 
-def register_edge(i: int, j: int, scans: list[PreparedScan], described: list, search: list[ClosestPoints],
-                  stages: Stages, spacing: float, p: MultiviewParams, ctx: RunContext,
-                  start: Optional[np.ndarray] = None) -> ViewEdge:
+def register_edge(i: int, j: int, scans: list[PreparedScan], described: dict[float, list[Optional[Described]]],
+                  search: list[ClosestPoints], stages: Stages, levels: list[float], p: MultiviewParams,
+                  ctx: RunContext, start: Optional[np.ndarray] = None) -> ViewEdge:
     """Scan ``j`` registered to scan ``i`` (coarse from their descriptions, or from ``start``; then fine, on the
     points: the joint refinement pairs with every scan later) and verified; ``search``: each scan's closest-point
-    search. A coarse pose that leaves under half ``min_fitness`` of the points in the overlap is rejected before
+    search; ``described`` and ``levels``: as :func:`register_pairs` has them. A coarse pose that leaves under half ``min_fitness`` of the points in the overlap is rejected before
     the fine stage."""
     target, source = scans[i], scans[j]
+    spacing = max(levels[i], levels[j])
     distance = p.inlier_distance * spacing
     try:
         if start is None:
-            coarse = stages.coarse.align_described(described[i], described[j], ctx, p.coarse_budget)
+            coarse = stages.coarse.align_described(described[spacing][i], described[spacing][j], ctx,
+                                                   p.coarse_budget)
             T0, coarse_metrics = coarse.T_target_source, coarse.metrics
             if overlap_share(search[i], source.cloud, T0, distance) < p.min_fitness / 2:
                 return _rejected(i, j, f"the coarse pose leaves under {p.min_fitness / 2:g} of the points in the "

@@ -39,6 +39,12 @@ class MultiviewParams:
     inlier_distance: float = 3.0
     """A pair's point is in the overlap when its closest point on the other scan lies within this many sampling
     spacings (at the registered pose)."""
+    spacing_ratio: float = 2.0
+    """Scans whose sampling spacings lie within this factor share the largest of them; a scan sampled more
+    coarsely than that (another resolution, another object) does not coarsen the others: a pair is registered
+    at the larger of its scans' spacings, and the graph, the joint refinement, the merge and the surface take
+    the largest among the main group's scans (what ``inlier_distance``, ``refine_distances``, ``merge_voxel``
+    and the stages' distances in spacings refer to)."""
     min_fitness: float = 0.1
     """An edge is kept only when this share (0..1) of each scan's points is in the overlap ..."""
     max_inlier_rms: float = 1.6
