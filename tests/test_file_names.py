@@ -148,10 +148,15 @@ def test_files_with_any_characters_register_positionally_and_as_quoted_overrides
 
 
 def test_one_positional_file_is_one_line_usage_error(tmp_path):
+    (tmp_path / "only one.ply").write_text("")
     r = run_cli(["only one.ply", "tracking=none"], tmp_path)
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
         "error: one scan given (only one.ply): give the source and the target (scanreg SOURCE TARGET), or a folder "
         "or three or more scans to register into one model"], r.stderr
+    # a mistyped folder (or file) is named missing by the run, as data.scans= would be (it said "one scan given")
+    r = run_cli(["scnas", "tracking=none"], tmp_path)
+    assert r.returncode == 1 and r.stderr.strip().splitlines() == [
+        f"error: data.scans scnas: no such file or folder ({tmp_path / 'scnas'})"], r.stderr
 
 
 def test_colour_range_follows_the_data():

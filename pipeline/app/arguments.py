@@ -102,7 +102,8 @@ def _preset_data_choice(overrides: list[str], config_dirs: list[str]) -> tuple[s
 def file_overrides(files: list[str], overrides: list[str], config_dirs: list[str] = ()) -> list[str]:
     """The overrides that say ``files`` (positional scan files) to the data provider: two files are the
     source and the target of ``data=files`` (the default); one folder, three or more files, or any number with
-    ``data=scanset`` are a scan set. One file alone is a usage error, and so are files with a ``data=`` (or an
+    ``data=scanset`` are a scan set (and so is one path that does not exist: a mistyped folder, which the scan set's
+    reader names missing). One file alone is a usage error, and so are files with a ``data=`` (or an
     ``experiment=`` or ``method=`` preset whose ``data``) that picks its own scans (``config_dirs``: where
     presets are looked for besides the shipped configs)."""
     if not files:
@@ -127,6 +128,8 @@ def file_overrides(files: list[str], overrides: list[str], config_dirs: list[str
         if not scanset and len(given) == 1:  # the other one named as an override (quoted for its characters)
             role = "target" if "data.source" in given else "source"
             return [f"data.{role}={quote_value(files[0])}"]
+        if not os.path.exists(files[0]):  # a mistyped folder (or file): the run's reader names it missing
+            return _no_clash(["data=scanset", f"data.scans={quote_value(files[0])}"], overrides)
         raise ConfigError(f"one scan given ({files[0]}): give the source and the target (scanreg SOURCE TARGET), "
                           "or a folder or three or more scans to register into one model")
     raise ConfigError(f"a folder among two scans ({', '.join(files)}): give two files (SOURCE TARGET), or one "
