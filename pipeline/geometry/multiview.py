@@ -28,10 +28,12 @@ def spread_subset(cloud: Cloud, k: int) -> Cloud:
 
 def refine_jointly(clouds: list[Cloud], poses: list[np.ndarray], links: list[tuple[int, int]],
                    max_distances: list[float], kernel_scale: float, anchor: int = 0, samples: int = 5000,
-                   iterations: int = 10, tol: float = 1e-9) -> tuple[list[np.ndarray], dict[str, float]]:
+                   iterations: int = 10, tol: float = 1e-9,
+                   link_scales: list[float] | None = None) -> tuple[list[np.ndarray], dict[str, float]]:
     """The poses ``T_world_scan`` refined jointly over the ``links`` (pairs of scan indices that overlap), at each
     pair limit of ``max_distances`` in turn (input units, widest first) for up to ``iterations`` Gauss-Newton
-    steps; Geman-McClure weights at ``kernel_scale`` (input units). ``clouds`` need normals. Returns the poses
+    steps; Geman-McClure weights at ``kernel_scale`` (input units); ``link_scales``: a factor per link on both
+    (scans sampled more coarsely pair at their own spacing; None: 1). ``clouds`` need normals. Returns the poses
     and the final RMS point-to-plane distance (``multiview_rms``) and the pairs used (``multiview_pairs``)."""
     poses = [np.array(T, dtype=float) for T in poses]
     n = len(clouds)
@@ -45,12 +47,12 @@ def refine_jointly(clouds: list[Cloud], poses: list[np.ndarray], links: list[tup
             H = np.zeros((6 * len(free), 6 * len(free)))
             g = np.zeros(6 * len(free))
             sq, used = 0.0, 0
-            for a, b in links:
+            for (a, b), f in zip(links, link_scales or [1.0] * len(links)):
                 for i, j in ((a, b), (b, a)):  # points of j paired on scan i
-                    J, r = _pairs(search[i], subsets[j], poses[i], poses[j], limit)
+                    J, r = _pairs(search[i], subsets[j], poses[i], poses[j], limit * f)
                     if not len(r):
                         continue
-                    w = 1.0 / (1.0 + (r / kernel_scale) ** 2) ** 2
+                    w = 1.0 / (1.0 + (r / (kernel_scale * f)) ** 2) ** 2
                     sq, used = sq + float(r @ r), used + len(r)
                     blocks = [(j, J), (i, -J)]
                     for node, Jn in blocks:

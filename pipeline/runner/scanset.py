@@ -48,6 +48,9 @@ class SetRegistration:
     edges: list[ViewEdge]
     scans: list[PreparedScan]
     spacing: float
+    """The model's sampling spacing (the merge, the surface): the finest of the main group's scans'."""
+    levels: list[float]
+    """Each scan's spacing in the set (:func:`spacing_levels`): a pair is registered at the larger of its two."""
     merged: Optional[Cloud] = None
     """The main group's points in the world frame, voxel-merged, with normals and ``extra['scan']``."""
     surface: Optional[Mesh] = None
@@ -90,9 +93,11 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
     t2 = time.perf_counter_ns()
     groups = [g for g in components(len(scans), [Edge(e.i, e.j, e.T_i_j, e.information) for e in edges if e.accepted])]
     anchor = groups[0][0]
-    spacing = max(levels[k] for k in groups[0])  # the main group's: the graph, the refinement, merge and surface
-    poses, graph_metrics = stages.graph.solve(len(scans), edges, spacing, diagonal, anchor, ctx)
-    res = SetRegistration(problem.names, poses, _groups(poses, edges, len(scans)), [], edges, scans, spacing)
+    # the main group's spacings: its coarsest for the graph (as one spacing for all), its finest for the model
+    spacing = min(levels[k] for k in groups[0])
+    poses, graph_metrics = stages.graph.solve(len(scans), edges, max(levels[k] for k in groups[0]), diagonal, anchor,
+                                              ctx)
+    res = SetRegistration(problem.names, poses, _groups(poses, edges, len(scans)), [], edges, scans, spacing, levels)
     res.group_poses = [_group_poses(g, edges) for g in res.groups[1:]]
     t3 = time.perf_counter_ns()
     links = [(e.i, e.j) for e in edges if e.accepted and poses[e.i] is not None and poses[e.j] is not None]
@@ -113,7 +118,7 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
         refined, refine_metrics = refine_jointly(
             [s.cloud for s in scans], [T if T is not None else np.eye(4) for T in poses], links,
             [d * spacing for d in params.refine_distances], spacing, anchor, params.refine_samples,
-            params.refine_iterations)
+            params.refine_iterations, link_scales=[max(levels[i], levels[j]) / spacing for i, j in links])
         res.poses = [refined[k] if k in placed else None for k in range(len(scans))]
     t4 = time.perf_counter_ns()
     res.merged = merge(scans, res.poses, params.merge_voxel * spacing)
@@ -135,14 +140,15 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
 
 
 def spacing_levels(spacings: list[float], ratio: float) -> list[float]:
-    """Each scan's sampling spacing in the set: the coarsest scan's for every scan within ``ratio`` of it, then
-    the same among the finer rest, and so on (a scan whose points all coincide takes the finest). Scans alike
-    share one spacing, the largest of theirs."""
-    level, top = [0.0] * len(spacings), 0.0
+    """Each scan's sampling spacing in the set: the scans sorted by spacing, coarsest first, fall into groups
+    wherever the next is more than ``ratio`` times finer than the one before, and each group takes its largest
+    spacing (a scan whose points all coincide joins the finest). Scans alike share one spacing, the largest."""
+    level, top, last = [0.0] * len(spacings), 0.0, 0.0
     for k in sorted(range(len(spacings)), key=lambda k: (-spacings[k], k)):
-        if top == 0.0 or 0.0 < spacings[k] * ratio < top:
+        if top == 0.0 or 0.0 < spacings[k] * ratio < last:
             top = spacings[k]
         level[k] = top
+        last = spacings[k] if spacings[k] > 0 else last
     return level
 
 
@@ -151,10 +157,10 @@ def _note_levels(names: list[str], levels: list[float]) -> None:
     if len(set(levels)) < 2:
         return
     fine = min(levels)
-    coarse = [f"{n} ({lv / fine:.1f}x)" for n, lv in zip(names, levels) if lv > fine]
-    note(f"scan set: {len(coarse)} of the {len(names)} scans are sampled more coarsely than the finest ones "
-         f"({', '.join(coarse[:3])}{', ...' if len(coarse) > 3 else ''} their spacing): pairs with them are "
-         "registered at their spacing, the others at their own (multiview.spacing_ratio)")
+    coarse = [f"{n} {lv / fine:.1f}x" for n, lv in zip(names, levels) if lv > fine]
+    note(f"scan set: {len(coarse)} of the {len(names)} scans are sampled more coarsely than the finest ("
+         f"{', '.join(coarse[:3])}{', ...' if len(coarse) > 3 else ''}): their pairs are registered at their "
+         "spacing, the other pairs and the model at the finest (multiview.spacing_ratio)")
 
 
 def describe_levels(stages: Stages, scans: list[PreparedScan], levels: list[float],

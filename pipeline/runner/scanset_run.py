@@ -38,7 +38,8 @@ def run_scanset(problem: ScanSet, stages: Stages, ctx: RunContext, m: dict[str, 
     m.update(reg.metrics)
     m.update(sm)
     links = [(e.i, e.j) for e in reg.edges if e.accepted and reg.poses[e.i] is not None and reg.poses[e.j] is not None]
-    rms, share = scan_residuals([s.cloud for s in reg.scans], reg.poses, links, p.inlier_distance * reg.spacing)
+    coarsest = max([reg.levels[k] for k, T in enumerate(reg.poses) if T is not None] or [reg.spacing])
+    rms, share = scan_residuals([s.cloud for s in reg.scans], reg.poses, links, p.inlier_distance * coarsest)
     per_scan.update({"residual_rms": rms.tolist(), "residual_overlap": share.tolist()})
     if np.isfinite(rms).any():
         m["scan_residual_rms_max"] = float(np.nanmax(rms))
