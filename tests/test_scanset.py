@@ -22,7 +22,8 @@ from scanreg.geometry import (
 from scanreg.geometry.multiview import refine_jointly
 from scanreg.geometry.posegraph import Edge, cycle_errors
 from scanreg.io import read_mesh, write_ply
-from scanreg.runner.scanset import overlap_share, spacing_levels
+from scanreg.runner.scanset import candidate_pairs, overlap_share, spacing_levels
+from scanreg.runner.settings import MultiviewParams
 from scanreg.stages.data.views import Views, grid_mesh, render_views
 from scanreg.types import RunContext, ViewEdge
 
@@ -241,6 +242,17 @@ def test_a_scan_of_another_object_is_unplaced_and_the_rest_reconstructed(tmp_pat
     assert rec.mesh is not None and rec.metrics["surface_closed_manifold"] == 1
     poses = json.loads((tmp_path / "poses.json").read_text())
     assert "scan005.ply" not in poses["poses"] and "scan005.ply" in poses["unplaced"]
+
+
+def test_unordered_candidate_pairs_never_pair_a_scan_with_itself():
+    """A set over ``all_pairs`` with fewer scans than ``neighbours`` + 1: every other scan is a neighbour, the scan
+    itself never (it was, and its self-edge broke the pose graph: 'SVD did not converge', an internal error)."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(0)
+    scans = [SimpleNamespace(cloud=Cloud(rng.normal(size=(500, 3)) * (1, 1 + k, 2))) for k in range(4)]
+    pairs = candidate_pairs(scans, "unordered", MultiviewParams(all_pairs=3, neighbours=5))
+    assert pairs == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
 
 
 def test_spacing_levels_group_like_scans_under_the_coarsest():

@@ -210,7 +210,8 @@ def candidate_pairs(scans: list[PreparedScan], order: str, p: MultiviewParams) -
         if order == "turntable":
             pairs |= {tuple(sorted((k, (k + d) % n))) for k in range(n) for d in range(1, p.window + 1)}
         return sorted(pairs)
-    near = np.argsort(shape_distances(scans), axis=1, kind="stable")[:, :p.neighbours]
+    # at most the n - 1 others (the scan itself, at distance inf, sorts last: never its own pair)
+    near = np.argsort(shape_distances(scans), axis=1, kind="stable")[:, :min(p.neighbours, n - 1)]
     return sorted({(min(k, int(m)), max(k, int(m))) for k in range(n) for m in near[k]})
 
 
