@@ -49,6 +49,8 @@ def test_positional_files_become_quoted_overrides(tmp_path, monkeypatch):
     assert file_overrides(["scans"], []) == ["data=scanset", "data.scans='scans'"]
     assert file_overrides(["scans/1.ply", "scans/2.ply"], ["data=scanset"]) == ["data.scans=['scans/1.ply','scans/2.ply']"]
     assert file_overrides(["a", "b", "c"], []) == ["data=scanset", "data.scans=['a','b','c']"]
+    # one name that is no path here: a folder the scan set's reader resolves (shared:, pkg:) or names missing
+    assert file_overrides(["shared:stanford_bunny"], []) == ["data=scanset", "data.scans='shared:stanford_bunny'"]
     # a name that is no override and no file: still a file (its reader names it missing)
     assert split_files(["missing.ply", "other.ply"])[0] == ["missing.ply", "other.ply"]
     with pytest.raises(ConfigError, match=r"one scan given \(b c.ply\)"):
