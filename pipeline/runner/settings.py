@@ -28,8 +28,8 @@ class MultiviewParams:
     """At most this many hypotheses per pair for a coarse stage that draws them: pairs that do not overlap
     would otherwise draw the stage's full ``max_iterations``."""
     predict: bool = True
-    """A pair of scans that accepted pairs already connect starts the fine stage from the pose they predict (and
-    is skipped when that pose leaves them apart); off: every pair from any pose, by the coarse stage."""
+    """A pair of scans that accepted pairs already connect starts the fine stage from the pose they predict (from
+    any pose when that pose leaves them apart); off: every pair from any pose, by the coarse stage."""
     predict_min_fitness: float = 0.2
     """Only accepted pairs that overlap at least this much (share of points, 0..1) predict poses: a false pair
     that passed the verification overlaps little, and its predictions would skip the pairs that outvote it."""
