@@ -498,3 +498,12 @@ def test_stanford_scans_as_bare_points_place_every_scan_right(tmp_path):
     m = rec.metrics
     assert m["scans_placed"] == 10 and m["edges_false"] == 0 and m["success"] == 1
     assert m["scan_rotation_error_max_deg"] < 0.6 and m["edges_apart"] >= 1
+
+
+def test_a_folder_of_one_scan_is_named_in_one_line(tmp_path):
+    from scanreg.errors import InputError
+    from scanreg.stages.data.scanset import scan_paths
+
+    (tmp_path / "face000.ply").write_text("")
+    with pytest.raises(InputError, match=rf"^data.scans {tmp_path}: 1 scan \(face000.ply\); a scan set needs at least 2$"):
+        scan_paths(str(tmp_path))

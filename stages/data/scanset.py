@@ -163,7 +163,9 @@ def scan_paths(spec: Any) -> list[Path]:
             raise InputError(f"data.scans {item}: no such file or folder ({p.absolute()})")
     out = sorted(dict.fromkeys(out), key=lambda q: q.name)
     if len(out) < 2:
-        raise InputError(f"data.scans: {len(out)} scan(s); a scan set needs at least 2")
+        what = ", ".join(str(i) for i in items)
+        raise InputError(f"data.scans {what}: {len(out)} scan{'' if len(out) == 1 else 's'}"
+                         + (f" ({out[0].name})" if out else "") + "; a scan set needs at least 2")
     return out
 
 
