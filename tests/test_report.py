@@ -238,6 +238,25 @@ def test_runs_without_ground_truth_are_reported_by_their_fit(tmp_path):
     assert "No ground truth (`data.gt`)" in text and "Success: rotation error" not in text
 
 
+def test_scan_set_runs_are_tabled_by_their_placed_scans_and_worst_scan():
+    """Scan-set runs log no pair errors: the tables show the placed scans and the worst scan's errors (they
+    showed '-' under rot_deg and transl, the set's numbers only in report.csv)."""
+    from scanreg.app.report.tables import console_table, display_table
+
+    df = pd.DataFrame({"params.multiview.refine_samples": ["5000", "5000", "2000"], "status": ["FINISHED"] * 3,
+                       "metrics.success": [1.0, 1.0, 0.0], "metrics.scans_placed": [10.0, 10.0, 9.0],
+                       "metrics.scan_rotation_error_max_deg": [0.35, 0.37, 2.5],
+                       "metrics.scan_translation_error_max_rel": [0.0017, 0.0019, 0.01],
+                       "metrics.time_total_s": [15.0, 16.0, 12.0]})
+    t = summarize(df, ["multiview.refine_samples"])
+    console = console_table(t, ["multiview.refine_samples"]).splitlines()
+    assert console[0].split() == ["multiview.refine_samples", "runs", "failed", "success", "worst_rot_deg",
+                                  "worst_transl_rel", "total_s"]
+    assert console[2].split()[:5] == ["5000", "2", "0", "2/2", "0.36"]
+    shown = display_table(t, ["multiview.refine_samples"], []).set_index("multiview.refine_samples")
+    assert shown.loc[2000, "scans_placed"].startswith("9 ") and "rms" not in shown
+
+
 def test_a_group_without_ground_truth_beside_one_with_has_no_success_rate():
     """Runs on files without data.gt tabled beside runs with ground truth (``scanreg-report --parent all``): their
     group shows no success rate ("-"), not 0 successes."""

@@ -18,6 +18,7 @@ AGG_METRICS = [
     ("coarse_rotation_error_deg", "median"),
     ("rms", "median"), ("fitness", "median"), ("icp_iterations", "median"),
     *[(f"time_{s}_s", "median") for s in STAGES[1:]],
+    ("scans_placed", "median"), ("scan_rotation_error_max_deg", "median"), ("scan_translation_error_max_rel", "median"),
 ]
 
 
@@ -216,6 +217,8 @@ def fmt_success(k, n, lo, hi) -> str:
 TABLE_MEDIANS = ["rotation_error_deg", "translation_error", "coarse_rotation_error_deg"]
 
 
+TABLE_SET = ["scans_placed", "scan_rotation_error_max_deg", "scan_translation_error_max_rel"]
+"""A scan set's medians: its placed scans and, with ground truth, its worst scan's errors."""
 TABLE_TIMES = ["time_coarse_s", "time_icp_s", "time_total_s"]
 TABLE_FIT = ["rms", "fitness", "icp_iterations"]
 """The fit's medians, shown instead of the errors when the runs have no ground truth."""
@@ -223,7 +226,7 @@ TABLE_FIT = ["rms", "fitness", "icp_iterations"]
 
 def has_errors(table: pd.DataFrame) -> bool:
     """Whether the summary ``table`` holds errors against a ground truth (else the fit stands in for them)."""
-    return f"{TABLE_MEDIANS[0]}_median" in table
+    return f"{TABLE_MEDIANS[0]}_median" in table or f"{TABLE_SET[1]}_median" in table
 
 
 def display_table(table: pd.DataFrame, group_by: list[str], metrics: list[str]) -> pd.DataFrame:
@@ -236,7 +239,8 @@ def display_table(table: pd.DataFrame, group_by: list[str], metrics: list[str]) 
         out["success [Wilson 95 %]"] = [fmt_success(r.get("successes"), r["runs"], r.get("success_lo"),
                                                     r.get("success_hi")) for _, r in table.iterrows()]
     fit = [] if has_errors(table) else TABLE_FIT
-    for m in [*TABLE_MEDIANS, *fit, *[m for m in metrics if m not in TABLE_MEDIANS + fit], *TABLE_TIMES]:
+    shown = TABLE_MEDIANS + TABLE_SET + fit
+    for m in [*shown, *[m for m in metrics if m not in shown], *TABLE_TIMES]:
         if f"{m}_median" in table:
             out[m] = [fmt_interval(r[f"{m}_median"], r.get(f"{m}_lo"), r.get(f"{m}_hi")) for _, r in table.iterrows()]
     return out
@@ -393,7 +397,9 @@ def curve_display(ct: pd.DataFrame, x: str, curves: list[str]) -> pd.DataFrame:
 
 
 CONSOLE_COUNTS = [("runs", "runs"), ("failed", "failed"), ("success_rate", "success")]
-CONSOLE_ERRORS = [("rotation_error_deg_median", "rot_deg"), ("translation_error_median", "transl")]
+CONSOLE_ERRORS = [("rotation_error_deg_median", "rot_deg"), ("translation_error_median", "transl"),
+                  ("scan_rotation_error_max_deg_median", "worst_rot_deg"),
+                  ("scan_translation_error_max_rel_median", "worst_transl_rel")]
 CONSOLE_FIT = [("rms_median", "rms"), ("fitness_median", "fitness")]
 CONSOLE_TIMES = [("time_coarse_s_median", "coarse_s"), ("time_total_s_median", "total_s")]
 """The console's short table: (report.csv column, heading); the errors, or without ground truth the fit."""
