@@ -52,7 +52,7 @@ def set_metrics(poses: list[Optional[np.ndarray]], edges: list[ViewEdge], anchor
          "edges_registered": float(len(edges)), "edges_accepted": float(accepted.sum()),
          "edges_rejected": float((~accepted).sum()), "model_diagonal": diagonal,
          **{f"edges_{k}": float(sum(e.metrics.get(f"pair_{k}", 0.0) for e in edges))
-            for k in ("predicted", "apart", "retried")}}
+            for k in ("predicted", "skipped", "retried")}}
     per_scan: dict[str, list] = {}
     if poses_gt is None:
         return m, per_scan

@@ -121,7 +121,7 @@ def repair_table(m: dict, prefix: str = "repair_", role: str = "source") -> list
 
 
 SET_STEPS = ("load", "prepare", "pairs", "graph", "refine", "surface", "evaluate", "total")
-SET_KEYS = ("scans", "scans_placed", "edges_registered", "edges_predicted", "edges_apart", "edges_retried", "edges_accepted", "edges_false", "graph_edges_pruned",
+SET_KEYS = ("scans", "scans_placed", "edges_registered", "edges_skipped", "edges_predicted", "edges_retried", "edges_accepted", "edges_false", "graph_edges_pruned",
             "spacing", "model_diagonal", "multiview_rms", "scan_rotation_error_max_deg", "scan_translation_error_max_rel",
             "scans_within_tolerance", "success", "surface_faces", "surface_closed_manifold",
             "surface_self_intersecting_faces", "surface_reference_rms")

@@ -237,10 +237,11 @@ def register_pairs(candidates: list[tuple[int, int]], scans: list[PreparedScan],
                    described: dict[float, list[Optional[Described]]], search: list[ClosestPoints], stages: Stages,
                    levels: list[float], p: MultiviewParams, ctx: RunContext) -> list[ViewEdge]:
     """Every candidate pair registered and verified, in order. Once accepted pairs connect two scans, their
-    relative pose is predicted along them: the fine stage starts from it (and the coarse stage runs only when
-    that fails), unless it leaves under half ``min_fitness`` of the points in the overlap: then the coarse stage
-    runs from any pose, as between scans not yet connected (``predict`` off: for every pair), since a false
-    accepted pair would otherwise hide the right pairs that outvote it. A pair is registered at the larger of its
+    relative pose is predicted along them (only pairs that overlap well and fit tightly predict: a false pair
+    that passed the verification would hide the right pairs that outvote it): the pair is skipped when the
+    prediction leaves under half ``min_fitness`` of the points in the overlap, else the fine stage starts from
+    it (and the coarse stage runs only when that fails); the coarse stage runs from any pose only between scans
+    not yet connected (``predict`` off: for every pair). A pair is registered at the larger of its
     scans' spacings (``levels``, :func:`spacing_levels`), from the descriptions at it (:func:`describe_levels`).
     In a set larger than ``all_pairs``, a scan the candidates leave outside the largest joined group then gets up
     to ``rescue_pairs`` pairs more (:func:`rescue_pairs`)."""
@@ -276,19 +277,15 @@ def _register_in_turn(candidates, chains: _Chains, edges: list[ViewEdge], scans,
     for i, j in candidates:
         start = chains.relative(i, j) if p.predict else None
         distance = p.inlier_distance * max(levels[i], levels[j])
-        apart = start is not None and overlap_share(search[i], scans[j].cloud, start, distance) < p.min_fitness / 2
-        if apart:
-            # the accepted pairs put the two apart; one of those may be false and consistent with the others (a
-            # scan flipped onto two of its neighbours): registered from any pose, a right pair then outvotes it
-            start = None
+        if start is not None and overlap_share(search[i], scans[j].cloud, start, distance) < p.min_fitness / 2:
+            edges.append(_rejected(i, j, "predicted by the accepted pairs not to overlap", {"pair_skipped": 1.0}))
+            continue
         edge = register_edge(i, j, scans, described, search, stages, levels, p, ctx, start)
-        if apart:
-            edge.metrics["pair_apart"] = 1.0
         if start is not None and not edge.accepted:  # the prediction may be wrong: from any pose
             edge = register_edge(i, j, scans, described, search, stages, levels, p, ctx)
             edge.metrics["pair_retried"] = 1.0
-        if edge.accepted and edge.fitness >= p.predict_min_fitness:  # a weak pair may be false: it predicts nothing
-            chains.join(i, j, edge.T_i_j)
+        if edge.accepted and edge.fitness >= p.predict_min_fitness and edge.inlier_rms <= p.predict_max_inlier_rms:
+            chains.join(i, j, edge.T_i_j)  # a weak or loose pair may be false: it predicts nothing
         edges.append(edge)
 
 

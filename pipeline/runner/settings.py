@@ -28,11 +28,15 @@ class MultiviewParams:
     """At most this many hypotheses per pair for a coarse stage that draws them: pairs that do not overlap
     would otherwise draw the stage's full ``max_iterations``."""
     predict: bool = True
-    """A pair of scans that accepted pairs already connect starts the fine stage from the pose they predict (from
-    any pose when that pose leaves them apart); off: every pair from any pose, by the coarse stage."""
+    """A pair of scans that accepted pairs already connect starts the fine stage from the pose they predict (and
+    is skipped when that pose leaves them apart); off: every pair from any pose, by the coarse stage."""
     predict_min_fitness: float = 0.2
     """Only accepted pairs that overlap at least this much (share of points, 0..1) predict poses: a false pair
     that passed the verification overlaps little, and its predictions would skip the pairs that outvote it."""
+    predict_max_inlier_rms: float = 1.45
+    """... and whose inlier RMS is at most this many spacings (``max_inlier_rms`` accepts up to 1.6): the 10
+    Stanford scans as bare points put ear_back 159 deg off through two false pairs that agree, at 1.57 spacings
+    (the right pairs there: 0.7-1.37), whose predictions skipped the right pairs that would outvote them."""
     pair_samples: int = 5000
     """Points of a pair's source scan that the fine stage pairs with the target (spread over it; 0: all): a
     pair's pose is a start that the multi-view refinement finishes, and needs no more."""
@@ -75,7 +79,8 @@ class MultiviewParams:
         if self.all_pairs < 2 or self.window < 1 or self.neighbours < 1:
             raise ValueError("all_pairs must be >= 2, window and neighbours >= 1")
         shares = ("min_fitness", "min_normal_agreement", "predict_min_fitness")
-        positive = ("coarse_budget", "inlier_distance", "max_inlier_rms", "refine_iterations", "refine_samples",
+        positive = ("coarse_budget", "inlier_distance", "max_inlier_rms", "predict_max_inlier_rms", "refine_iterations",
+                    "refine_samples",
                     "success_rotation_deg", "success_translation", "false_edge_rotation_deg", "false_edge_translation")
         for names, ok, what in ((shares, lambda v: 0 <= v <= 1, "in [0, 1]"), (positive, lambda v: v > 0, "> 0"),
                                 (("rescue_pairs", "pair_samples", "merge_voxel"), lambda v: v >= 0, ">= 0"),
