@@ -270,8 +270,8 @@ class ScanSet:
     scans: list[Geometry]
     names: list[str]
     """Each scan's name (its file name), in the order of ``scans`` (sorted: the first is the world frame)."""
-    poses_gt: Optional[list[np.ndarray]] = None
-    """The true ``T_world_scan`` of each scan in any common world frame, when known."""
+    poses_gt: Optional[list[Optional[np.ndarray]]] = None
+    """The true ``T_world_scan`` of each scan in any common world frame, when known (None for a scan without)."""
     order: str = "unordered"
     """What the order of the scans says: ``sequential`` (neighbours in the list overlap), ``turntable`` (and the
     last overlaps the first), ``unordered``."""

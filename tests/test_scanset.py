@@ -440,6 +440,37 @@ def test_poses_that_are_not_there_are_named_so(tmp_path):
         read_poses(str(tmp_path / "*.txt"), ["a.ply", "b.ply"])
 
 
+def test_ground_truth_for_some_scans_evaluates_those(tmp_path, capsys):
+    """data.poses without a pose for every scan: the scans without one are registered, not evaluated (the run
+    stopped); the errors are measured at the anchor, or at the first placed scan with a pose when it has none."""
+    from scanreg.errors import InputError
+    from scanreg.eval.scanset import set_metrics
+    from scanreg.stages.data.scanset import read_poses
+
+    for n in ("a", "b"):
+        np.savetxt(tmp_path / f"{n}.txt", np.eye(4))
+    poses = read_poses(str(tmp_path), ["a.ply", "b.ply", "c.ply"])
+    assert poses[2] is None and np.array_equal(poses[1], np.eye(4))
+    assert "no pose file (one 4x4 file per scan, named by the scan's stem) for c.ply: registered, not evaluated" \
+        in capsys.readouterr().out
+    with pytest.raises(InputError, match=r"for b.ply, c.ply: at least two scans need a pose"):
+        read_poses(str(tmp_path / "a.txt"), ["a.ply", "b.ply", "c.ply"])
+    # scan 0 (the anchor) without a true pose; scan 2 placed 1 degree off the truth, relative to scan 1
+    rng = np.random.default_rng(1)
+    truth = [random_pose(rng, 180, 1.0) for _ in range(3)]
+    est = [np.eye(4), invert_T(truth[0]) @ truth[1], invert_T(truth[0]) @ truth[2]]
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec([0, 0, np.radians(1.0)]).as_matrix()
+    est[2] = est[2] @ turn
+    edges = [_edge(0, 1, invert_T(est[0]) @ est[1]), _edge(1, 2, invert_T(truth[1]) @ truth[2] @ turn)]
+    m, per_scan = set_metrics(est, edges, 0, 1.0, [None, truth[1], truth[2]], 0.5, 0.01, 2.0, 0.01)
+    rot = per_scan["rotation_error_deg"]
+    assert np.isnan(rot[0]) and rot[1] < 1e-6 and abs(rot[2] - 1.0) < 1e-6
+    assert m["scan_rotation_error_max_deg"] == pytest.approx(1.0) and m["success"] == 0.0
+    assert m["scans_within_tolerance"] == 0.5 and np.isnan(per_scan["within_tolerance"][0])
+    assert m["edges_false"] == 0.0  # the 1-degree edge is within the false-edge limit; the other one is unjudged
+
+
 def test_scans_of_the_same_file_name_in_two_folders_keep_a_pose_each(tmp_path):
     """Per-scan export folders (a/scan.ply, b/scan.ply): the set named both 'scan.ply', and poses.json kept one pose
     for the two; each is named by as many folders as tell them apart, and poses by stem cannot be matched."""

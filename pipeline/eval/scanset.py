@@ -13,30 +13,37 @@ from scanreg.geometry.multiview import spread_subset
 from scanreg.types import ViewEdge
 
 
-def pose_errors(poses: list[Optional[np.ndarray]], poses_gt: list[np.ndarray], anchor: int, diagonal: float,
-                centres: Optional[list[np.ndarray]] = None) -> tuple[np.ndarray, np.ndarray]:
+def pose_errors(poses: list[Optional[np.ndarray]], poses_gt: list[Optional[np.ndarray]], anchor: int,
+                diagonal: float, centres: Optional[list[np.ndarray]] = None) -> tuple[np.ndarray, np.ndarray]:
     """Each placed scan's rotation error (degrees) and translation error (share of ``diagonal``) against the
-    truth, both frames aligned at the anchor (NaN for a scan not placed). The translation error is the shift of
-    the scan's ``centres`` (its points' centroid, in its own frame) between the two poses, where its points are;
-    without them, of its frame's origin, which a random pose may have put far from them."""
+    truth, both frames aligned at the anchor, or at the first placed scan with a true pose when the anchor has
+    none (NaN for a scan not placed or without a true pose). The translation error is the shift of the scan's
+    ``centres`` (its points' centroid, in its own frame) between the two poses, where its points are; without
+    them, of its frame's origin, which a random pose may have put far from them."""
     rot, trans = np.full(len(poses), np.nan), np.full(len(poses), np.nan)
-    G0 = invert_T(poses_gt[anchor])
-    for k, T in enumerate(poses):
-        if T is not None:
-            G = G0 @ poses_gt[k]
-            rot[k] = transform_errors(T, G)[0]
-            c = np.zeros(3) if centres is None else centres[k]
-            trans[k] = float(np.linalg.norm(apply_T(T, c[None])[0] - apply_T(G, c[None])[0])) / diagonal
+    known = [k for k, (T, G) in enumerate(zip(poses, poses_gt)) if T is not None and G is not None]
+    if not known:
+        return rot, trans
+    ref = anchor if anchor in known else known[0]
+    G0 = invert_T(poses_gt[ref])
+    T0 = None if ref == anchor else invert_T(poses[ref])  # the estimated poses' world: the anchor's frame
+    for k in known:
+        T, G = poses[k] if T0 is None else T0 @ poses[k], G0 @ poses_gt[k]
+        rot[k] = transform_errors(T, G)[0]
+        c = np.zeros(3) if centres is None else centres[k]
+        trans[k] = float(np.linalg.norm(apply_T(T, c[None])[0] - apply_T(G, c[None])[0])) / diagonal
     return rot, trans
 
 
 def edge_truth(edges: list[ViewEdge], poses_gt: list[np.ndarray], diagonal: float, max_rotation_deg: float,
                max_translation: float) -> np.ndarray:
-    """Whether each edge's transform is right (within the limits, translation as a share of ``diagonal``)."""
-    ok = np.zeros(len(edges), bool)
+    """Whether each edge's transform is right (within the limits, translation as a share of ``diagonal``); NaN
+    for an edge with a scan without a true pose."""
+    ok = np.full(len(edges), np.nan)
     for k, e in enumerate(edges):
-        rot, t = transform_errors(e.T_i_j, invert_T(poses_gt[e.i]) @ poses_gt[e.j])
-        ok[k] = rot <= max_rotation_deg and t <= max_translation * diagonal
+        if poses_gt[e.i] is not None and poses_gt[e.j] is not None:
+            rot, t = transform_errors(e.T_i_j, invert_T(poses_gt[e.i]) @ poses_gt[e.j])
+            ok[k] = float(rot <= max_rotation_deg and t <= max_translation * diagonal)
     return ok
 
 
@@ -57,16 +64,18 @@ def set_metrics(poses: list[Optional[np.ndarray]], edges: list[ViewEdge], anchor
     if poses_gt is None:
         return m, per_scan
     rot, trans = pose_errors(poses, poses_gt, anchor, diagonal, centres)
+    judged = np.array([G is not None for G in poses_gt])  # the scans with a true pose
     within = placed & (np.nan_to_num(rot, nan=np.inf) < tol_rotation_deg) & \
         (np.nan_to_num(trans, nan=np.inf) < tol_translation)
-    right = edge_truth(edges, poses_gt, diagonal, false_rotation_deg, false_translation)
+    truth = edge_truth(edges, poses_gt, diagonal, false_rotation_deg, false_translation)
+    right, wrong = truth == 1.0, truth == 0.0
     m.update({"scan_rotation_error_mean_deg": float(np.nanmean(rot)), "scan_rotation_error_max_deg": float(np.nanmax(rot)),
               "scan_translation_error_mean_rel": float(np.nanmean(trans)),
               "scan_translation_error_max_rel": float(np.nanmax(trans)),
-              "scans_within_tolerance": float(within.mean()), "success": float(within.all()),
-              "edges_false": float((accepted & ~right).sum()), "edges_rejected_right": float((~accepted & right).sum())})
+              "scans_within_tolerance": float(within[judged].mean()), "success": float(within[judged].all()),
+              "edges_false": float((accepted & wrong).sum()), "edges_rejected_right": float((~accepted & right).sum())})
     per_scan = {"rotation_error_deg": rot.tolist(), "translation_error_rel": trans.tolist(),
-                "within_tolerance": within.astype(float).tolist()}
+                "within_tolerance": np.where(judged, within.astype(float), np.nan).tolist()}
     return m, per_scan
 
 

@@ -46,7 +46,7 @@ def run_scanset(problem: ScanSet, stages: Stages, ctx: RunContext, m: dict[str, 
     m["groups"] = float(len([g for g in reg.groups if g]))
     if reg.surface is not None:
         reference = None
-        if problem.reference is not None and problem.poses_gt is not None:
+        if problem.reference is not None and problem.poses_gt is not None and problem.poses_gt[anchor] is not None:
             reference = transform_geometry(invert_T(problem.poses_gt[anchor]), problem.reference)
         m.update(surface_metrics(reg.surface, reference, seed=ctx.seed))
     m["time_evaluate_s"] = (time.perf_counter_ns() - t0) / 1e9

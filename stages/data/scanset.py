@@ -44,7 +44,8 @@ class ScanSetProvider(Provider):
         poses: Optional[str] = None
         """Ground truth (optional): a Stanford ``.conf`` file (``bmesh NAME tx ty tz qx qy qz qw`` lines), or a
         folder or glob of 4x4 files (text or .npy), one per scan, matched by file stem; each maps the scan into
-        one common world frame (``T_world_scan``, input units)."""
+        one common world frame (``T_world_scan``, input units). A scan without one is registered, not evaluated
+        (at least two need one)."""
         order: str = "unordered"
         """What the order of the scans says: ``sequential`` (neighbours in sorted order overlap), ``turntable`` (and
         the last overlaps the first), or ``unordered``: which pairs are registered (``multiview.pairs``)."""
@@ -89,7 +90,7 @@ class ScanSetProvider(Provider):
                 P = self.p.pose(900 + k, points_of(g), diagonal)
                 scans[k] = transform_geometry(P, g)
                 scans[k].source = g.source
-                if poses is not None:
+                if poses is not None and poses[k] is not None:
                     poses[k] = poses[k] @ invert_T(P)
         reference = read_geometry(expand_path(self.p.reference), "reference") if self.p.reference else None
         info["n_scans"] = len(scans)
@@ -188,8 +189,10 @@ def scan_names(paths: list[Path]) -> list[str]:
     return names
 
 
-def read_poses(spec: str, names: list[str]) -> list[np.ndarray]:
-    """Each scan's ``T_world_scan`` from a Stanford ``.conf`` or from one 4x4 file per scan (by file stem)."""
+def read_poses(spec: str, names: list[str]) -> list[Optional[np.ndarray]]:
+    """Each scan's ``T_world_scan`` from a Stanford ``.conf`` or from one 4x4 file per scan (by file stem); None
+    for a scan without one (a note names them: they are registered, not evaluated), an error when fewer than two
+    scans have one."""
     stems = [Path(n).stem for n in names]
     twice = sorted({n for n, st in zip(names, stems) if stems.count(st) > 1})
     if twice:
@@ -199,18 +202,26 @@ def read_poses(spec: str, names: list[str]) -> list[np.ndarray]:
     if s.endswith(".conf"):
         conf = read_stanford_conf(s)
         by_stem = {Path(k).stem: v for k, v in conf.items()}
-        missing = [n for n in names if n not in conf and Path(n).stem not in by_stem]
-        if missing:
-            raise InputError(f"data.poses {spec}: no pose for {', '.join(missing)}")
-        return [conf.get(n, by_stem.get(Path(n).stem)) for n in names]
+        poses = [conf.get(n, by_stem.get(Path(n).stem)) for n in names]
+        return _some_poses(spec, names, poses, "no pose")
     p = Path(s).expanduser()
     files = sorted(p.iterdir()) if p.is_dir() else [Path(q) for q in sorted(globbing.glob(str(p)))]
     if not files:
         raise InputError(f"data.poses {spec}: no such file or folder ({p.absolute()})" if not any(c in s for c in "*?[")
                          else f"data.poses {spec}: the pattern matches no file")
     by_stem = {f.stem: f for f in files if f.is_file()}
-    missing = [n for n in names if Path(n).stem not in by_stem]
+    poses = [read_transform(by_stem[Path(n).stem], f"pose of {n}") if Path(n).stem in by_stem else None
+             for n in names]
+    return _some_poses(spec, names, poses, "no pose file (one 4x4 file per scan, named by the scan's stem)")
+
+
+def _some_poses(spec: str, names: list[str], poses: list, missing_what: str) -> list[Optional[np.ndarray]]:
+    """``poses`` when at least two scans have one (a note names the scans without: registered, not evaluated)."""
+    missing = [n for n, T in zip(names, poses) if T is None]
+    if len(names) - len(missing) < 2:
+        raise InputError(f"data.poses {spec}: {missing_what} for {', '.join(missing[:5])}"
+                         f"{', ...' if len(missing) > 5 else ''}: at least two scans need a pose to evaluate the set")
     if missing:
-        raise InputError(f"data.poses {spec}: no pose file for {', '.join(missing)} (one 4x4 file per scan, named "
-                         "by the scan's stem)")
-    return [read_transform(by_stem[Path(n).stem], f"pose of {n}") for n in names]
+        note(f"data.poses {spec}: {missing_what} for {', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''}: "
+             f"registered, not evaluated")
+    return poses
