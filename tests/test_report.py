@@ -238,6 +238,19 @@ def test_runs_without_ground_truth_are_reported_by_their_fit(tmp_path):
     assert "No ground truth (`data.gt`)" in text and "Success: rotation error" not in text
 
 
+def test_runs_without_ground_truth_in_a_group_with_it_are_not_judged():
+    """A group of runs with and without ground truth (scanreg-report --parent all over a run with data.poses and
+    one without): success over the judged runs, a failed run still a failure (it said 1/2 for 1 of 1)."""
+    from scanreg.app.report.tables import console_table, display_table
+
+    df = pd.DataFrame({"params.k": ["a"] * 4, "status": ["FINISHED", "FINISHED", "FINISHED", "FAILED"],
+                       "metrics.success": [1.0, 0.0, None, None], "metrics.time_total_s": [1.0, 2.0, 3.0, None]})
+    t = summarize(df, ["k"])
+    assert t.loc[0, "successes"] == 1 and t.loc[0, "judged"] == 3 and t.loc[0, "runs"] == 4
+    assert console_table(t, ["k"]).splitlines()[1].split()[:4] == ["a", "4", "1", "1/3"]
+    assert display_table(t, ["k"], [])["success [Wilson 95 %]"][0].startswith("1/3 = 33 %")
+
+
 def test_scan_set_runs_are_tabled_by_their_placed_scans_and_worst_scan():
     """Scan-set runs log no pair errors: the tables show the placed scans and the worst scan's errors (they
     showed '-' under rot_deg and transl, the set's numbers only in report.csv)."""

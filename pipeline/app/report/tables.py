@@ -119,12 +119,16 @@ def group_labels(df: pd.DataFrame, group_by: list[str]) -> pd.Series:
 
 
 def success_stats(d: pd.DataFrame) -> dict:
-    """A group of runs' successes: ``successes``, ``success_rate`` and its Wilson interval (``success_lo``,
-    ``success_hi``); a run that failed (not FINISHED) counts as a failure."""
+    """A group of runs' successes: ``successes`` of the ``judged`` runs, ``success_rate`` and its Wilson interval
+    (``success_lo``, ``success_hi``); a run that failed (not FINISHED) counts as a failure, a finished one without
+    ground truth (no ``success``: files without data.gt beside runs with it) is not judged."""
     ok = d[d["status"] == "FINISHED"]
-    k = int((ok.get("metrics.success", pd.Series(dtype=float)).fillna(0) > 0.5).sum())
-    lo, hi = wilson_interval(k, len(d))
-    return {"successes": k, "success_rate": k / len(d), "success_lo": lo, "success_hi": hi}
+    s = ok["metrics.success"] if "metrics.success" in ok else pd.Series(np.nan, index=ok.index, dtype=float)
+    n = len(d) - int(s.isna().sum())
+    k = int((s > 0.5).sum())
+    lo, hi = wilson_interval(k, n)
+    return {"successes": k, "judged": n, "success_rate": k / n if n else float("nan"), "success_lo": lo,
+            "success_hi": hi}
 
 
 def median_stats(ok: pd.DataFrame, metrics, how: str) -> dict:
@@ -236,7 +240,7 @@ def display_table(table: pd.DataFrame, group_by: list[str], metrics: list[str]) 
     out["runs"] = table["runs"]
     out["failed"] = table["failed"]
     if "success_rate" in table:
-        out["success [Wilson 95 %]"] = [fmt_success(r.get("successes"), r["runs"], r.get("success_lo"),
+        out["success [Wilson 95 %]"] = [fmt_success(r.get("successes"), r.get("judged", r["runs"]), r.get("success_lo"),
                                                     r.get("success_hi")) for _, r in table.iterrows()]
     fit = [] if has_errors(table) else TABLE_FIT
     shown = TABLE_MEDIANS + TABLE_SET + fit
@@ -302,7 +306,7 @@ def bin_markdown(bt: pd.DataFrame, bin_by: str, metrics: list[str]) -> list[str]
                     cells.append("–")
                     continue
                 r = r.iloc[0]
-                cells.append(fmt_success(r["successes"], r["runs"], r["success_lo"], r["success_hi"])
+                cells.append(fmt_success(r["successes"], r["judged"], r["success_lo"], r["success_hi"])
                              if what == "success" else fmt_interval(r.get(f"{what}_median"), r.get(f"{what}_lo"),
                                                                     r.get(f"{what}_hi")))
             body.append(f"| {b} | " + " | ".join(cells) + " |")
@@ -389,7 +393,7 @@ def curve_display(ct: pd.DataFrame, x: str, curves: list[str]) -> pd.DataFrame:
     out = pd.DataFrame({"group": ct["group"], x: ct[x], "runs": ct["runs"]})
     for m in curves:
         if m == "success" and "success_rate" in ct:
-            out["success [Wilson 95 %]"] = [fmt_success(r["successes"], r["runs"], r["success_lo"],
+            out["success [Wilson 95 %]"] = [fmt_success(r["successes"], r["judged"], r["success_lo"],
                                                         r["success_hi"]) for _, r in ct.iterrows()]
         elif f"{m}_median" in ct:
             out[m] = [fmt_interval(r[f"{m}_median"], r[f"{m}_lo"], r[f"{m}_hi"]) for _, r in ct.iterrows()]
@@ -412,8 +416,8 @@ def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100) ->
     cols = [(c, h) for c, h in columns if c in table]
     head = " / ".join(group_by) or "group"
     def cell(r, c):  # success as a count of the runs (as report.md has it), the rest as values
-        if c == "success_rate" and "successes" in r and pd.notna(r["successes"]) and pd.notna(r.get("runs")):
-            return f"{int(r['successes'])}/{int(r['runs'])}"
+        if c == "success_rate" and "successes" in r and pd.notna(r["successes"]) and pd.notna(r.get("judged")):
+            return f"{int(r['successes'])}/{int(r['judged'])}"
         return fmt_value(r[c])
 
     rows = [[str(r["_label"]) if "_label" in table else "all", *[cell(r, c) for c, _ in cols]]

@@ -138,7 +138,8 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         *([f"**Warning: {warn}.**", ""] if warn else []),
         f"## Results by {', '.join(group_by) or 'run'}", "",
         f"Each cell: the median over the group's runs (seeds, poses, pairs) [{interval_name(how)}]; success: "
-        "successes/runs = rate [Wilson 95 % score interval]. Two groups differ only where their intervals do not "
+        "successes/runs = rate [Wilson 95 % score interval] (a failed run counts as a failure; a finished run without "
+        "ground truth is not counted). Two groups differ only where their intervals do not "
         "overlap. Every column (p90 errors, fitness, each stage's time) is in report.csv.", "",
         to_markdown(display_table(table, group_by, list(p.metrics))), "",
     ]
