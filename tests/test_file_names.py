@@ -49,8 +49,6 @@ def test_positional_files_become_quoted_overrides(tmp_path, monkeypatch):
     assert file_overrides(["scans"], []) == ["data=scanset", "data.scans='scans'"]
     assert file_overrides(["scans/1.ply", "scans/2.ply"], ["data=scanset"]) == ["data.scans=['scans/1.ply','scans/2.ply']"]
     assert file_overrides(["a", "b", "c"], []) == ["data=scanset", "data.scans=['a','b','c']"]
-    # one name that is no path here: a folder the scan set's reader resolves (shared:, pkg:) or names missing
-    assert file_overrides(["shared:stanford_bunny"], []) == ["data=scanset", "data.scans='shared:stanford_bunny'"]
     # a name that is no override and no file: still a file (its reader names it missing)
     assert split_files(["missing.ply", "other.ply"])[0] == ["missing.ply", "other.ply"]
     with pytest.raises(ConfigError, match=r"one scan given \(b c.ply\)"):
@@ -155,10 +153,17 @@ def test_one_positional_file_is_one_line_usage_error(tmp_path):
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
         "error: one scan given (only one.ply): give the source and the target (scanreg SOURCE TARGET), or a folder "
         "or three or more scans to register into one model"], r.stderr
-    # a mistyped folder (or file) is named missing by the run, as data.scans= would be (it said "one scan given")
+    # a mistyped folder (or file) is named missing (it said "one scan given")
     r = run_cli(["scnas", "tracking=none"], tmp_path)
-    assert r.returncode == 1 and r.stderr.strip().splitlines() == [
-        f"error: data.scans scnas: no such file or folder ({tmp_path / 'scnas'})"], r.stderr
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"error: scnas: no such file or folder ({tmp_path / 'scnas'})"], r.stderr
+
+
+def test_a_shared_folder_by_position_is_a_scan_set():
+    from conftest import shared
+
+    shared("stanford_bunny")  # skips without the data
+    assert file_overrides(["shared:stanford_bunny"], []) == ["data=scanset", "data.scans='shared:stanford_bunny'"]
 
 
 def test_colour_range_follows_the_data():

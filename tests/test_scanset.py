@@ -3,6 +3,7 @@ the rendered views, Poisson's surface, and whole sets through the API and the co
 disconnected groups, an unreadable file)."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -253,6 +254,25 @@ def test_unordered_candidate_pairs_never_pair_a_scan_with_itself():
     scans = [SimpleNamespace(cloud=Cloud(rng.normal(size=(500, 3)) * (1, 1 + k, 2))) for k in range(4)]
     pairs = candidate_pairs(scans, "unordered", MultiviewParams(all_pairs=3, neighbours=5))
     assert pairs == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+
+
+def test_multiview_parameters_out_of_range_are_one_line_naming_them():
+    from scanreg.errors import ConfigError
+    from scanreg.stages.registry import make_params
+
+    for values, message in (({"spacing_ratio": 1.0}, "multiview: spacing_ratio must be > 1, got spacing_ratio=1.0"),
+                            ({"inlier_distance": -2.0}, "multiview: inlier_distance must be > 0"),
+                            ({"merge_voxel": -1.0}, "multiview: merge_voxel must be >= 0"),
+                            ({"refine_distances": [-3.0, 1.5]}, "multiview: refine_distances must be > 0")):
+        with pytest.raises(ConfigError, match="^" + re.escape(message)):
+            make_params(MultiviewParams, values, "multiview")
+
+
+def test_turntable_candidates_never_pair_a_scan_with_itself():
+    from types import SimpleNamespace
+
+    scans = [SimpleNamespace(cloud=Cloud(np.random.default_rng(k).normal(size=(50, 3)))) for k in range(3)]
+    assert candidate_pairs(scans, "turntable", MultiviewParams(all_pairs=2, window=3)) == [(0, 1), (0, 2), (1, 2)]
 
 
 def test_spacing_levels_group_like_scans_under_the_coarsest():
@@ -527,7 +547,7 @@ def test_stanford_scans_as_bare_points_place_every_scan_right(tmp_path):
                               run_dir=tmp_path / "run")
     m = rec.metrics
     assert m["scans_placed"] == 10 and m["edges_false"] == 0 and m["success"] == 1
-    assert m["scan_rotation_error_max_deg"] < 0.6
+    assert m["scan_rotation_error_max_deg"] < 0.4
 
 
 def test_a_folder_of_one_scan_is_named_in_one_line(tmp_path):
@@ -535,5 +555,6 @@ def test_a_folder_of_one_scan_is_named_in_one_line(tmp_path):
     from scanreg.stages.data.scanset import scan_paths
 
     (tmp_path / "face000.ply").write_text("")
-    with pytest.raises(InputError, match=rf"^data.scans {tmp_path}: 1 scan \(face000.ply\); a scan set needs at least 2$"):
+    with pytest.raises(InputError, match=rf"^data.scans {re.escape(str(tmp_path))}: 1 scan \(face000.ply\); a scan set "
+                                         "needs at least 2$"):
         scan_paths(str(tmp_path))

@@ -102,8 +102,8 @@ def _preset_data_choice(overrides: list[str], config_dirs: list[str]) -> tuple[s
 def file_overrides(files: list[str], overrides: list[str], config_dirs: list[str] = ()) -> list[str]:
     """The overrides that say ``files`` (positional scan files) to the data provider: two files are the
     source and the target of ``data=files`` (the default); one folder, three or more files, or any number with
-    ``data=scanset`` are a scan set (and so is one path that does not exist: a mistyped folder, which the scan set's
-    reader names missing). One file alone is a usage error, and so are files with a ``data=`` (or an
+    ``data=scanset`` are a scan set (a ``shared:`` folder too). One file alone is a usage error, and so is a name
+    that is no file or folder, and so are files with a ``data=`` (or an
     ``experiment=`` or ``method=`` preset whose ``data``) that picks its own scans (``config_dirs``: where
     presets are looked for besides the shipped configs)."""
     if not files:
@@ -128,8 +128,13 @@ def file_overrides(files: list[str], overrides: list[str], config_dirs: list[str
         if not scanset and len(given) == 1:  # the other one named as an override (quoted for its characters)
             role = "target" if "data.source" in given else "source"
             return [f"data.{role}={quote_value(files[0])}"]
-        if not os.path.exists(files[0]):  # a mistyped folder (or file): the run's reader names it missing
+        from scanreg.io.paths import expand_path  # here: the package's readers are not needed before a run
+
+        path = expand_path(files[0])  # shared: names
+        if os.path.isdir(path):
             return _no_clash(["data=scanset", f"data.scans={quote_value(files[0])}"], overrides)
+        if not os.path.exists(path) and not files[0].startswith("pkg:"):  # a mistyped folder or file
+            raise ConfigError(f"{files[0]}: no such file or folder ({os.path.abspath(path)})")
         raise ConfigError(f"one scan given ({files[0]}): give the source and the target (scanreg SOURCE TARGET), "
                           "or a folder or three or more scans to register into one model")
     raise ConfigError(f"a folder among two scans ({', '.join(files)}): give two files (SOURCE TARGET), or one "

@@ -26,7 +26,7 @@ def pose_errors(poses: list[Optional[np.ndarray]], poses_gt: list[Optional[np.nd
         return rot, trans
     ref = anchor if anchor in known else known[0]
     G0 = invert_T(poses_gt[ref])
-    T0 = None if ref == anchor else invert_T(poses[ref])  # the estimated poses' world: the anchor's frame
+    T0 = None if ref == anchor else invert_T(poses[ref])  # the estimated poses into the reference scan's frame
     for k in known:
         T, G = poses[k] if T0 is None else T0 @ poses[k], G0 @ poses_gt[k]
         rot[k] = transform_errors(T, G)[0]
@@ -35,7 +35,7 @@ def pose_errors(poses: list[Optional[np.ndarray]], poses_gt: list[Optional[np.nd
     return rot, trans
 
 
-def edge_truth(edges: list[ViewEdge], poses_gt: list[np.ndarray], diagonal: float, max_rotation_deg: float,
+def edge_truth(edges: list[ViewEdge], poses_gt: list[Optional[np.ndarray]], diagonal: float, max_rotation_deg: float,
                max_translation: float) -> np.ndarray:
     """Whether each edge's transform is right (within the limits, translation as a share of ``diagonal``); NaN
     for an edge with a scan without a true pose."""
@@ -48,11 +48,12 @@ def edge_truth(edges: list[ViewEdge], poses_gt: list[np.ndarray], diagonal: floa
 
 
 def set_metrics(poses: list[Optional[np.ndarray]], edges: list[ViewEdge], anchor: int, diagonal: float,
-                poses_gt: Optional[list[np.ndarray]], tol_rotation_deg: float, tol_translation: float,
+                poses_gt: Optional[list[Optional[np.ndarray]]], tol_rotation_deg: float, tol_translation: float,
                 false_rotation_deg: float, false_translation: float,
                 centres: Optional[list[np.ndarray]] = None) -> tuple[dict[str, float], dict[str, list]]:
     """The set's numbers and, per scan, its errors (with ground truth; ``centres``: each scan's centroid in its
-    own frame, where its translation error is measured)."""
+    own frame, where its translation error is measured). Scans without a true pose are not evaluated
+    (``scans_evaluated`` says how many are, when not all)."""
     placed = np.array([T is not None for T in poses])
     accepted = np.array([e.accepted for e in edges], bool)
     m = {"scans": float(len(poses)), "scans_placed": float(placed.sum()), "scans_unplaced": float((~placed).sum()),
@@ -69,10 +70,14 @@ def set_metrics(poses: list[Optional[np.ndarray]], edges: list[ViewEdge], anchor
         (np.nan_to_num(trans, nan=np.inf) < tol_translation)
     truth = edge_truth(edges, poses_gt, diagonal, false_rotation_deg, false_translation)
     right, wrong = truth == 1.0, truth == 0.0
-    m.update({"scan_rotation_error_mean_deg": float(np.nanmean(rot)), "scan_rotation_error_max_deg": float(np.nanmax(rot)),
-              "scan_translation_error_mean_rel": float(np.nanmean(trans)),
-              "scan_translation_error_max_rel": float(np.nanmax(trans)),
-              "scans_within_tolerance": float(within[judged].mean()), "success": float(within[judged].all()),
+    if not judged.all():
+        m["scans_evaluated"] = float(judged.sum())
+    if np.isfinite(rot).any():  # a placed scan with a true pose
+        m.update({"scan_rotation_error_mean_deg": float(np.nanmean(rot)),
+                  "scan_rotation_error_max_deg": float(np.nanmax(rot)),
+                  "scan_translation_error_mean_rel": float(np.nanmean(trans)),
+                  "scan_translation_error_max_rel": float(np.nanmax(trans))})
+    m.update({"scans_within_tolerance": float(within[judged].mean()), "success": float(within[judged].all()),
               "edges_false": float((accepted & wrong).sum()), "edges_rejected_right": float((~accepted & right).sum())})
     per_scan = {"rotation_error_deg": rot.tolist(), "translation_error_rel": trans.tolist(),
                 "within_tolerance": np.where(judged, within.astype(float), np.nan).tolist()}

@@ -47,7 +47,7 @@ def refine_jointly(clouds: list[Cloud], poses: list[np.ndarray], links: list[tup
             H = np.zeros((6 * len(free), 6 * len(free)))
             g = np.zeros(6 * len(free))
             sq, used = 0.0, 0
-            for (a, b), f in zip(links, link_scales or [1.0] * len(links)):
+            for (a, b), f in zip(links, link_scales or [1.0] * len(links), strict=True):
                 for i, j in ((a, b), (b, a)):  # points of j paired on scan i
                     J, r = _pairs(search[i], subsets[j], poses[i], poses[j], limit * f)
                     if not len(r):

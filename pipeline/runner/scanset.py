@@ -1,7 +1,8 @@
 """Many scans of one object into one model, on the steps of a pair run:
 
 1. every scan prepared once (:func:`~scanreg.runner.steps.prepare_scan`: repair, sampling, spacing) and
-   described once by the coarse stage (its keypoints and descriptors);
+   described by the coarse stage (its keypoints and descriptors) once per spacing its pairs take
+   (:func:`spacing_levels`: once, for scans alike);
 2. candidate pairs (every pair of a small set; neighbours in the given order, or by a cheap global shape
    descriptor, in a large one), each registered from any pose by the coarse and the fine stage and verified:
    the share of points that overlap, their RMS distance in spacings, and whether their normals agree;
@@ -159,8 +160,8 @@ def _note_levels(names: list[str], levels: list[float]) -> None:
     fine = min(levels)
     coarse = [f"{n} {lv / fine:.1f}x" for n, lv in zip(names, levels) if lv > fine]
     note(f"scan set: {len(coarse)} of the {len(names)} scans are sampled more coarsely than the finest ("
-         f"{', '.join(coarse[:3])}{', ...' if len(coarse) > 3 else ''}): their pairs are registered at their "
-         "spacing, the other pairs and the model at the finest (multiview.spacing_ratio)")
+         f"{', '.join(coarse[:3])}{', ...' if len(coarse) > 3 else ''}): each pair is registered at the larger of "
+         "its two scans' spacings, the model at the finest placed (multiview.spacing_ratio)")
 
 
 def describe_levels(stages: Stages, scans: list[PreparedScan], levels: list[float],
@@ -207,8 +208,8 @@ def candidate_pairs(scans: list[PreparedScan], order: str, p: MultiviewParams) -
         return list(itertools.combinations(range(n), 2))
     if order in ("sequential", "turntable"):
         pairs = {(k, k + d) for k in range(n) for d in range(1, p.window + 1) if k + d < n}
-        if order == "turntable":
-            pairs |= {tuple(sorted((k, (k + d) % n))) for k in range(n) for d in range(1, p.window + 1)}
+        if order == "turntable":  # around, never a scan with itself (a window of n or more)
+            pairs |= {tuple(sorted((k, (k + d) % n))) for k in range(n) for d in range(1, min(p.window, n - 1) + 1)}
         return sorted(pairs)
     # at most the n - 1 others (the scan itself, at distance inf, sorts last: never its own pair)
     near = np.argsort(shape_distances(scans), axis=1, kind="stable")[:, :min(p.neighbours, n - 1)]

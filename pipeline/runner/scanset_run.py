@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.errors import warn
+from scanreg.errors import note, warn
 from scanreg.eval.scanset import scan_residuals, set_metrics, surface_metrics
 from scanreg.geometry import Mesh, bbox_diagonal, invert_T, transform_geometry
 from scanreg.io import write_ply
@@ -48,6 +48,8 @@ def run_scanset(problem: ScanSet, stages: Stages, ctx: RunContext, m: dict[str, 
         reference = None
         if problem.reference is not None and problem.poses_gt is not None and problem.poses_gt[anchor] is not None:
             reference = transform_geometry(invert_T(problem.poses_gt[anchor]), problem.reference)
+        elif problem.reference is not None:
+            note("data.reference: not measured against: the world scan has no true pose (data.poses) to place it")
         m.update(surface_metrics(reg.surface, reference, seed=ctx.seed))
     m["time_evaluate_s"] = (time.perf_counter_ns() - t0) / 1e9
     m["time_total_s"] = (time.perf_counter_ns() - t_start) / 1e9

@@ -47,10 +47,10 @@ class MultiviewParams:
     """The scans' sampling spacings, sorted, split into groups wherever one is more than this factor finer than
     the one before; each group takes its largest (scans alike: one group, the largest spacing of all). A scan
     sampled more coarsely (another resolution, another object) does not coarsen the others: a pair is
-    registered, verified and refined at the larger of its two scans' spacings, and the merge and the surface
-    take the finest of the main group's (what ``inlier_distance``, ``refine_distances``, ``merge_voxel`` and the
-    stages' distances in spacings refer to). The 10 Stanford bunny scans lie within 1.12 of each other, no two
-    neighbours in the sorted order more than 1.03 apart."""
+    registered, verified and refined at the larger of its two scans' spacings (what ``inlier_distance``,
+    ``refine_distances`` and the stages' distances in spacings refer to there), and the merge and the surface
+    take the finest of the main group's (``merge_voxel``). The 10 Stanford bunny scans lie within 1.12 of each
+    other, no two neighbours in the sorted order more than 1.03 apart."""
     min_fitness: float = 0.1
     """An edge is kept only when this share (0..1) of each scan's points is in the overlap ..."""
     max_inlier_rms: float = 1.6

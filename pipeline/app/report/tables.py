@@ -181,7 +181,10 @@ def per_table(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame:
     work = df.copy()
     work["_per"] = _typed(work[column_for(per, df)])
     work["_grp"] = group_labels(work, group_by)
-    work["_ok"] = (work["status"] == "FINISHED") & (work.get("metrics.success", 0).fillna(0) > 0.5)
+    fin = work["status"] == "FINISHED"
+    s = work["metrics.success"] if "metrics.success" in work else pd.Series(np.nan, index=work.index, dtype=float)
+    # as success_stats: a failed run fails, a finished one without ground truth is not judged
+    work["_ok"] = np.where(fin & s.isna(), np.nan, (fin & (s.fillna(0) > 0.5)).astype(float))
     t = work.pivot_table(index="_per", columns="_grp", values="_ok", aggfunc="mean")
     t.index.name, t.columns.name = per, None
     return t
