@@ -120,7 +120,7 @@ def file_overrides(files: list[str], overrides: list[str], config_dirs: list[str
     scanset = choice == "scanset"
     if not scanset and len(files) == 2 and not any(os.path.isdir(f) for f in files):
         return _no_clash([f"data.source={quote_value(files[0])}", f"data.target={quote_value(files[1])}"], overrides)
-    if scanset or len(files) >= 3 or (len(files) == 1 and os.path.isdir(files[0])):
+    if scanset or len(files) >= 3 or (len(files) == 1 and os.path.isdir(_expanded(files[0]))):
         scans = quote_value(files[0]) if len(files) == 1 else "[" + ",".join(quote_value(f) for f in files) + "]"
         return _no_clash(([] if scanset else ["data=scanset"]) + [f"data.scans={scans}"], overrides)
     if len(files) == 1:
@@ -128,17 +128,20 @@ def file_overrides(files: list[str], overrides: list[str], config_dirs: list[str
         if not scanset and len(given) == 1:  # the other one named as an override (quoted for its characters)
             role = "target" if "data.source" in given else "source"
             return [f"data.{role}={quote_value(files[0])}"]
-        from scanreg.io.paths import expand_path  # here: the package's readers are not needed before a run
-
-        path = expand_path(files[0])  # shared: names
-        if os.path.isdir(path):
-            return _no_clash(["data=scanset", f"data.scans={quote_value(files[0])}"], overrides)
+        path = _expanded(files[0])
         if not os.path.exists(path) and not files[0].startswith("pkg:"):  # a mistyped folder or file
             raise ConfigError(f"{files[0]}: no such file or folder ({os.path.abspath(path)})")
         raise ConfigError(f"one scan given ({files[0]}): give the source and the target (scanreg SOURCE TARGET), "
                           "or a folder or three or more scans to register into one model")
     raise ConfigError(f"a folder among two scans ({', '.join(files)}): give two files (SOURCE TARGET), or one "
                       "folder, or three or more scans")
+
+
+def _expanded(name: str) -> str:
+    """``name`` with a ``shared:`` prefix resolved (:func:`scanreg.io.paths.expand_path`)."""
+    from scanreg.io.paths import expand_path  # here: the package's readers are not needed before a run
+
+    return expand_path(name) if name.startswith("shared:") else name
 
 
 def _no_clash(made: list[str], overrides: list[str]) -> list[str]:

@@ -118,14 +118,19 @@ def group_labels(df: pd.DataFrame, group_by: list[str]) -> pd.Series:
                      dtype=object)
 
 
+def run_success(d: pd.DataFrame) -> pd.Series:
+    """Each run's success: 1.0 or 0.0, a run that failed (not FINISHED) 0.0, and NaN for a finished run without
+    ground truth (no ``success``: files without data.gt beside runs with it), which is not judged."""
+    fin = d["status"] == "FINISHED"
+    s = d["metrics.success"] if "metrics.success" in d else pd.Series(np.nan, index=d.index, dtype=float)
+    return pd.Series(np.where(fin & s.isna(), np.nan, (fin & (s.fillna(0) > 0.5)).astype(float)), index=d.index)
+
+
 def success_stats(d: pd.DataFrame) -> dict:
-    """A group of runs' successes: ``successes`` of the ``judged`` runs, ``success_rate`` and its Wilson interval
-    (``success_lo``, ``success_hi``); a run that failed (not FINISHED) counts as a failure, a finished one without
-    ground truth (no ``success``: files without data.gt beside runs with it) is not judged."""
-    ok = d[d["status"] == "FINISHED"]
-    s = ok["metrics.success"] if "metrics.success" in ok else pd.Series(np.nan, index=ok.index, dtype=float)
-    n = len(d) - int(s.isna().sum())
-    k = int((s > 0.5).sum())
+    """A group of runs' successes: ``successes`` of the ``judged`` runs (:func:`run_success`), ``success_rate``
+    and its Wilson interval (``success_lo``, ``success_hi``)."""
+    v = run_success(d)
+    n, k = int(v.notna().sum()), int((v == 1.0).sum())
     lo, hi = wilson_interval(k, n)
     return {"successes": k, "judged": n, "success_rate": k / n if n else float("nan"), "success_lo": lo,
             "success_hi": hi}
@@ -181,10 +186,7 @@ def per_table(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame:
     work = df.copy()
     work["_per"] = _typed(work[column_for(per, df)])
     work["_grp"] = group_labels(work, group_by)
-    fin = work["status"] == "FINISHED"
-    s = work["metrics.success"] if "metrics.success" in work else pd.Series(np.nan, index=work.index, dtype=float)
-    # as success_stats: a failed run fails, a finished one without ground truth is not judged
-    work["_ok"] = np.where(fin & s.isna(), np.nan, (fin & (s.fillna(0) > 0.5)).astype(float))
+    work["_ok"] = run_success(work)
     t = work.pivot_table(index="_per", columns="_grp", values="_ok", aggfunc="mean")
     t.index.name, t.columns.name = per, None
     return t
