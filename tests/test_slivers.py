@@ -257,3 +257,33 @@ def test_fold_check_neighbourhood_holds_every_face_a_changed_face_can_touch(seed
             for a in range(n + 1 - b):
                 expected.append(t[0] + a / n * (t[1] - t[0]) + b / n * (t[2] - t[0]))
     assert np.allclose(_face_grids(tris, 0.1), expected, rtol=0, atol=1e-12)
+
+
+def test_one_face_t_vertex_test_is_the_array_test():
+    """The collapse re-tests moved faces one at a time in Python floats (_tvertex_test_one): it must decide as
+    the array test does, bit for bit, on slivers, caps, needles, zero and tiny sides, rounded and huge
+    coordinates (a wrong side or corner changes which vertex moves)."""
+    from scanreg.mesh.slivers import _tvertex_test, _tvertex_test_one
+
+    rng = np.random.default_rng(3)
+    thr = np.float32(1 / np.tan(np.radians(1.0)))
+    seen = set()
+    for trial in range(6000):
+        P = rng.normal(size=(3, 3)) * 10.0 ** rng.integers(-8, 8)
+        kind = trial % 6
+        if kind == 1:  # a cap: the apex near its long side
+            P[2] = P[0] + (P[1] - P[0]) * rng.random() + rng.normal(size=3) * 1e-9 * np.abs(P).max()
+        elif kind == 2:  # a zero side
+            P[1] = P[0]
+        elif kind == 3:  # the apex's foot beyond a corner
+            P[2] = P[0] + (P[1] - P[0]) * rng.choice([1.2, -0.3, 0.5]) + rng.normal(size=3) * 1e-4
+        elif kind == 4:  # ties in length
+            P = np.round(P, 0)
+        elif kind == 5:  # sides beyond float32, and squares that underflow
+            P *= rng.choice([1e36, 1e-160])
+        with np.errstate(over="ignore"):  # (the array test casts sides beyond float32 to inf)
+            a = tuple(x[0] for x in _tvertex_test(P[None], thr))
+        b = _tvertex_test_one(P.tolist(), float(thr))
+        assert (bool(a[0]), int(a[1]), int(a[2])) == b, (P, a, b)
+        seen.add(b[0])
+    assert seen == {True, False}

@@ -4,6 +4,8 @@ self-intersection, non-manifold edge or vertex added, measured on the neighbourh
 from __future__ import annotations
 
 import heapq
+import math
+import struct
 
 import numpy as np
 
@@ -92,6 +94,49 @@ def _tvertex_test(P: np.ndarray, threshold: np.float32) -> tuple[np.ndarray, np.
     return hit, i, j
 
 
+def _tvertex_test_one(P: list, threshold: float) -> tuple[bool, int, int]:
+    """:func:`_tvertex_test` of one face ``P`` (three corners as lists of three floats), in Python's floats: the
+    same IEEE double operations in the same order (the sides rounded to float32 as vcglib stores them), without
+    NumPy's per-call overhead (the collapse re-tests faces one by one as their corners move). Faces with a
+    side that is non-finite, beyond float32 or squares to zero go to :func:`_tvertex_test`, whose NaN rules it
+    does not repeat."""
+    lengths = []
+    for k in range(3):
+        a, b = P[k], P[(k + 1) % 3]
+        d0, d1, d2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        lengths.append(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
+    if not max(lengths) < _F32_MAX:  # (NaN fails too)
+        return _tvertex_test_array(P, threshold)
+    sides = [_F32.unpack(_F32.pack(x))[0] for x in lengths]  # rounded to float32, as NumPy's astype
+    i = 0 if sides[0] >= sides[1] and sides[0] >= sides[2] else (1 if sides[1] >= sides[2] else 2)
+    a, b, p = P[i], P[(i + 1) % 3], P[(i + 2) % 3]
+    e0, e1, e2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    ee = e0 * e0 + e1 * e1 + e2 * e2
+    if ee == 0:  # a zero-length side (or one whose square underflows): as _tvertex_test's NaN rules decide
+        return _tvertex_test_array(P, threshold)
+    t = ((p[0] - a[0]) * e0 + (p[1] - a[1]) * e1 + (p[2] - a[2]) * e2) / ee
+    t = 0.0 if t < 0 else (1.0 if t > 1 else t)
+    q0, q1, q2 = a[0] + e0 * t, a[1] + e1 * t, a[2] + e2 * t
+    d0, d1, d2 = p[0] - q0, p[1] - q1, p[2] - q2
+    hit = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) * threshold <= sides[i]
+    x0, x1, x2 = q0 - a[0], q1 - a[1], q2 - a[2]
+    y0, y1, y2 = q0 - b[0], q1 - b[1], q2 - b[2]
+    nearer_a = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) < math.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+    return hit, i, i if nearer_a else (i + 1) % 3
+
+
+def _tvertex_test_array(P: list, threshold: float) -> tuple[bool, int, int]:
+    """:func:`_tvertex_test` of one face given as lists (the rare face with a side that is non-finite, beyond
+    float32 or too short to square)."""
+    with np.errstate(over="ignore"):  # a side beyond float32 is inf, as in the array test
+        h, s, n = (x[0] for x in _tvertex_test(np.asarray(P, np.float64)[None], np.float32(threshold)))
+    return bool(h), int(s), int(n)
+
+
+_F32 = struct.Struct("f")
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
 def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
                      maybe: np.ndarray | None = None, frozen: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """vcglib's ``Clean::RemoveTVertexByCollapse(m, threshold, repeat=true)`` (MeshLab's "Remove T-vertices by
@@ -113,6 +158,7 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
     Returns the vertices and faces, the indices of the kept input vertices and faces (in order), and which
     output vertices were moved or joined."""
     thr, v, f = np.float32(threshold), np.asarray(v, np.float64), np.asarray(f, np.int64)
+    thr64 = float(thr)  # (the scalar test's threshold: the float32 value, exactly)
     kv, kf = np.arange(len(v)), np.arange(len(f))
     joined = np.zeros(len(v), bool)
     look = np.arange(len(f)) if maybe is None else np.flatnonzero(maybe)
@@ -147,7 +193,7 @@ def tvertex_collapse(v: np.ndarray, f: np.ndarray, threshold: float,
         while heap:
             fi = heapq.heappop(heap)
             if fi in dirty:
-                h, s, n = (x[0] for x in _tvertex_test(pos[f[fi]][None], thr))
+                h, s, n = _tvertex_test_one(pos[f[fi]].tolist(), thr64)
                 if not h:
                     continue
             else:
