@@ -162,7 +162,8 @@ def reconstruct(scans: Any, *, poses: Any = None, overrides: Sequence[str] = (),
     - ``scans``: a folder, a glob, or a list whose items are paths, (N, 3)/(N, 6) NumPy arrays or Open3D
       geometries (in-memory scans are named ``scan000`` ... in their order);
     - ``poses``: ground truth for the evaluation: a Stanford ``.conf``, a folder of 4x4 files, or a list of 4x4
-      arrays (one per scan, ``T_world_scan`` in any common frame);
+      arrays (one per scan, ``T_world_scan`` in any common frame; None for a scan without one: it is registered,
+      not evaluated, as ``data.poses`` with a file missing; at least two need one);
     - ``overrides``, ``tracking``, ``run_dir``, ``config_dirs``: as for :func:`register`.
     """
     with _run_folder(run_dir) as run_dir:
@@ -174,13 +175,14 @@ def reconstruct(scans: Any, *, poses: Any = None, overrides: Sequence[str] = (),
             if isinstance(poses, (str, Path)):
                 ovs.append(f"data.poses={_quote(str(poses))}")
             else:
-                Ts = [np.asarray(T, dtype=np.float64) for T in poses]
-                if len(Ts) != len(paths) or any(T.shape != (4, 4) for T in Ts):
-                    raise InputError(f"poses: expected one 4x4 transform per scan ({len(paths)}), got "
-                                     f"{[T.shape for T in Ts]}")
+                Ts = [None if T is None else np.asarray(T, dtype=np.float64) for T in poses]
+                if len(Ts) != len(paths) or any(T is not None and T.shape != (4, 4) for T in Ts):
+                    raise InputError(f"poses: expected one 4x4 transform (or None) per scan ({len(paths)}), got "
+                                     f"{[None if T is None else T.shape for T in Ts]}")
                 (folder / "poses").mkdir(parents=True, exist_ok=True)
                 for path, T in zip(paths, Ts):
-                    np.savetxt(folder / "poses" / f"{Path(path).stem}.txt", T)
+                    if T is not None:  # a scan without a pose: registered, not evaluated (as a missing file)
+                        np.savetxt(folder / "poses" / f"{Path(path).stem}.txt", T)
                 ovs.append(f"data.poses={_quote(str(folder / 'poses'))}")
         user = list(overrides)
         if not tracking and not any(o.split("=")[0].lstrip("+") == "tracking" for o in user):
