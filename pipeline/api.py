@@ -96,7 +96,12 @@ def _run_folder(run_dir: str | Path | None):
     hold only the inputs and the config of a run that gave nothing)."""
     temp = run_dir is None
     path = Path(tempfile.mkdtemp(prefix="scanreg-")) if temp else Path(run_dir)
-    path.mkdir(parents=True, exist_ok=True)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = tempfile.NamedTemporaryFile(dir=path, prefix=".scanreg-write-test-")  # writable, not just there
+        probe.close()
+    except OSError as e:
+        raise InputError(f"run_dir {path}: cannot write there ({e.strerror or e}); give a writable folder") from None
     try:
         yield path
     except BaseException:

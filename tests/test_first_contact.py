@@ -36,7 +36,9 @@ def test_size_mismatch_names_both_extents_and_the_unit():
     msg = str(e.value)
     assert "scan_mm.ply" in msg and "ct_m.ply" in msg and "1e+03x apart" in msg and "mm vs m" in msg
     assert "data.source_scale=0.001" in msg and "\n" not in msg
-    with pytest.raises(Exception, match=r"data.target_scale=0.001"):
+    # the target in other units: the source is scaled into them (the target is the frame the result keeps;
+    # data.target_scale=0.001 was suggested, and the transform then no longer overlaid the target's file)
+    with pytest.raises(Exception, match=r"data.source_scale=1000 to bring the source into the target's units"):
         check_pair(a, Cloud(a.points * 1000, source="t"), 10.0)
     with pytest.raises(Exception, match=r"mm vs inches.*data.source_scale=0.03937"):
         check_pair(Cloud(a.points * 25.4), a, 10.0)
@@ -177,3 +179,45 @@ def test_a_ground_truth_given_the_other_way_round_is_named():
     assert inverted_gt_warning(T, T, gt_metrics(T, T, 1.0, p), 1.0, p) is None  # right: nothing to say
     wrong = random_pose(np.random.default_rng(4), 90.0, 0.1)  # wrong either way: the failure stands alone
     assert inverted_gt_warning(wrong, T, gt_metrics(wrong, T, 1.0, p), 1.0, p) is None
+
+
+def test_float32_coordinates_at_a_georeferenced_offset_stop_at_load(tmp_path, capsys):
+    """A scan saved as 32-bit floats at UTM-like coordinates (~4e6, where such floats are 0.25 apart) has lost its
+    shape: it stops at load with one line naming the file (MeshFix ran 4 min into 24 GB and was killed; a larger
+    scan registered 34 deg off without a word). A little rounding is a warning; doubles at the offset pass."""
+    from scanreg.io import read_input
+
+    pts = np.random.default_rng(0).random((2000, 3)) * 0.15
+    offset = np.array([512345.0, 4123456.0, 120.0])
+    for scale, fails in ((1.0, True), (100.0, True), (1000.0, False)):
+        as32 = (pts * scale + offset).astype(np.float32).astype(np.float64)
+        write_ply(tmp_path / "scan.ply", Cloud(as32))
+        if fails:
+            with pytest.raises(InputError, match=r"scan.ply: its coordinates are 32-bit floats up to 4.123e\+06, "
+                                                 r"where such floats are 0.25 apart: .*too coarse to register it"):
+                read_input(str(tmp_path / "scan.ply"), "source")
+        else:
+            read_input(str(tmp_path / "scan.ply"), "source")
+            assert "the registration can be no finer than that" in capsys.readouterr().out
+    write_ply(tmp_path / "double.ply", Cloud(pts + offset))  # the same scan in doubles: read silently
+    g, _ = read_input(str(tmp_path / "double.ply"), "source")
+    assert np.array_equal(g.points, pts + offset) and capsys.readouterr().out == ""
+    near = (pts * 1000).astype(np.float32).astype(np.float64)  # floats near the origin: fine
+    write_ply(tmp_path / "near.ply", Cloud(near))
+    read_input(str(tmp_path / "near.ply"), "source")
+    assert capsys.readouterr().out == ""
+
+
+def test_an_output_folder_that_cannot_be_written_is_one_line(tmp_path):
+    """hydra.run.dir under a file (or a read-only folder): one 'output folder' line and exit 1 (it was an
+    internal error, exit 3, 'sweep failed: PermissionError'); the API's run_dir the same as an InputError."""
+    import scanreg
+
+    (tmp_path / "afile").write_text("x")
+    bunny = "pkg:pymeshfix/examples/StanfordBunny.ply"
+    r = run_cli([bunny, bunny, "tracking=none", f"hydra.run.dir={tmp_path / 'afile' / 'run'}"], tmp_path)
+    err = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 1 and len(err) == 1, r.stderr
+    assert err[0].startswith("error: output folder: cannot write ") and "hydra.run.dir=FOLDER" in err[0]
+    with pytest.raises(InputError, match=r"^run_dir .*afile/run: cannot write there"):
+        scanreg.register(np.zeros((10, 3)), np.zeros((10, 3)), run_dir=tmp_path / "afile" / "run")

@@ -231,3 +231,28 @@ def test_convex_polygons_keep_the_fan():
     pts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 1.5, 0]], float)
     tris = _triangulate([np.array([0, 1, 2, 4, 3]), np.array([0, 1, 2])], pts, "t")
     assert {tuple(t) for t in tris} == {(0, 1, 2), (0, 1, 2), (0, 2, 4), (0, 4, 3)} and len(tris) == 4
+
+
+def test_binary_stl_padded_or_without_a_count_is_read(tmp_path, capsys):
+    """Exporters that pad a binary STL, or never fill in its triangle count: the triangles are read with a
+    warning (it said 'not an STL file'); a truncated one says so with the sizes."""
+    import struct
+
+    from scanreg.io import read_mesh
+
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
+    faces = [(0, 1, 2), (1, 3, 2)]
+    body = b"".join(struct.pack("<3f", 0, 0, 1) + tri[list(f)].tobytes() + b"\0\0" for f in faces)
+    exact = b"x" * 80 + struct.pack("<I", 2) + body
+    (tmp_path / "pad.stl").write_bytes(exact + b"\0" * 7)
+    (tmp_path / "zero.stl").write_bytes(b"x" * 80 + struct.pack("<I", 0) + body)
+    (tmp_path / "cut.stl").write_bytes(exact[:-20])
+    for name in ("pad.stl", "zero.stl"):
+        m = read_mesh(str(tmp_path / name))
+        assert len(m.faces) == 2 and len(m.vertices) == 4
+    out = capsys.readouterr().out
+    assert "declares 2 triangles (184 bytes) but the file has 191 bytes" in out
+    assert "declares 0 triangles but holds 2 by its size" in out
+    with pytest.raises(InputError, match=r"truncated or not an STL file: .* declares 2 triangles \(184 bytes\) but "
+                                         r"has 164 bytes"):
+        read_mesh(str(tmp_path / "cut.stl"))

@@ -434,19 +434,26 @@ def test_benchmark_runs_both_methods_on_the_same_files(tmp_path):
     assert ours[3].strip() == "6/6", ours
 
 
-def test_a_folder_of_two_scan_formats_takes_the_common_one_and_says_what_it_left_out(tmp_path, capsys):
-    """A folder's scans are its files of the most common scan format (a README.txt beside .ply scans is no scan);
-    the files of another scan format left out are named in a note (they were dropped silently)."""
+def test_a_folder_of_several_scan_formats_takes_them_all_and_says_what_it_left_out(tmp_path, capsys):
+    """A folder's scans are its scan files in any format (a folder of one .ply, .stl, .obj and .xyz scan gave
+    one scan: only the most common format was taken), but a README.txt beside them is no scan, and a scan
+    exported twice (d.ply and d.stl) counts once, in the folder's most common format; a note names what was left
+    out. A folder of .txt clouds alone is a set of them."""
     from scanreg.stages.data.scanset import scan_paths
 
-    for name in ("a.ply", "b.ply", "c.ply", "d.stl", "README.txt"):
+    for name in ("a.ply", "b.ply", "c.obj", "d.ply", "d.stl", "e.xyz", "README.txt"):
         (tmp_path / name).write_text("x")
-    assert [q.name for q in scan_paths(str(tmp_path))] == ["a.ply", "b.ply", "c.ply"]
+    assert [q.name for q in scan_paths(str(tmp_path))] == ["a.ply", "b.ply", "c.obj", "d.ply", "e.xyz"]
     out = capsys.readouterr().out
-    assert out.count("note:") == 1 and "the scans are its 3 .ply files; 2 file(s) of another scan format left out "\
-        "(README.txt, d.stl)" in out and f"data.scans={tmp_path / '*'}" in out
-    assert [q.name for q in scan_paths(str(tmp_path / "*.ply"))] == ["a.ply", "b.ply", "c.ply"]
+    assert out.count("note:") == 1 and "the scans are its 5 files a.ply, b.ply, c.obj, d.ply, ...; 2 file(s) left "\
+        "out (README.txt, d.stl: text beside scans, or a scan's second format)" in out
+    assert [q.name for q in scan_paths(str(tmp_path / "*.ply"))] == ["a.ply", "b.ply", "d.ply"]
     assert capsys.readouterr().out == ""  # a glob takes what it matches, silently
+    texts = tmp_path / "texts"
+    texts.mkdir()
+    for name in ("s1.txt", "s2.txt"):
+        (texts / name).write_text("x")
+    assert [q.name for q in scan_paths(str(texts))] == ["s1.txt", "s2.txt"] and capsys.readouterr().out == ""
 
 
 def test_poses_that_are_not_there_are_named_so(tmp_path):

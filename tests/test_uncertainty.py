@@ -263,3 +263,27 @@ def test_labels_units_and_options():
     assert plural("tooth") == "teeth" and plural("part") == "parts" and display_unit("um") == "µm"
     with pytest.raises(ConfigError, match="deviation_confidence must be in"):
         make_params(EvalParams, {"deviation_confidence": 1.5}, "evaluate")
+
+
+def test_pairs_with_a_nan_normal_give_the_covariance_of_the_rest():
+    """A degenerate face's NaN normal among the final pairs stopped the run ('Eigenvalues did not converge', an
+    internal error): those pairs are left out of the covariance, which is then that of the others."""
+    from types import SimpleNamespace
+
+    from scanreg.eval.uncertainty import pairs_covariance, pose_covariance
+
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(200, 3))
+    n = rng.normal(size=(200, 3))
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    q = p + 0.01 * rng.normal(size=(200, 3))
+    bad = n.copy()
+    bad[[3, 50]] = np.nan
+    pc = pairs_covariance(SimpleNamespace(source=p, target=q, normals=bad))
+    keep = np.ones(200, bool)
+    keep[[3, 50]] = False
+    assert np.array_equal(pc.cov, pose_covariance(p[keep], q[keep], n[keep]).cov) and np.isfinite(pc.cov).all()
+    few = bad[:8].copy()
+    few[5] = np.nan  # 6 finite pairs left
+    assert pairs_covariance(SimpleNamespace(source=p[:8], target=q[:8], normals=few)) is None
+    assert pairs_covariance(SimpleNamespace(source=p, target=q, normals=None)) is None

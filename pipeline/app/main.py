@@ -292,6 +292,11 @@ def main() -> None:
         _err(reason)
         raise SystemExit(EXIT_USAGE)
     except Exception as e:  # noqa: BLE001  # e.g. a launcher that cannot start; no run is left RUNNING
+        unwritable = _unwritable_output(e)
+        if unwritable:  # Hydra could not make the run's folder or its log file there: the user's to fix
+            _end_sweep_quietly(end_interrupted_sweep, unwritable)
+            _err(unwritable)
+            raise SystemExit(EXIT_FAILED)
         reason = f"sweep failed: {type(e).__name__}: {e}".splitlines()[0]
         _end_sweep_quietly(end_interrupted_sweep, reason)
         if any(a.replace(" ", "") in ("verbose=true", "verbose=True") for a in argv):
@@ -300,6 +305,23 @@ def main() -> None:
         raise SystemExit(EXIT_INTERNAL)
     if _sweep_outcome.get("failed"):
         raise SystemExit(EXIT_FAILED)
+
+
+def _unwritable_output(e: BaseException) -> str | None:
+    """The error line for an exception that says an output folder or file cannot be written (a permission, a
+    read-only file system, a file where a folder should be; anywhere in its chain of causes: Hydra wraps its log
+    file's in a ValueError), else None."""
+    import errno
+
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR) \
+                and e.filename:
+            return (f"output folder: cannot write {e.filename} ({e.strerror}); run from a writable folder or set "
+                    "hydra.run.dir=FOLDER (hydra.sweep.dir=FOLDER for -m) to one")
+        e = e.__cause__ or e.__context__
+    return None
 
 
 def _end_sweep_quietly(end, reason: str) -> None:

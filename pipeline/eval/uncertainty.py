@@ -115,6 +115,19 @@ def pose_covariance(points: np.ndarray, closest: np.ndarray, normals: np.ndarray
     return PoseCovariance(cov, c, L, lam, vec, float(np.sqrt(s2)), n)
 
 
+def pairs_covariance(pairs) -> PoseCovariance | None:
+    """:func:`pose_covariance` of a fine stage's final pairs (``source``, ``target``, ``normals`` arrays), on the
+    pairs whose values are all finite (a degenerate face's normal is NaN, and one NaN row stopped the eigen
+    decomposition: an internal error); None without normals or with fewer than 7 such pairs."""
+    if pairs is None or pairs.normals is None or len(pairs.source) < 7:
+        return None
+    src, tgt, nrm = pairs.source, pairs.target, pairs.normals
+    finite = np.isfinite(src).all(axis=1) & np.isfinite(tgt).all(axis=1) & np.isfinite(nrm).all(axis=1)
+    if not finite.all():
+        src, tgt, nrm = src[finite], tgt[finite], nrm[finite]
+    return pose_covariance(src, tgt, nrm) if len(src) >= 7 else None
+
+
 def degeneracy_warning(pc: PoseCovariance, threshold: float) -> str | None:
     """One line naming the unconstrained motions when ``pose_condition`` is below ``threshold``, else None."""
     if pc.condition >= threshold:

@@ -8,29 +8,38 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.errors import InputError
+from scanreg.errors import InputError, warn
 from scanreg.geometry import Cloud, Geometry, Mesh
 from scanreg.io.faces import _merge_vertices, _triangulate
 
 def _read_stl(p: Path, label: str) -> Mesh:
     data = p.read_bytes()
-    if len(data) >= 84:
-        n = struct.unpack("<I", data[80:84])[0]
-        if 84 + 50 * n == len(data):
-            rec = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")])
-            arr = np.frombuffer(data, rec, n, 84)
-            if n == 0:
-                raise InputError(f"{label}: STL has no triangles")
-            return _merge_vertices(arr["v"].astype(np.float64))
+    rec = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")])
+    n = struct.unpack("<I", data[80:84])[0] if len(data) >= 84 else None
+    if n is not None and 84 + 50 * n == len(data):
+        if n == 0:
+            raise InputError(f"{label}: STL has no triangles")
+        return _merge_vertices(np.frombuffer(data, rec, n, 84)["v"].astype(np.float64))
     head = data[:512].lstrip().lower()
-    if not head.startswith(b"solid"):
-        raise InputError(f"{label}: not an STL file (binary size does not match its triangle count, and no 'solid')")
-    verts = re.findall(rb"vertex\s+(\S+)\s+(\S+)\s+(\S+)", data)
-    if not verts:
+    if head.startswith(b"solid") and re.search(rb"\bvertex\s", data[:65536]):
+        verts = re.findall(rb"vertex\s+(\S+)\s+(\S+)\s+(\S+)", data)
+        if len(verts) % 3:
+            raise InputError(f"{label}: truncated ASCII STL ({len(verts)} vertices, not a multiple of 3)")
+        return _merge_vertices(np.array(verts, dtype=np.float64).reshape(-1, 3, 3))
+    if n is None:
+        raise InputError(f"{label}: not an STL file (too short for a binary STL, and no 'solid')")
+    whole = (len(data) - 84) // 50
+    if 0 < n <= whole:  # exporters that pad the file: the declared triangles, the rest left
+        warn(f"{label}: binary STL declares {n} triangles ({84 + 50 * n} bytes) but the file has {len(data)} "
+             "bytes: the declared triangles are read, the rest is ignored")
+        return _merge_vertices(np.frombuffer(data, rec, n, 84)["v"].astype(np.float64))
+    if n == 0 and whole > 0 and 84 + 50 * whole == len(data):  # a count never filled in
+        warn(f"{label}: binary STL declares 0 triangles but holds {whole} by its size: read them all")
+        return _merge_vertices(np.frombuffer(data, rec, whole, 84)["v"].astype(np.float64))
+    if head.startswith(b"solid"):
         raise InputError(f"{label}: ASCII STL has no vertices")
-    if len(verts) % 3:
-        raise InputError(f"{label}: truncated ASCII STL ({len(verts)} vertices, not a multiple of 3)")
-    return _merge_vertices(np.array(verts, dtype=np.float64).reshape(-1, 3, 3))
+    raise InputError(f"{label}: truncated or not an STL file: as binary STL it declares {n} triangles "
+                     f"({84 + 50 * n} bytes) but has {len(data)} bytes, and it does not start with 'solid' (ASCII STL)")
 
 
 def _read_obj(p: Path, label: str) -> Geometry:

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 
 from scanreg.errors import InputError, ScanregError, note
-from scanreg.eval.uncertainty import pose_covariance
+from scanreg.eval.uncertainty import pairs_covariance
 from scanreg.geometry import (ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, invert_T, transform_geometry,
                               voxel_representatives)
 from scanreg.geometry.multiview import refine_jointly, spread_subset
@@ -339,9 +339,8 @@ def register_edge(i: int, j: int, scans: list[PreparedScan], described: dict[flo
         return _rejected(i, j, str(e).splitlines()[0])
     T = icp.T_target_source
     fitness, rms, agree = verify_overlap(search[i], search[j], target.cloud, source.cloud, T, distance)
-    pairs = icp.final_pairs
-    if pairs is not None and pairs.normals is not None and len(pairs.source) >= 7:
-        pc = pose_covariance(pairs.source, pairs.target, pairs.normals)
+    pc = pairs_covariance(icp.final_pairs)
+    if pc is not None:
         information, centre = np.linalg.pinv(pc.cov, rcond=1e-12, hermitian=True), pc.centre
     else:
         information, centre = np.eye(6), np.zeros(3)

@@ -22,7 +22,7 @@ from scanreg.errors import InputError, ScanregError, warn
 from scanreg.eval.checks import check_geometry, check_inputs
 from scanreg.eval.metrics import (METRES_PER_UNIT, EvalParams, alignment_metrics, field_metrics, gt_metrics,
                                   inverted_gt_warning, low_fitness_warning, sparse_pair_warning, surface_deviation)
-from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pose_covariance,
+from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pairs_covariance,
                                       relative_motion)
 from scanreg.geometry import (ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, far_offset,
                               transform_geometry)
@@ -233,9 +233,9 @@ def units_note(ev: EvalParams, diagonal: float) -> str:
 def pose_from_pairs(pairs: Correspondences | None, ev: EvalParams) -> PoseCovariance | None:
     """The pose covariance at the final pose from the pairs the fine stage kept there (None when the target has
     no normals or fewer than 7 pairs remain); prints one warning line when the pose is poorly constrained."""
-    if pairs is None or pairs.normals is None or len(pairs.source) < 7:
+    pc = pairs_covariance(pairs)
+    if pc is None:
         return None
-    pc = pose_covariance(pairs.source, pairs.target, pairs.normals)
     msg = degeneracy_warning(pc, ev.pose_condition_warn)
     if msg:
         warn(msg)

@@ -44,10 +44,13 @@ def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> No
         return
     big, f = ("source", r) if r > 1 else ("target", 1 / r)
     unit, factor = likely_units(f)
-    fix = (f"data.source_scale={1 / factor:g}" if big == "source" else f"data.target_scale={1 / factor:g}")
+    # the source is scaled either way: the target is the fixed frame, whose units the result keeps (the transform
+    # and aligned_source.ply then overlay the target file as it is)
+    fix = f"data.source_scale={1 / factor if big == 'source' else factor:g}"
     raise InputError(
         f"{src.source or 'source'} is {ds:.4g} across (bounding-box diagonal) and {tgt.source or 'target'} {dt:.4g}: "
-        f"{f:.3g}x apart, likely {unit}; set {fix} (or data.max_size_ratio=null to register them as they are)")
+        f"{f:.3g}x apart, likely {unit}; set {fix} to bring the source into the target's units (or "
+        "data.max_size_ratio=null to register them as they are)")
 
 
 @DATA.register("files")

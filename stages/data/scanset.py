@@ -143,16 +143,7 @@ def scan_paths(spec: Any) -> list[Path]:
             found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in SCAN_EXTS)
             if not found:
                 raise InputError(f"data.scans {item}: no scan files in this folder (expected {' '.join(sorted(SCAN_EXTS))})")
-            # the scans are the files of the folder's most common scan format (a README.txt beside .ply scans
-            # is no scan)
-            exts = [q.suffix.lower() for q in found]
-            ext = max(sorted(set(exts)), key=exts.count)
-            out += [q for q in found if q.suffix.lower() == ext]
-            other = [q.name for q in found if q.suffix.lower() != ext]
-            if other:  # said: a set of .ply and .stl scans lost its .stl ones silently
-                note(f"data.scans {item}: the scans are its {exts.count(ext)} {ext} files; {len(other)} file(s) of "
-                     f"another scan format left out ({', '.join(other[:4])}{', ...' if len(other) > 4 else ''}); "
-                     "name them, or give a glob ('data.scans=" + str(Path(str(item)) / "*") + "'), to include them")
+            out += _folder_scans(found, str(item))
         elif any(c in s for c in "*?["):
             found = sorted(Path(q) for q in globbing.glob(str(p)) if Path(q).is_file())
             if not found:
@@ -168,6 +159,38 @@ def scan_paths(spec: Any) -> list[Path]:
         raise InputError(f"data.scans {what}: {len(out)} scan{'' if len(out) == 1 else 's'}"
                          + (f" ({out[0].name})" if out else "") + "; a scan set needs at least 2")
     return out
+
+
+GENERIC_TEXT = {".txt", ".csv"}
+"""Text formats that are scans only in a folder of nothing else (a README.txt or notes.csv beside scans is none)."""
+
+
+def _folder_scans(found: list[Path], item: str) -> list[Path]:
+    """The scans among a folder's files of scan formats ``found`` (sorted): every one, in whatever format, but
+    ``.txt``/``.csv`` files only when the folder has no other scan file, and of files with the same stem (a scan
+    exported twice, ``s1.ply`` and ``s1.stl``) the one in the folder's most common format; a note names the
+    files left out. (The most common format alone was taken: a folder of .ply, .stl, .obj and .xyz scans gave one
+    scan.)"""
+    exts = [q.suffix.lower() for q in found]
+    if any(e not in GENERIC_TEXT for e in exts):
+        cand = [q for q in found if q.suffix.lower() not in GENERIC_TEXT]
+    else:
+        cand = found
+    rank = {e: -exts.count(e) for e in set(exts)}  # the most common format first, then by name
+    best: dict[str, Path] = {}
+    for q in sorted(cand, key=lambda q: (rank[q.suffix.lower()], q.suffix.lower())):
+        best.setdefault(q.stem, q)
+    keep = sorted(best.values())
+    other = [q.name for q in found if q not in best.values()]
+    if other:
+        note(f"data.scans {item}: the scans are its {len(keep)} files {_listed([q.name for q in keep])}; "
+             f"{len(other)} file(s) left out ({_listed(other)}: text beside scans, or a scan's second format); "
+             f"to choose, name them: data=scanset data.scans=[A,B,...]")
+    return keep
+
+
+def _listed(names: list[str], k: int = 4) -> str:
+    return ", ".join(names[:k]) + (", ..." if len(names) > k else "")
 
 
 def scan_names(paths: list[Path]) -> list[str]:
