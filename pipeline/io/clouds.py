@@ -71,7 +71,8 @@ def detect_columns(arr: np.ndarray, where: str) -> list[str]:
         raise InputError(f"{where}: {n} column(s); a point needs at least x y z")
     if n == 3:
         return ["x", "y", "z"]
-    hint = " (set data.columns, e.g. data.columns='x y z nx ny nz' with - for a column to ignore)"
+    example = " ".join(["x", "y", "z"] + ["-"] * (n - 3)) if n < 6 else "x y z nx ny nz" + " -" * (n - 6)
+    hint = f" (set data.columns, e.g. data.columns='{example}' with - for a column to ignore)"  # (n names)
     rest = arr[:, 3:]
 
     def colours_ok(block):
