@@ -221,3 +221,13 @@ def test_an_output_folder_that_cannot_be_written_is_one_line(tmp_path):
     assert err[0].startswith("error: output folder: cannot write ") and "hydra.run.dir=FOLDER" in err[0]
     with pytest.raises(InputError, match=r"^run_dir .*afile/run: cannot write there"):
         scanreg.register(np.zeros((10, 3)), np.zeros((10, 3)), run_dir=tmp_path / "afile" / "run")
+
+
+def test_an_output_folder_that_is_a_file_is_one_line(tmp_path):
+    """hydra.run.dir naming an existing file: the same 'output folder' line (it was 'sweep failed:
+    FileExistsError', exit 3)."""
+    (tmp_path / "afile").write_text("x")
+    bunny = "pkg:pymeshfix/examples/StanfordBunny.ply"
+    r = run_cli([bunny, bunny, "tracking=none", f"hydra.run.dir={tmp_path / 'afile'}"], tmp_path)
+    err = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 1 and len(err) == 1 and err[0].startswith("error: output folder: cannot write "), r.stderr

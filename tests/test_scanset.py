@@ -451,9 +451,12 @@ def test_a_folder_of_several_scan_formats_takes_them_all_and_says_what_it_left_o
     assert capsys.readouterr().out == ""  # a glob takes what it matches, silently
     texts = tmp_path / "texts"
     texts.mkdir()
-    for name in ("s1.txt", "s2.txt"):
+    for name in ("s1.csv", "s2.csv", "s3.csv", "README.txt"):
         (texts / name).write_text("x")
-    assert [q.name for q in scan_paths(str(texts))] == ["s1.txt", "s2.txt"] and capsys.readouterr().out == ""
+    assert [q.name for q in scan_paths(str(texts))] == ["s1.csv", "s2.csv", "s3.csv"]
+    assert "1 file(s) left out (README.txt" in capsys.readouterr().out
+    (tmp_path / "T.npy").write_text("x")  # a 4x4 beside scans is no scan
+    assert "T.npy" not in [q.name for q in scan_paths(str(tmp_path))]
 
 
 def test_poses_that_are_not_there_are_named_so(tmp_path):

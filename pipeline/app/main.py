@@ -316,7 +316,8 @@ def _unwritable_output(e: BaseException) -> str | None:
     seen = set()
     while e is not None and id(e) not in seen:
         seen.add(id(e))
-        if isinstance(e, OSError) and e.errno in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR) \
+        if isinstance(e, OSError) and e.errno in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR,
+                                                     errno.EEXIST) \
                 and e.filename:
             return (f"output folder: cannot write {e.filename} ({e.strerror}); run from a writable folder or set "
                     "hydra.run.dir=FOLDER (hydra.sweep.dir=FOLDER for -m) to one")

@@ -27,7 +27,8 @@ def _read_stl(p: Path, label: str) -> Mesh:
             raise InputError(f"{label}: truncated ASCII STL ({len(verts)} vertices, not a multiple of 3)")
         return _merge_vertices(np.array(verts, dtype=np.float64).reshape(-1, 3, 3))
     if n is None:
-        raise InputError(f"{label}: not an STL file (too short for a binary STL, and no 'solid')")
+        raise InputError(f"{label}: " + ("ASCII STL has no vertices" if head.startswith(b"solid") else
+                                         "not an STL file (too short for a binary STL, and no 'solid')"))
     whole = (len(data) - 84) // 50
     if 0 < n <= whole:  # exporters that pad the file: the declared triangles, the rest left
         warn(f"{label}: binary STL declares {n} triangles ({84 + 50 * n} bytes) but the file has {len(data)} "

@@ -107,7 +107,9 @@ def check_resolution(points: np.ndarray, label: str) -> None:
     rounded its shape away when it was written (MeshFix then spent minutes and 24 GB on 0.15 m of bunny in lines,
     and a larger scan registered 34 deg off without a word). Judged from the values: every coordinate a float32
     and the float32 spacing at the largest magnitude above :data:`FLOAT32_ERROR` (:data:`FLOAT32_WARN`) of the
-    diagonal. Double-precision files and text with more digits pass whatever their offset."""
+    diagonal. Double-precision files pass whatever their offset. (Judged by the values, it catches the binary
+    formats that store 32-bit floats, PLY, PCD, STL, NPY; a text file written from 32-bit floats with 7-8
+    significant digits, such as pandas' or ``%.8g``'s, is not caught.)"""
     if len(points) < 2:
         return
     lo, hi = points.min(axis=0), points.max(axis=0)
@@ -120,7 +122,7 @@ def check_resolution(points: np.ndarray, label: str) -> None:
         return  # stored with more precision than 32-bit floats have
     share = step / diag
     what = (f"{label}: its coordinates are 32-bit floats up to {big:.4g}, where such floats are {step:.3g} apart: "
-            f"{share:.2%} of its size ({diag:.4g} across)")
+            f"{share:.2g} of its size ({diag:.4g} across)")
     if share > FLOAT32_ERROR:
         raise InputError(f"{what}: too coarse to register it (its shape was rounded when it was written); write it "
                          "with double precision, or subtract an offset (the same for every scan) first")

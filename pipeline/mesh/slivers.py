@@ -105,7 +105,7 @@ def _tvertex_test_one(P: list, threshold: float) -> tuple[bool, int, int]:
         a, b = P[k], P[(k + 1) % 3]
         d0, d1, d2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
         lengths.append(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
-    if not max(lengths) < _F32_MAX:  # (NaN fails too)
+    if not all(x < _F32_MAX for x in lengths):  # (a NaN fails too)
         return _tvertex_test_array(P, threshold)
     sides = [_F32.unpack(_F32.pack(x))[0] for x in lengths]  # rounded to float32, as NumPy's astype
     i = 0 if sides[0] >= sides[1] and sides[0] >= sides[2] else (1 if sides[1] >= sides[2] else 2)

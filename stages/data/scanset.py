@@ -38,8 +38,8 @@ class ScanSetProvider(Provider):
         max_translation: float = 0.0
         """Largest translation of those poses, as a share of the bounding-box diagonal of all scans together."""
         scans: Any = None
-        """The scans: a folder (its files of the most common scan format there: .ply .stl .obj .off .pcd .xyz
-        .txt .pts .csv .asc .npy), a glob (``scans/*.ply``), or a list of paths; ``shared:`` and ``pkg:`` names
+        """The scans: a folder (its scan files, .ply .stl .obj .off .pcd .xyz .pts .asc in any mix; .txt .csv
+        .npy only in a folder of no other scan file; a scan in two formats once), a glob (``scans/*.ply``), or a list of paths; ``shared:`` and ``pkg:`` names
         allowed. Sorted by file name; the first is the world frame of the result."""
         poses: Optional[str] = None
         """Ground truth (optional): a Stanford ``.conf`` file (``bmesh NAME tx ty tz qx qy qz qw`` lines), or a
@@ -161,21 +161,24 @@ def scan_paths(spec: Any) -> list[Path]:
     return out
 
 
-GENERIC_TEXT = {".txt", ".csv"}
-"""Text formats that are scans only in a folder of nothing else (a README.txt or notes.csv beside scans is none)."""
+GENERIC_TEXT = {".txt", ".csv", ".npy"}
+"""Generic formats that are scans only in a folder without other scan files (a README.txt, notes.csv or a 4x4
+T.npy beside scans is none); among themselves, the most common one."""
 
 
 def _folder_scans(found: list[Path], item: str) -> list[Path]:
     """The scans among a folder's files of scan formats ``found`` (sorted): every one, in whatever format, but
-    ``.txt``/``.csv`` files only when the folder has no other scan file, and of files with the same stem (a scan
+    ``.txt``/``.csv``/``.npy`` files only when the folder has no other scan file (then those of the most common
+    of them), and of files with the same stem (a scan
     exported twice, ``s1.ply`` and ``s1.stl``) the one in the folder's most common format; a note names the
     files left out. (The most common format alone was taken: a folder of .ply, .stl, .obj and .xyz scans gave one
     scan.)"""
     exts = [q.suffix.lower() for q in found]
     if any(e not in GENERIC_TEXT for e in exts):
         cand = [q for q in found if q.suffix.lower() not in GENERIC_TEXT]
-    else:
-        cand = found
+    else:  # generic files alone: those of the most common format (a README.txt beside .csv scans is none)
+        common = max(sorted(set(exts)), key=exts.count)
+        cand = [q for q in found if q.suffix.lower() == common]
     rank = {e: -exts.count(e) for e in set(exts)}  # the most common format first, then by name
     best: dict[str, Path] = {}
     for q in sorted(cand, key=lambda q: (rank[q.suffix.lower()], q.suffix.lower())):
