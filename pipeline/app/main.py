@@ -313,12 +313,11 @@ def _unwritable_output(e: BaseException) -> str | None:
     file's in a ValueError), else None."""
     import errno
 
+    cannot = (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EEXIST)
     seen = set()
     while e is not None and id(e) not in seen:
         seen.add(id(e))
-        if isinstance(e, OSError) and e.errno in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR,
-                                                     errno.EEXIST) \
-                and e.filename:
+        if isinstance(e, OSError) and e.errno in cannot and e.filename:
             return (f"output folder: cannot write {e.filename} ({e.strerror}); run from a writable folder or set "
                     "hydra.run.dir=FOLDER (hydra.sweep.dir=FOLDER for -m) to one")
         e = e.__cause__ or e.__context__

@@ -15,11 +15,15 @@ from scanreg.io.faces import _merge_vertices, _triangulate
 def _read_stl(p: Path, label: str) -> Mesh:
     data = p.read_bytes()
     rec = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")])
+
+    def binary(count: int) -> Mesh:  # the first ``count`` triangles of a binary STL
+        return _merge_vertices(np.frombuffer(data, rec, count, 84)["v"].astype(np.float64))
+
     n = struct.unpack("<I", data[80:84])[0] if len(data) >= 84 else None
     if n is not None and 84 + 50 * n == len(data):
         if n == 0:
             raise InputError(f"{label}: STL has no triangles")
-        return _merge_vertices(np.frombuffer(data, rec, n, 84)["v"].astype(np.float64))
+        return binary(n)
     head = data[:512].lstrip().lower()
     if head.startswith(b"solid") and re.search(rb"\bvertex\s", data[:65536]):
         verts = re.findall(rb"vertex\s+(\S+)\s+(\S+)\s+(\S+)", data)
@@ -33,10 +37,10 @@ def _read_stl(p: Path, label: str) -> Mesh:
     if 0 < n <= whole:  # exporters that pad the file: the declared triangles, the rest left
         warn(f"{label}: binary STL declares {n} triangles ({84 + 50 * n} bytes) but the file has {len(data)} "
              "bytes: the declared triangles are read, the rest is ignored")
-        return _merge_vertices(np.frombuffer(data, rec, n, 84)["v"].astype(np.float64))
+        return binary(n)
     if n == 0 and whole > 0 and 84 + 50 * whole == len(data):  # a count never filled in
         warn(f"{label}: binary STL declares 0 triangles but holds {whole} by its size: read them all")
-        return _merge_vertices(np.frombuffer(data, rec, whole, 84)["v"].astype(np.float64))
+        return binary(whole)
     if head.startswith(b"solid"):
         raise InputError(f"{label}: ASCII STL has no vertices")
     raise InputError(f"{label}: truncated or not an STL file: as binary STL it declares {n} triangles "

@@ -39,8 +39,8 @@ class ScanSetProvider(Provider):
         """Largest translation of those poses, as a share of the bounding-box diagonal of all scans together."""
         scans: Any = None
         """The scans: a folder (its scan files, .ply .stl .obj .off .pcd .xyz .pts .asc in any mix; .txt .csv
-        .npy only in a folder of no other scan file; a scan in two formats once), a glob (``scans/*.ply``), or a list of paths; ``shared:`` and ``pkg:`` names
-        allowed. Sorted by file name; the first is the world frame of the result."""
+        .npy only in a folder of no other scan file; a scan in two formats once), a glob (``scans/*.ply``), or a
+        list of paths; ``shared:`` and ``pkg:`` names allowed. Sorted by file name; the first is the world frame of the result."""
         poses: Optional[str] = None
         """Ground truth (optional): a Stanford ``.conf`` file (``bmesh NAME tx ty tz qx qy qz qw`` lines), or a
         folder or glob of 4x4 files (text or .npy), one per scan, matched by file stem; each maps the scan into
