@@ -239,6 +239,21 @@ def test_sweep_goes_on_after_a_failed_job(tmp_path, mlflow_uri):
 
 
 @pytest.mark.slow
+def test_an_untracked_sweep_exits_1_when_a_job_failed(tmp_path):
+    """The exit code of a sweep counts its jobs' outcomes with tracking=none too (it was 0 with every job failed):
+    one closing line with the count, exit 1; a reused sweep folder does not count the earlier sweep's jobs."""
+    sweep = tmp_path / "sweep"
+    args = ["-m", "data=synthetic", "tracking=none", f"hydra.sweep.dir={sweep}"]
+    r = run_cli([*args, "sampler.n_points=-1,3000"], tmp_path)
+    assert r.returncode == 1, r.stderr
+    assert "n_points must be >= 1" in r.stderr
+    assert f"sweep: 2 job(s), 1 failed; results in {sweep}" in r.stdout
+    r = run_cli([*args, "sampler.n_points=3000"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "sweep: 1 job(s), 0 failed" in r.stdout
+
+
+@pytest.mark.slow
 def test_sweep_with_an_unknown_choice_runs_no_job(tmp_path, mlflow_uri):
     """A swept value that is no choice of its group: Hydra composes each job, so the sweep has started (its
     parent run exists) when the bad one is found; one error line, exit 2, no job ran, and the parent ends FAILED

@@ -42,8 +42,26 @@ def test_size_mismatch_names_both_extents_and_the_unit():
         check_pair(a, Cloud(a.points * 1000, source="t"), 10.0)
     with pytest.raises(Exception, match=r"mm vs inches.*data.source_scale=0.03937"):
         check_pair(Cloud(a.points * 25.4), a, 10.0)
+    # a source scale set already (the wrong one): the suggestion is the whole factor, not a further one
+    with pytest.raises(Exception, match=r"set data.source_scale=0.001 to"):
+        check_pair(Cloud(a.points * 0.01), b, 10.0, source_scale=0.01)
     check_pair(a, Cloud(a.points * 5), 10.0)   # within the ratio: no error
     check_pair(a, b, None)                      # check off
+
+
+def test_the_same_file_as_source_and_target_is_said(tmp_path, capsys):
+    """Source and target the same file: the result is the identity; one warning says so and how to pose the
+    source. Not when a pose is set (the benchmark's closed mesh onto itself) or the scales differ."""
+    from scanreg import build_stage
+    from scanreg.types import RunContext
+
+    write_ply(tmp_path / "a.ply", Cloud(np.random.default_rng(0).random((200, 3))))
+    for extra, said in [({}, True), ({"max_angle_deg": 30.0}, False), ({"source_scale": 2.0, "max_size_ratio": None},
+                                                                          False)]:
+        stage = build_stage("data", "files", source=str(tmp_path / "a.ply"), target=f"{tmp_path}/./a.ply", **extra)
+        stage.load(RunContext())
+        out = capsys.readouterr().out
+        assert ("are the same file" in out and "data.max_angle_deg" in out) == said, (extra, out)
 
 
 @pytest.mark.slow
@@ -202,6 +220,13 @@ def test_float32_coordinates_at_a_georeferenced_offset_stop_at_load(tmp_path, ca
     write_ply(tmp_path / "double.ply", Cloud(pts + offset))  # the same scan in doubles: read silently
     g, _ = read_input(str(tmp_path / "double.ply"), "source")
     assert np.array_equal(g.points, pts + offset) and capsys.readouterr().out == ""
+    whole = np.round(pts * 1000) + offset  # integer text at the offset (0.25 apart in floats): not floats' rounding
+    np.savetxt(tmp_path / "whole.xyz", whole, fmt="%d")
+    read_input(str(tmp_path / "whole.xyz"), "source")
+    assert capsys.readouterr().out == ""
+    np.savetxt(tmp_path / "north.xyz", whole + [0, 6e6, 0], fmt="%d")  # 1 apart there: whole numbers are no sign
+    with pytest.raises(InputError, match=r"north.xyz: its coordinates are 32-bit floats up to 1.012e\+07"):
+        read_input(str(tmp_path / "north.xyz"), "source")
     near = (pts * 1000).astype(np.float32).astype(np.float64)  # floats near the origin: fine
     write_ply(tmp_path / "near.ply", Cloud(near))
     read_input(str(tmp_path / "near.ply"), "source")

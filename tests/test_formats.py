@@ -91,6 +91,8 @@ def test_symlink_loop_and_broken_link(tmp_path):
     ("ragged.xyz", "# c\n0 0 0\n1 0 0 1\n0 1 0\n", "line 3: '1 0 0 1' is not a row of 3 numbers"),
     ("binary.pts", b"[Expe/PointSet/Binary/0.1]\n\0\1\2", "binary data, not a text point cloud"),
     ("header_only.xyz", "x y z\n", "contains no points"),
+    ("no_vertices.ply", "ply\nformat ascii 1.0\nelement vertex 0\nelement face 0\nproperty list uchar int "
+     "vertex_indices\nend_header\n", "contains no points (its header says 0 vertices)"),
     ("pcd_no_header.pcd", "hello\n", "not a PCD file"),
     ("image.pcd", "FIELDS rgba\nSIZE 4\nTYPE U\nCOUNT 1\nPOINTS 1\nDATA ascii\n7\n", "PCD has no x y z fields"),
     ("pcd_short.pcd", "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 5\nDATA ascii\n0 0 0\n",

@@ -542,6 +542,9 @@ def test_a_set_of_meshes_and_clouds_says_how_many_are_clouds(tmp_path, views, ca
     assert len(rec.poses) == 4 and not rec.unplaced
     assert "no surface reconstructed: 1 of the 4 scans are point clouds (surface.when=meshes)" in \
         capsys.readouterr().out
+    # fewer than two poses: one line before any work (an empty poses folder was 'no such file or folder')
+    with pytest.raises(scanreg.errors.InputError, match=r"^poses: 1 of the 2 scans have a pose; at least two need one"):
+        scanreg.reconstruct([cloud, cloud], poses=[truth[0], None], run_dir=tmp_path / "two")
 
 
 @pytest.mark.slow

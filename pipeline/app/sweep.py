@@ -25,6 +25,15 @@ class SweepCallback(Callback):
         _sweep_outcome.clear()
         _sweep_outcome["started"] = True  # (the command exits normally after a sweep: scanreg.app.cli)
         os.environ.pop(SWEEP_ENV, None)
+        # every job appends its outcome to the progress file, tracked or not: the command's exit code and the
+        # closing line count the jobs from it (a store that fails later cannot hide a failed job)
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        progress = sweep_dir / ".progress"
+        progress.write_text("")  # (a reused hydra.sweep.dir: the earlier sweep's jobs are not counted)
+        info = {"total": sweep_size(config), "start": time.time(), "progress": str(progress.resolve()),
+                "sweep_dir": str(sweep_dir)}
+        _publish(sweep_dir, info)
         try:
             from scanreg.app.tracking import TRACKING as T
 
@@ -39,29 +48,29 @@ class SweepCallback(Callback):
 
         tr = MlflowTracking(params)
         client, eid = tr.prepare()
-        sweep_dir = str(config.hydra.sweep.dir)
         overrides = " ".join(config.hydra.overrides.task)
         command = " ".join(["scanreg", *sys.argv[1:]]) if Path(sys.argv[0]).name == "scanreg" else \
             f"scanreg -m {overrides}"
         parent = client.create_run(eid, run_name=f"sweep: {overrides}"[:250],
-                                   tags={"scanreg.sweep_dir": sweep_dir, "scanreg.overrides": overrides,
+                                   tags={"scanreg.sweep_dir": str(sweep_dir), "scanreg.overrides": overrides,
                                          "scanreg.sweep": "parent", "scanreg.command": command,
                                          "scanreg.git_commit": git_revision(), **launcher_tags(config)})
-        Path(sweep_dir).mkdir(parents=True, exist_ok=True)
-        info = json.dumps({"uri": tr.uri, "experiment": params.experiment, "experiment_id": eid,
-                           "parent_run_id": parent.info.run_id, "total": sweep_size(config), "start": time.time(),
-                           "progress": str((Path(sweep_dir) / ".progress").resolve())})
-        os.environ[SWEEP_ENV] = info
-        (Path(sweep_dir) / SWEEP_FILE).write_text(info)
+        info.update(uri=tr.uri, experiment=params.experiment, experiment_id=eid, parent_run_id=parent.info.run_id)
+        _publish(sweep_dir, info)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         info = json.loads(os.environ.pop(SWEEP_ENV, "null") or "null")
         if not info:
             return
+        failed, total = _progress_outcome(info)
+        _sweep_outcome.update(failed=failed, total=total)
+        if not info.get("parent_run_id"):  # untracked: the jobs' own outcomes
+            print(f"sweep: {total} job(s), {failed} failed; results in {info['sweep_dir']}")
+            return
         tr = MlflowTracking(MlflowTracking.Params(uri=info["uri"], experiment=info["experiment"]))
         client = tr._client()
         children = _children(client, info)
-        failed = sum(r.info.status != "FINISHED" for r in children)
+        failed = max(failed, sum(r.info.status != "FINISHED" for r in children))
         log = RunLog(client, info["parent_run_id"])
         log.log_metrics({"sweep_runs": len(children), "sweep_failed": failed})
         log.end("FAILED" if failed else "FINISHED", f"{failed} of {len(children)} runs failed" if failed else None)
@@ -77,3 +86,22 @@ class SweepCallback(Callback):
                 msg = str(e) if isinstance(e, (ConfigError, SystemExit)) else f"{type(e).__name__}: {e}"
                 print(f"error: report not written: {msg}".splitlines()[0])
                 _sweep_outcome["failed"] = _sweep_outcome.get("failed", 0) or 1
+
+
+def _publish(sweep_dir: Path, info: dict) -> None:
+    """Tell the sweep's jobs ``info``: through the environment and, for workers that do not inherit it, the
+    sweep folder's :data:`SWEEP_FILE`."""
+    text = json.dumps(info)
+    os.environ[SWEEP_ENV] = text
+    (sweep_dir / SWEEP_FILE).write_text(text)
+
+
+def _progress_outcome(info: dict) -> tuple[int, int]:
+    """``(failed, total)`` jobs of the sweep by its progress file: a job that did not report (its worker died)
+    counts as failed when the sweep's size is known."""
+    try:
+        lines = Path(info["progress"]).read_text().split()
+    except OSError:
+        lines = []
+    total = max(len(lines), info.get("total") or 0)
+    return total - lines.count("FINISHED"), total

@@ -75,6 +75,8 @@ def _read_ply(p: Path, label: str) -> Geometry:
     if "vertex" not in parsed:
         raise InputError(f"{label}: PLY has no 'vertex' element")
     vert = parsed["vertex"]
+    if not any(n for name, n, _ in elements if name == "vertex"):  # (a header without properties too)
+        raise InputError(f"{label}: contains no points (its header says 0 vertices)")
     for c in "xyz":
         if c not in vert:
             raise InputError(f"{label}: PLY vertices lack the '{c}' property")

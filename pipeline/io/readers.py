@@ -109,7 +109,8 @@ def check_resolution(points: np.ndarray, label: str) -> None:
     and the float32 spacing at the largest magnitude above :data:`FLOAT32_ERROR` (:data:`FLOAT32_WARN`) of the
     diagonal. Double-precision files pass whatever their offset. (Judged by the values, it catches the binary
     formats that store 32-bit floats, PLY, PCD, STL, NPY; a text file written from 32-bit floats with 7-8
-    significant digits, such as pandas' or ``%.8g``'s, is not caught.)"""
+    significant digits, such as pandas' or ``%.8g``'s, is not caught. Whole numbers where 32-bit floats are less than
+    1 apart pass: integer data, which such floats hold exactly.)"""
     if len(points) < 2:
         return
     lo, hi = points.min(axis=0), points.max(axis=0)
@@ -120,6 +121,8 @@ def check_resolution(points: np.ndarray, label: str) -> None:
         return
     if not (points.astype(np.float32) == points).all():
         return  # stored with more precision than 32-bit floats have
+    if step < 1 and (np.round(points) == points).all():
+        return  # whole numbers where 32-bit floats have fractions: no such float rounded them (integer text)
     share = step / diag
     what = (f"{label}: its coordinates are 32-bit floats up to {big:.4g}, where such floats are {step:.3g} apart: "
             f"{share:.2g} of its size ({diag:.4g} across)")

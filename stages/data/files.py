@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
-from scanreg.errors import ConfigError, InputError
+from scanreg.errors import ConfigError, InputError, warn
 from scanreg.eval.checks import likely_units
 from scanreg.geometry import Cloud, Geometry, Mesh, apply_T, bbox_diagonal, invert_T, points_of, transform_geometry
-from scanreg.io import expand_path, read_input, read_landmarks, read_transform
+from scanreg.io import expand_path, read_input, resolve_path, read_landmarks, read_transform
 from scanreg.stages.data.perturb import PoseParams
 from scanreg.stages.data.base import Provider
 from scanreg.stages.registry import DATA
@@ -31,9 +32,10 @@ MAX_SIZE_RATIO = 10.0
 other units."""
 
 
-def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> None:
+def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None, source_scale: float = 1.0) -> None:
     """Before any expensive stage: the two inputs' sizes agree to within ``max_size_ratio``, else one line
-    naming both extents and the likely unit factor (counts and flatness: ``scanreg.eval.checks``)."""
+    naming both extents and the likely unit factor (counts and flatness: ``scanreg.eval.checks``). ``src`` is
+    as read times ``source_scale``, which the suggested value includes."""
     if min(len(points_of(src)), len(points_of(tgt))) < 10:
         return  # too few points: scanreg.eval.checks says so
     ds, dt = bbox_diagonal(points_of(src)), bbox_diagonal(points_of(tgt))
@@ -46,11 +48,19 @@ def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None) -> No
     unit, factor = likely_units(f)
     # the source is scaled either way: the target is the fixed frame, whose units the result keeps (the transform
     # and aligned_source.ply then overlay the target file as it is)
-    fix = f"data.source_scale={1 / factor if big == 'source' else factor:g}"
+    fix = f"data.source_scale={source_scale * (1 / factor if big == 'source' else factor):g}"
     raise InputError(
         f"{src.source or 'source'} is {ds:.4g} across (bounding-box diagonal) and {tgt.source or 'target'} {dt:.4g}: "
         f"{f:.3g}x apart, likely {unit}; set {fix} to bring the source into the target's units (or "
         "data.max_size_ratio=null to register them as they are)")
+
+
+def _same_file(a: str, b: str) -> bool:
+    """Whether the paths ``a`` and ``b`` (as configured) name one file."""
+    try:
+        return os.path.samefile(resolve_path(expand_path(a)), resolve_path(expand_path(b)))
+    except Exception:  # noqa: BLE001  # (read already: a path that cannot be compared is not the same)
+        return False
 
 
 @DATA.register("files")
@@ -117,12 +127,17 @@ class Files(Provider):
         tgt, n_tgt_bad = read_input(expand_path(self.p.target), "target", self.p.target_columns or self.p.columns)
         info = {"n_source_invalid_points": n_src_bad, "n_target_invalid_points": n_tgt_bad}
         src, tgt = scale_geometry(src, self.p.source_scale), scale_geometry(tgt, self.p.target_scale)
-        check_pair(src, tgt, self.p.max_size_ratio)
+        check_pair(src, tgt, self.p.max_size_ratio, self.p.source_scale)
         gt = read_transform(expand_path(self.p.gt), "ground truth data.gt") if self.p.gt else None
         lm = read_landmarks(expand_path(self.p.landmarks)) if self.p.landmarks else None
         if lm is not None:
             lm = (lm[0] * self.p.target_scale, lm[1] * self.p.source_scale)
-        if self.p.max_angle_deg > 0 or self.p.max_translation > 0:  # a further seeded pose of the source
+        posed = self.p.max_angle_deg > 0 or self.p.max_translation > 0
+        if not posed and self.p.source_scale == self.p.target_scale and _same_file(self.p.source, self.p.target):
+            warn(f"data.source and data.target are the same file ({self.p.source}): the source lies on the target "
+                 "already, so the result is the identity; to test the registration, move the source with "
+                 "data.max_angle_deg=A data.max_translation=T (the truth follows the pose)")
+        if posed:  # a further seeded pose of the source
             P = self.p.pose(808, points_of(src), bbox_diagonal(points_of(tgt)))
             src = transform_geometry(P, src)
             gt = None if gt is None else gt @ invert_T(P)
