@@ -178,6 +178,11 @@ def test_colour_range_follows_the_data():
     assert colour_range(np.array([0.27]), EvalParams(deviation_range=0.1)) == 0.1  # the fixed range, kept
 
 
+def _figure(page: str) -> dict:
+    """The page's figure: the JSON of its script element ``figure``."""
+    return json.loads(re.search(r'<script id="figure" type="application/json">(.*?)</script>', page, re.S).group(1))
+
+
 def _title(html: str) -> str:
     """The view's title as plotly wrote it into the page (a JSON string)."""
     m = re.search(r'"text":"(deviation of the aligned source[^"]*)"', html)
@@ -222,7 +227,7 @@ def test_view_holds_the_points_and_deviations_it_was_given(tmp_path):
     on_surface = (np.c_[aligned[:, :2], np.zeros(len(xy))], np.abs(dev), target.normals)
     page = write_view(tmp_path / "view3d.html", target, Cloud(aligned), np.eye(4), aligned, on_surface, None,
                       EvalParams()).read_text()
-    fig = json.loads(re.search(r"var fig = (\{.*\});\n", page).group(1))
+    fig = _figure(page)
 
     def arr(a):
         return np.frombuffer(base64.b64decode(a["bdata"]), dtype="<f4")
@@ -274,7 +279,7 @@ def test_a_metre_scale_run_shows_millimetres(tmp_path):
     assert "signed deviation [mm]" in page
     assert not any(u in page for u in ("[\\u00b5m]", "[µm]", " \\u00b5m", " µm"))
     assert "input units: m, guessed from the target's size, 0.246 across" in page
-    fig = json.loads(re.search(r"var fig = (\{.*\});\n", page).group(1))
+    fig = _figure(page)
     traces = {t["name"].split(" (")[0]: t for t in fig["data"]}
     grey = traces["source after alignment, not compared"]
     assert f"farther than {3 * res.metrics['spacing'] * 1000:.3g} mm" in grey["name"]
@@ -306,7 +311,7 @@ def test_the_view_colours_the_overlap_and_says_what_it_shows(tmp_path):
     page = write_view(tmp_path / "v.html", target, source, np.eye(4), aligned, (np.c_[xy, np.zeros(len(xy))], d, None),
                       None, EvalParams().shown(2.0), max_distance=0.01).read_text()
     assert "<title>scanreg: scan 1.ply onto ref.ply</title>" in page
-    fig = json.loads(re.search(r"var fig = (\{.*\});\n", page).group(1))
+    fig = _figure(page)
     traces = {t["name"]: t for t in fig["data"]}
     shown = traces["source after alignment: distance [mm]"]
     colours = np.frombuffer(base64.b64decode(shown["marker"]["color"]["bdata"]), dtype="<f4")
@@ -375,3 +380,23 @@ def test_an_unknown_option_is_one_line():
     for ok in (["--cfg", "job", "-m"], ["--config-dir", "-odd-dir", "icp=gicp"], ["--config-dir=x", "--info", "config"],
                ["--help"], ["-cd", "x", "--multirun", "data.max_angle_deg=-5"]):
         assert unknown_flag_error(ok) is None, ok
+
+
+def test_the_view_carries_plotly_packed_and_cached(tmp_path, monkeypatch):
+    """The page's plotly.js is the package's file gzip-compressed (the page unpacks it: rendered offline in
+    tests/test_uncertainty.py), compressed once into the user's cache folder; one that cannot be made is no
+    error."""
+    import base64
+    import gzip
+
+    from scanreg.eval import view3d
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    packed = view3d._plotly_js_packed()
+    assert gzip.decompress(base64.b64decode(packed)) == view3d._plotly_js_path().read_bytes()
+    assert len(packed) < 0.5 * view3d._plotly_js_path().stat().st_size
+    assert [p.suffix for p in (tmp_path / "cache" / "scanreg").iterdir()] == [".b64"]  # (no temporary left)
+    assert view3d._plotly_js_packed() == packed
+    (tmp_path / "file").write_text("")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "file"))  # a file where the folder would go
+    assert view3d._plotly_js_packed() == packed

@@ -197,7 +197,7 @@ def test_view_is_self_contained_and_renders_offline(tmp_path):
     html = arch_view(tmp_path)
     text = html.read_text()
     assert "<script src=\"http" not in text and "cdn.plot.ly" not in text.split("</script>")[-1]
-    assert 3e6 < html.stat().st_size < 12e6
+    assert 2e6 < html.stat().st_size < 6e6  # plotly.js packed: 2.0 MB (it was 4.8 MB, the page 6 MB)
     assert "tooth numbers (FDI)" in text and "signed deviation [\\u00b5m]" in text
     img = screenshot(html, tmp_path / "shot.png")
     red, blue = coloured_share(img)
