@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from conftest import run_cli, runs, shared
+from conftest import pkg_file, run_cli, runs, shared
 from scanreg.geometry import (
     ClosestPoints,
     Cloud,
@@ -573,3 +573,68 @@ def test_a_folder_of_one_scan_is_named_in_one_line(tmp_path):
     with pytest.raises(InputError, match=rf"^data.scans {re.escape(str(tmp_path))}: 1 scan \(face000.ply\); a scan set "
                                          "needs at least 2$"):
         scan_paths(str(tmp_path))
+
+
+def _step_grid(n: int = 60, step: float = 0.3) -> tuple[Mesh, np.ndarray]:
+    """A range grid over a step: z = 0 for the first half of the columns, ``step`` for the rest, triangulated
+    as a scanner's grid (two faces per cell), and the mask of the faces that join the two levels."""
+    X, Y = np.meshgrid(np.arange(n) * 0.01, np.arange(n) * 0.01)
+    Z = np.where(np.arange(n) < n // 2, 0.0, step)[None, :].repeat(n, axis=0)
+    v = np.c_[X.ravel(), Y.ravel(), Z.ravel()]
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1))
+    a = (j * n + i).ravel()
+    f = np.r_[np.c_[a, a + 1, a + n + 1], np.c_[a, a + n + 1, a + n]]
+    level = v[:, 2] > 0
+    return Mesh(v, f), level[f].any(axis=1) & ~level[f].all(axis=1)
+
+
+def test_faces_that_bridge_a_depth_jump_are_found_and_only_they():
+    """A grid over a step 30 spacings high: exactly the faces that join the two levels (two per row); a step of 5
+    spacings (a slope) and a graded mesh: none. The Stanford scans: a few hundred long faces each (80-780 in the
+    10; CT teeth, pymeshfix's and pymeshlab's closed bunnies: none)."""
+    from scanreg.mesh.jumps import depth_jump_faces
+
+    mesh, bridge = _step_grid()
+    assert bridge.sum() == 2 * 59
+    assert np.array_equal(depth_jump_faces(mesh, 8.0), bridge)
+    low, _ = _step_grid(step=0.05)  # 5 spacings: a slope, not a jump, at ratio 8
+    assert not depth_jump_faces(low, 8.0).any()
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()  # a graded mesh: pymeshlab's bunny decimated (edges 5-7x apart)
+    ms.load_new_mesh(str(pkg_file("pkg:pymeshlab/tests/sample_meshes/bunny.obj")))
+    for faces in (20000, 5000, 1000):
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=faces)
+        m = ms.current_mesh()
+        assert not depth_jump_faces(Mesh(m.vertex_matrix(), m.face_matrix()), 8.0).any()
+    # the bunny's range scans: the faces across its silhouettes (where 1 of 10 is 20+ times the scan's median)
+    for name, fewest in (("bun000", 150), ("top3", 150)):
+        try:
+            scan = read_mesh(str(shared(f"stanford_bunny/{name}.ply")))
+        except pytest.skip.Exception:
+            break
+        jump = depth_jump_faces(scan, 8.0)
+        longest = np.linalg.norm(scan.vertices[scan.faces[:, [1, 2, 0]]] - scan.vertices[scan.faces], axis=2).max(1)
+        assert fewest < jump.sum() < 0.01 * len(jump) and longest[jump].min() > 3 * np.median(longest)
+
+
+def test_the_model_leaves_out_the_faces_across_a_depth_jump(capsys):
+    """The merged model of a scan over a step has no points on the faces across it (the sheet between the
+    bunny's ears), while the registration's sampling keeps them; multiview.max_edge_ratio=null keeps them too."""
+    from scanreg import build_stage
+    from scanreg.runner.build import Stages
+    from scanreg.runner.scanset import model_scans
+    from scanreg.runner.steps import prepare_scan
+
+    sampler = build_stage("sampler", "barycentric", n_points=20000)
+    stages = Stages.__new__(Stages)
+    stages.sampler = sampler
+    ctx = RunContext(seed=0)
+    mesh, _ = _step_grid()
+    scan = prepare_scan(mesh, stages, ctx, "step", salt=1, repair=False)
+    between = lambda c: int(((c.points[:, 2] > 0.01) & (c.points[:, 2] < 0.29)).sum())  # noqa: E731
+    assert between(scan.cloud) > 100
+    (kept,) = model_scans([scan], stages, ctx, 8.0)
+    assert between(kept.cloud) == 0 and kept.cloud.n_points == scan.cloud.n_points
+    assert "the model leaves out 118 faces that bridge depth jumps in 1 of the 1 scans" in capsys.readouterr().out
+    assert model_scans([scan], stages, ctx, None)[0] is scan

@@ -15,17 +15,18 @@ from __future__ import annotations
 
 import itertools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
 from scanreg.errors import InputError, ScanregError, note
 from scanreg.eval.uncertainty import pairs_covariance
-from scanreg.geometry import (ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, invert_T, transform_geometry,
-                              voxel_representatives)
+from scanreg.geometry import (ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, invert_T, submesh,
+                              transform_geometry, voxel_representatives)
 from scanreg.geometry.multiview import refine_jointly, spread_subset
 from scanreg.geometry.posegraph import Edge, components
+from scanreg.mesh.jumps import depth_jump_faces
 from scanreg.runner.steps import prepare_scan
 from scanreg.runner.settings import MultiviewParams
 from scanreg.types import PreparedScan, RunContext, ScanSet, ViewEdge
@@ -122,7 +123,7 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
             params.refine_iterations, link_scales=[max(levels[i], levels[j]) / spacing for i, j in links])
         res.poses = [refined[k] if k in placed else None for k in range(len(scans))]
     t4 = time.perf_counter_ns()
-    res.merged = merge(scans, res.poses, params.merge_voxel * spacing)
+    res.merged = merge(model_scans(scans, stages, ctx, params.max_edge_ratio), res.poses, params.merge_voxel * spacing)
     from_meshes = all(isinstance(g, Mesh) for g in problem.scans)
     res.surface = stages.surface.reconstruct(res.merged, from_meshes, spacing, ctx)
     if res.surface is None and not from_meshes and getattr(stages.surface.p, "when", None) == "meshes":
@@ -138,6 +139,26 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
                     "refine": (t4 - t3) / 1e9, "surface": (t5 - t4) / 1e9})
     res.metrics = {**graph_metrics, **refine_metrics, "spacing": spacing}
     return res
+
+
+def model_scans(scans: list[PreparedScan], stages: Stages, ctx: RunContext, ratio: Optional[float]) -> list[PreparedScan]:
+    """The scans as the model takes them: a mesh with faces that bridge a depth jump
+    (:func:`~scanreg.mesh.jumps.depth_jump_faces` at ``ratio``; None: none) sampled again without them (the
+    registration sampled every face, as a pair run does); a note says how many faces were left out."""
+    if ratio is None:
+        return scans
+    out, dropped = [], {}
+    for s in scans:
+        jump = depth_jump_faces(s.mesh, ratio) if s.mesh is not None else None
+        if jump is not None and jump.any() and not jump.all():
+            dropped[s.name] = int(jump.sum())
+            s = replace(s, cloud=stages.sampler.sample(submesh(s.mesh, ~jump), ctx))
+        out.append(s)
+    if dropped:
+        note(f"scan set: the model leaves out {sum(dropped.values())} faces that bridge depth jumps in "
+             f"{len(dropped)} of the {len(scans)} scans (long thin faces of a range grid across a silhouette; "
+             "multiview.max_edge_ratio=null keeps them)")
+    return out
 
 
 def spacing_levels(spacings: list[float], ratio: float) -> list[float]:

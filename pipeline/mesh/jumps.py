@@ -1,0 +1,42 @@
+"""Faces that bridge a depth jump: a range scan triangulated as a grid (a scanner's ``range_grid``, a depth
+image) joins neighbouring samples even where the surface behind jumps away from the one in front (the bunny's
+ears, one before the other). Such faces are long and thin across the jump, much longer than the edges at their
+corners, which lie on the real surfaces on either side; merged into a model of many scans they make a sheet
+between the parts. Adaptive meshes (a decimated CT surface) change their edge lengths gradually and keep every
+face. Tests: tests/test_scanset.py."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scanreg.geometry import Mesh
+
+
+def corner_edge_lengths(mesh: Mesh, q: float = 0.25) -> np.ndarray:
+    """Per vertex, the ``q`` quantile (lower) of the lengths of the face edges at it (each face's two edges at the
+    corner; 0 for a vertex no face uses)."""
+    v, f = mesh.vertices, mesh.faces
+    if not len(f):
+        return np.zeros(len(v))
+    length = np.linalg.norm(v[f[:, [1, 2, 0]]] - v[f], axis=2)  # edge k joins corner k and corner k+1
+    vert = np.concatenate([f.ravel(), f[:, [1, 2, 0]].ravel()])
+    lens = np.concatenate([length.ravel(), length.ravel()])
+    order = np.lexsort((lens, vert))
+    vert, lens = vert[order], lens[order]
+    counts = np.bincount(vert, minlength=len(v))
+    start = np.cumsum(counts) - counts
+    out = np.zeros(len(v))
+    used = counts > 0
+    out[used] = lens[start[used] + np.floor(q * (counts[used] - 1)).astype(np.int64)]
+    return out
+
+
+def depth_jump_faces(mesh: Mesh, ratio: float) -> np.ndarray:
+    """Which faces bridge a depth jump: their longest edge is more than ``ratio`` times the median edge length at
+    each of their three corners (:func:`corner_edge_medians`; the largest of the three counts)."""
+    v, f = mesh.vertices, mesh.faces
+    if not len(f):
+        return np.zeros(0, bool)
+    longest = np.linalg.norm(v[f[:, [1, 2, 0]]] - v[f], axis=2).max(axis=1)
+    local = corner_edge_lengths(mesh)[f].max(axis=1)
+    return longest > ratio * local
