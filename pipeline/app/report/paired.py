@@ -89,7 +89,8 @@ def paired_table(df: pd.DataFrame, labels: pd.Series, group_by: list[str], metri
     names = sorted(labels.unique())
     if not keys or not 2 <= len(names) <= MAX_GROUPS:
         return None
-    case = df[keys].astype(str).agg(" | ".join, axis=1)
+    # (map(str), not astype(str): pandas 3 keeps a missing value missing there, and join then fails on it)
+    case = df[keys].apply(lambda c: c.map(str)).agg(" | ".join, axis=1)
     if pd.DataFrame({"g": labels, "c": case}).duplicated().any():
         return None
     finished = df["status"] == "FINISHED"

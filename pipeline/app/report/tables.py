@@ -281,7 +281,7 @@ def bin_table(df: pd.DataFrame, group_by: list[str], bin_by: str, edges: list[fl
     work = df.copy()
     v = pd.to_numeric(work[col], errors="coerce")
     if per and v.isna().any():
-        key = work[column_for(per, work)].astype(str)
+        key = work[column_for(per, work)].map(str)
         v = v.fillna(v.groupby(key).transform("first"))
     work["_bin"] = assign_bins(v, edges)
     work["_grp"] = group_labels(work, group_by)
@@ -344,7 +344,7 @@ def compare(a: pd.DataFrame, b: pd.DataFrame, group_by: list[str], name_a: str, 
     if group_by:
         for s in (a, b):
             for k in group_by:
-                s[k] = s[k].astype(str)
+                s[k] = s[k].map(str)
         return pick(a, name_a).merge(pick(b, name_b), on=group_by, how="outer")
     return pd.concat([pick(a, name_a), pick(b, name_b)], axis=1)
 
@@ -410,14 +410,16 @@ CONSOLE_ERRORS = [("rotation_error_deg_median", "rot_deg"), ("translation_error_
                   ("scan_rotation_error_max_deg_median", "worst_rot_deg"),
                   ("scan_translation_error_max_rel_median", "worst_transl_rel")]
 CONSOLE_FIT = [("rms_median", "rms"), ("fitness_median", "fitness")]
+CONSOLE_SET = [("scans_placed_median", "placed")]
 CONSOLE_TIMES = [("time_coarse_s_median", "coarse_s"), ("time_total_s_median", "total_s")]
-"""The console's short table: (report.csv column, heading); the errors, or without ground truth the fit."""
+"""The console's short table: (report.csv column, heading); the errors, or without ground truth the fit (a scan
+set's placed scans beside either)."""
 
 
 def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100) -> str:
     """The summary as a table of at most ``width`` columns: the group (its canonical label), runs, success,
     median errors and times; the rest is in report.csv."""
-    columns = CONSOLE_COUNTS + (CONSOLE_ERRORS if has_errors(table) else CONSOLE_FIT) + CONSOLE_TIMES
+    columns = CONSOLE_COUNTS + (CONSOLE_ERRORS if has_errors(table) else CONSOLE_FIT) + CONSOLE_SET + CONSOLE_TIMES
     cols = [(c, h) for c, h in columns if c in table]
     head = " / ".join(group_by) or "group"
     def cell(r, c):  # success as a count of the runs (as report.md has it), the rest as values
