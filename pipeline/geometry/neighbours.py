@@ -35,6 +35,20 @@ class ClosestPoints:
             self.normals = None if target.normals is None else target.normals[order]
             self.tree = KDTree(self.points, leafsize=16)
 
+    def normal_coherence(self) -> float:
+        """The share of the target cloud's points whose normal agrees (cosine above 0.5) with that of their
+        nearest other point: how far its normals can agree with another scan's at all (clean normals 0.93-0.98 on
+        the Stanford scans, 0.75-0.78 with noise of 0.37 spacings); 1 without normals or points to compare.
+        Computed once."""
+        if getattr(self, "_coherence", None) is None:
+            if self.mesh is not None or self.normals is None or len(self.points) < 2:
+                self._coherence = 1.0
+            else:
+                j = self.tree.query(self.points, k=2)[1][:, 1]
+                cos = np.einsum("ij,ij->i", self.normals, self.normals.take(j, axis=0))
+                self._coherence = float((cos > 0.5).mean())
+        return self._coherence
+
     def __call__(self, q: np.ndarray, max_distance: float | None = None,
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Closest points; with ``max_distance`` the search is bounded (farther points get distance inf and an

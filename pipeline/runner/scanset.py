@@ -372,8 +372,10 @@ def register_edge(i: int, j: int, scans: list[PreparedScan], described: dict[flo
         problems.append(f"overlap {fitness:.2f} < multiview.min_fitness {p.min_fitness:g}")
     if rms / spacing > p.max_inlier_rms:
         problems.append(f"inlier RMS {rms / spacing:.2f} spacings > multiview.max_inlier_rms {p.max_inlier_rms:g}")
-    if agree < p.min_normal_agreement:
-        problems.append(f"normals agree on {agree:.2f} < multiview.min_normal_agreement {p.min_normal_agreement:g}")
+    own = min(search[i].normal_coherence(), search[j].normal_coherence())  # noisy normals agree less anywhere
+    if agree < p.min_normal_agreement * own:
+        problems.append(f"normals agree on {agree:.3f} < {p.min_normal_agreement * own:.3f} (multiview."
+                        f"min_normal_agreement {p.min_normal_agreement:g} of the scans' own {own:.3f})")
     edge.accepted, edge.reason = not problems, "; ".join(problems)
     return edge
 

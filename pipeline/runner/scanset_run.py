@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scanreg.errors import note, warn
+from scanreg.errors import StageError, note, warn
 from scanreg.eval.scanset import scan_residuals, set_metrics, surface_metrics
 from scanreg.geometry import Mesh, bbox_diagonal, invert_T, transform_geometry
 from scanreg.io import write_ply
@@ -53,13 +53,26 @@ def run_scanset(problem: ScanSet, stages: Stages, ctx: RunContext, m: dict[str, 
         m.update(surface_metrics(reg.surface, reference, seed=ctx.seed))
     m["time_evaluate_s"] = (time.perf_counter_ns() - t0) / 1e9
     m["time_total_s"] = (time.perf_counter_ns() - t_start) / 1e9
-    _say_groups(reg)
+    if len(reg.groups[0]) > 1:  # (else one error line below says why)
+        _say_groups(reg)
     res = Result(None, m, {f"scan_{k}": v for k, v in per_scan.items()}, ctx.run_dir)
     res.children = [(f"{reg.names[e.j]} -> {reg.names[e.i]}", edge_metrics(e)) for e in reg.edges]
     res.scanset = reg
     if ctx.run_dir is not None:
         res.artifacts = write_set_outputs(ctx.run_dir, reg, res, per_scan)
+    if len(reg.groups[0]) < 2:  # no two scans placed together: the set was not registered
+        raise StageError(nothing_placed(reg), metrics=m)
     return res
+
+
+def nothing_placed(reg: SetRegistration) -> str:
+    """Why no pair of the set was verified, in one line: the pairs registered and the reason of the one that
+    overlapped most (its verification's limits name the parameters)."""
+    tried = [e for e in reg.edges if e.reason]
+    best = max(tried, key=lambda e: e.fitness, default=None)
+    why = f"; the best, {reg.names[best.j]} -> {reg.names[best.i]}: {best.reason}" if best is not None else ""
+    return (f"scan set: no pair of the {len(reg.names)} scans was verified ({len(tried)} registered and rejected"
+            f"{why}), so no scan is placed beside another; poses.json lists every pair and why")
 
 
 def edge_metrics(e) -> dict[str, float]:
