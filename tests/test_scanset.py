@@ -499,17 +499,40 @@ def test_a_folder_of_several_scan_formats_takes_them_all_and_says_what_it_left_o
     assert [q.name for q in scan_paths(str(tmp_path))] == ["a.ply", "b.ply", "c.obj", "d.ply", "e.xyz"]
     out = capsys.readouterr().out
     assert out.count("note:") == 1 and "the scans are its 5 files a.ply, b.ply, c.obj, d.ply, ...; 2 file(s) left "\
-        "out (README.txt, d.stl: text beside scans, or a scan's second format)" in out
+        "out (README.txt, d.stl: text, a 4x4 transform or another format beside scans, or a scan's second " \
+        "format)" in out
     assert [q.name for q in scan_paths(str(tmp_path / "*.ply"))] == ["a.ply", "b.ply", "d.ply"]
     assert capsys.readouterr().out == ""  # a glob takes what it matches, silently
     texts = tmp_path / "texts"
     texts.mkdir()
-    for name in ("s1.csv", "s2.csv", "s3.csv", "README.txt"):
-        (texts / name).write_text("x")
+    for name in ("s1.csv", "s2.csv", "s3.csv"):
+        (texts / name).write_text("x,y,z\n0,0,0\n1,0,0\n0,1,0\n")
+    (texts / "README.txt").write_text("x")
     assert [q.name for q in scan_paths(str(texts))] == ["s1.csv", "s2.csv", "s3.csv"]
     assert "1 file(s) left out (README.txt" in capsys.readouterr().out
     (tmp_path / "T.npy").write_text("x")  # a 4x4 beside scans is no scan
     assert "T.npy" not in [q.name for q in scan_paths(str(tmp_path))]
+    # text scans alone: a README of notes, a ground-truth 4x4 (text or .npy) beside them is none (a new user's
+    # README.txt was read as a scan and failed on 'operator: me'; 3DMatch's gt.npy beside its .npy scans too)
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    for k in (2, 10, 1):  # numbers in names by value: scan_2 before scan_10 (a turntable's order)
+        np.savetxt(alone / f"scan_{k}.txt", np.random.default_rng(k).random((20, 3)))
+    (alone / "README.txt").write_text("scanned 2026-11-27\noperator: me\n")
+    np.savetxt(alone / "gt.txt", np.eye(4))
+    assert [q.name for q in scan_paths(str(alone))] == ["scan_1.txt", "scan_2.txt", "scan_10.txt"]
+    arrays = tmp_path / "arrays"
+    arrays.mkdir()
+    for name, a in (("ref.npy", np.zeros((30, 3))), ("src.npy", np.zeros((30, 6))), ("gt.npy", np.eye(4))):
+        np.save(arrays / name, a)
+    assert [q.name for q in scan_paths(str(arrays))] == ["ref.npy", "src.npy"]
+    # a folder whose scans are in its subfolders (one per jaw): the line names them and a pattern that takes them
+    (tmp_path / "jaw" / "upper").mkdir(parents=True)
+    (tmp_path / "jaw" / "upper" / "t1.ply").write_text("x")
+    (tmp_path / "jaw" / "SOURCE.txt").write_text("from a repository")
+    with pytest.raises(Exception, match=r"no scan files in this folder .*; its subfolders upper hold some: name "
+                                        r"them, e.g. data.scans='.*/jaw/\*/\*.ply'"):
+        scan_paths(str(tmp_path / "jaw"))
 
 
 def test_poses_that_are_not_there_are_named_so(tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import glob as globbing
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
@@ -131,8 +132,9 @@ def check_sizes(scans: list, max_size_ratio: float | None) -> None:
 
 
 def scan_paths(spec: Any) -> list[Path]:
-    """The scan files ``spec`` names (a folder, a glob, a list), sorted by name; one :class:`InputError` line
-    for a path that is missing or names no scan."""
+    """The scan files ``spec`` names (a folder, a glob, a list), sorted by name (numbers by value: ``scan_2``
+    before ``scan_10``, :func:`natural_key`); one :class:`InputError` line for a path that is missing or names no
+    scan."""
     items = list(spec) if isinstance(spec, (list, tuple)) or hasattr(spec, "__iter__") and not isinstance(spec, str) \
         else [spec]
     out: list[Path] = []
@@ -141,9 +143,10 @@ def scan_paths(spec: Any) -> list[Path]:
         p = Path(s).expanduser()
         if p.is_dir():
             found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in SCAN_EXTS)
-            if not found:
-                raise InputError(f"data.scans {item}: no scan files in this folder (expected {' '.join(sorted(SCAN_EXTS))})")
-            out += _folder_scans(found, str(item))
+            scans = _folder_scans(found, str(item)) if found else []
+            if not scans:
+                raise InputError(_no_scans(p, str(item)))
+            out += scans
         elif any(c in s for c in "*?["):
             found = sorted(Path(q) for q in globbing.glob(str(p)) if Path(q).is_file())
             if not found:
@@ -153,7 +156,7 @@ def scan_paths(spec: Any) -> list[Path]:
             out.append(Path(s) if s.startswith("pkg:") else p)
         else:
             raise InputError(f"data.scans {item}: no such file or folder ({p.absolute()})")
-    out = sorted(dict.fromkeys(out), key=lambda q: q.name)
+    out = sorted(dict.fromkeys(out), key=lambda q: natural_key(q.name))
     if len(out) < 2:
         what = ", ".join(str(i) for i in items)
         raise InputError(f"data.scans {what}: {len(out)} scan{'' if len(out) == 1 else 's'}"
@@ -176,9 +179,12 @@ def _folder_scans(found: list[Path], item: str) -> list[Path]:
     exts = [q.suffix.lower() for q in found]
     if any(e not in GENERIC_TEXT for e in exts):
         cand = [q for q in found if q.suffix.lower() not in GENERIC_TEXT]
-    else:  # generic files alone: those of the most common format (a README.txt beside .csv scans is none)
-        common = max(sorted(set(exts)), key=exts.count)
-        cand = [q for q in found if q.suffix.lower() == common]
+    else:  # generic files alone: those of rows of points, of the most common format among them
+        points = [q for q in found if _rows_of_points(q)]
+        if not points:
+            return []
+        common = max(sorted({q.suffix.lower() for q in points}), key=[q.suffix.lower() for q in points].count)
+        cand = [q for q in points if q.suffix.lower() == common]
     rank = {e: -exts.count(e) for e in set(exts)}  # the most common format first, then by name
     best: dict[str, Path] = {}
     for q in sorted(cand, key=lambda q: (rank[q.suffix.lower()], q.suffix.lower())):
@@ -187,9 +193,52 @@ def _folder_scans(found: list[Path], item: str) -> list[Path]:
     other = [q.name for q in found if q not in best.values()]
     if other:
         note(f"data.scans {item}: the scans are its {len(keep)} files {_listed([q.name for q in keep])}; "
-             f"{len(other)} file(s) left out ({_listed(other)}: text beside scans, or a scan's second format); "
+             f"{len(other)} file(s) left out ({_listed(other)}: text, a 4x4 transform or another format beside "
+             "scans, or a scan's second format); "
              f"to choose, name them: data=scanset data.scans=[A,B,...]")
     return keep
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key of a file name with its runs of digits compared as numbers (``scan_2`` before ``scan_10``)."""
+    parts = re.split(r"(\d+)", name)
+    return tuple(int(t) if k % 2 else t for k, t in enumerate(parts))
+
+
+def _rows_of_points(path: Path) -> bool:
+    """Whether a generic file (.txt .csv .npy) holds rows of at least 3 numbers other than one 4x4 transform, by
+    its shape (.npy) or its first 64 kB (text): a README, notes or a ground-truth ``T.npy`` beside text scans
+    are none."""
+    try:
+        if path.suffix.lower() == ".npy":
+            shape = np.load(path, mmap_mode="r", allow_pickle=False).shape
+            return len(shape) == 2 and shape[1] >= 3 and shape != (4, 4)
+        with open(path, "rb") as f:
+            head = f.read(1 << 16).decode("utf-8", "replace")
+    except (OSError, ValueError):
+        return True  # unreadable: the reader says why, naming the file
+    rows = []
+    for line in head.splitlines():
+        cells = [c for c in re.split(r"[,;\s]+", line.strip()) if c]
+        try:
+            rows.append(len([float(c) for c in cells]))
+        except ValueError:
+            continue  # a header or a note
+    rows = [n for n in rows if n >= 3]
+    return bool(rows) and not (rows == [4, 4, 4, 4] and len(head) < (1 << 16))
+
+
+def _no_scans(folder: Path, item: str) -> str:
+    """The error line for a folder without scans, naming its subfolders that hold some."""
+    msg = f"data.scans {item}: no scan files in this folder (expected {' '.join(sorted(SCAN_EXTS))})"
+    subs = sorted(d for d in folder.iterdir() if d.is_dir() and any(
+        q.is_file() and q.suffix.lower() in SCAN_EXTS for q in d.iterdir()))
+    if subs:
+        exts = [q.suffix.lower() for d in subs for q in d.iterdir() if q.suffix.lower() in SCAN_EXTS]
+        common = max(sorted(set(exts)), key=exts.count)
+        msg += (f"; its subfolders {_listed([d.name for d in subs])} hold some: name them, e.g. "
+                f"data.scans='{item.rstrip('/')}/*/*{common}' (or one subfolder)")
+    return msg
 
 
 def _listed(names: list[str], k: int = 4) -> str:
