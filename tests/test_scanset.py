@@ -304,6 +304,19 @@ def test_normal_coherence_of_a_cloud():
     assert ClosestPoints(Cloud(pts)).normal_coherence() == 1.0
 
 
+def test_a_set_of_whole_objects_is_warned_of(bunny, views, capsys):
+    """Most scans closed surfaces (a new user's 11 CT teeth: 8 fused into one blob without a word): one warning
+    that a set registers views of one object; range views of it: none."""
+    from scanreg.runner.scanset import warn_whole_objects
+
+    warn_whole_objects([bunny, bunny, views[0][0]], ["a", "b", "c"])
+    out = capsys.readouterr().out
+    assert out.count("warning:") == 1 and "2 of the 3 scans are closed surfaces (a, b), whole objects" in out
+    warn_whole_objects(views[0][:3], ["a", "b", "c"])
+    warn_whole_objects([bunny, bunny], ["a", "b"])  # a pair of whole objects is a pair: nothing to say
+    assert capsys.readouterr().out == ""
+
+
 def test_unordered_candidate_pairs_never_pair_a_scan_with_itself():
     """A set over ``all_pairs`` with fewer scans than ``neighbours`` + 1: every other scan is a neighbour, the scan
     itself never (it was, and its self-edge broke the pose graph: 'SVD did not converge', an internal error)."""
