@@ -70,7 +70,8 @@ class SetRegistration:
                 if other is not None and len(other) > 1:
                     out[name] = f"in another group of {len(other)} scans, with no verified pair to the main one"
                 elif not any(e.accepted for e in mine):
-                    out[name] = "overlaps no other scan (no verified pair: " + (mine[0].reason if mine else
+                    best = max(mine, key=lambda e: e.fitness) if mine else None  # the closest it came
+                    out[name] = "overlaps no other scan (no verified pair: " + (best.reason if best else
                                                                                    "no pair registered") + ")"
                 else:
                     out[name] = "not connected to the main group"
@@ -95,6 +96,7 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
     search = [ClosestPoints(s.cloud) for s in scans]
     edges = register_pairs(candidate_pairs(scans, problem.order, params), scans, described, search, stages, levels,
                            params, ctx)
+    distrust_lone_loose_pairs(edges, len(scans), params)
     t2 = time.perf_counter_ns()
     groups = [g for g in components(len(scans), [Edge(e.i, e.j, e.T_i_j, e.information) for e in edges if e.accepted])]
     anchor = groups[0][0]
@@ -142,6 +144,21 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
                     "refine": (t4 - t3) / 1e9, "surface": (t5 - t4) / 1e9})
     res.metrics = {**graph_metrics, **refine_metrics, "spacing": spacing}
     return res
+
+
+def distrust_lone_loose_pairs(edges: list[ViewEdge], n: int, p: MultiviewParams) -> None:
+    """In a set of 3 or more scans, an accepted pair that is the only one of a scan and fits loosely (inlier RMS
+    above ``predict_max_inlier_rms`` spacings) is rejected: nothing else checks the place it gives that scan (a
+    new user's mirrored scan was placed 106 deg off by its one pair, at 1.59 spacings, with a phantom head in the
+    model; right pairs fit at 0.7-1.5)."""
+    if n < 3:
+        return
+    degree = np.bincount([k for e in edges if e.accepted for k in (e.i, e.j)], minlength=n)
+    for e in edges:
+        if e.accepted and min(degree[e.i], degree[e.j]) == 1 and e.inlier_rms > p.predict_max_inlier_rms:
+            e.accepted = False
+            e.reason = (f"the only verified pair of a scan, at an inlier RMS of {e.inlier_rms:.2f} spacings (above "
+                        f"multiview.predict_max_inlier_rms {p.predict_max_inlier_rms:g}): too loose to place it alone")
 
 
 def warn_whole_objects(geometries: list, names: list[str]) -> None:

@@ -43,7 +43,8 @@ class MultiviewParams:
     """Only accepted pairs that overlap at least this much (share of points, 0..1) predict poses: a false pair
     that passed the verification overlaps little, and its predictions would skip the pairs that outvote it."""
     predict_max_inlier_rms: float = 1.45
-    """... and whose inlier RMS is at most this many spacings (``max_inlier_rms`` accepts up to 1.6): the 10
+    """... and whose inlier RMS is at most this many spacings (``max_inlier_rms`` accepts up to 1.6; a scan whose
+    only accepted pair fits more loosely is not placed, in a set of 3 or more): the 10
     Stanford scans as bare points put ear_back 159 deg off through two false pairs that agree, at 1.57 spacings
     (the right pairs there: 0.7-1.37), whose predictions skipped the right pairs that would outvote them."""
     pair_samples: int = 5000
