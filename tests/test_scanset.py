@@ -249,6 +249,12 @@ def test_a_scan_of_another_object_is_unplaced_and_the_rest_reconstructed(tmp_pat
     assert rec.mesh is not None and rec.metrics["surface_closed_manifold"] == 1
     poses = json.loads((tmp_path / "poses.json").read_text())
     assert "scan005.ply" not in poses["poses"] and "scan005.ply" in poses["unplaced"]
+    # the other object first by name: the world frame is the first placed scan's, and a note says whose
+    rec = scanreg.reconstruct([_o3d(other[0])] + [_o3d(s) for s in scans[:3]], run_dir=tmp_path / "first",
+                              overrides=["surface=none"])
+    assert "the world frame is scan001.ply's (the first scan, scan000.ply, is not in the model's group)" in \
+        capsys.readouterr().out
+    assert np.array_equal(rec.poses["scan001.ply"], np.eye(4))
 
 
 def test_a_set_with_no_verified_pair_fails_with_one_line(tmp_path, views, capsys):

@@ -55,6 +55,9 @@ def run_scanset(problem: ScanSet, stages: Stages, ctx: RunContext, m: dict[str, 
     m["time_total_s"] = (time.perf_counter_ns() - t_start) / 1e9
     if len(reg.groups[0]) > 1:  # (else one error line below says why)
         _say_groups(reg)
+        if anchor != 0:
+            note(f"scan set: the world frame is {reg.names[anchor]}'s (the first scan, {reg.names[0]}, is not in the "
+                 "model's group)")
     res = Result(None, m, {f"scan_{k}": v for k, v in per_scan.items()}, ctx.run_dir)
     res.children = [(f"{reg.names[e.j]} -> {reg.names[e.i]}", edge_metrics(e)) for e in reg.edges]
     res.scanset = reg
