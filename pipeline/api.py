@@ -174,6 +174,9 @@ def reconstruct(scans: Any, *, poses: Any = None, overrides: Sequence[str] = (),
     with _run_folder(run_dir) as run_dir:
         folder = run_dir / "inputs"
         items = [scans] if isinstance(scans, (str, Path)) else list(scans)
+        if len(items) < 2 and not any(isinstance(obj, (str, Path)) for obj in items):
+            raise InputError(f"reconstruct: {len(items)} scan(s) given; a scan set needs at least 2 (a folder, a "
+                             "glob, or a list of paths, arrays or Open3D geometries)")
         paths = [_as_input(obj, f"scan{k:03d}", folder) for k, obj in enumerate(items)]
         ovs = ["data=scanset", "data.scans=[" + ",".join(_quote(p) for p in paths) + "]"]
         if poses is not None:

@@ -668,6 +668,10 @@ def test_a_set_of_meshes_and_clouds_says_how_many_are_clouds(tmp_path, views, ca
     assert len(rec.poses) == 4 and not rec.unplaced
     assert "no surface reconstructed: 1 of the 4 scans are point clouds (surface.when=meshes)" in \
         capsys.readouterr().out
+    # fewer than two in-memory scans: said of the call (it named a temporary file and suggested a command)
+    for few in ([], [cloud]):
+        with pytest.raises(scanreg.errors.InputError, match=rf"^reconstruct: {len(few)} scan\(s\) given; a scan set"):
+            scanreg.reconstruct(few, run_dir=tmp_path / "few")
     # fewer than two poses: one line before any work (an empty poses folder was 'no such file or folder')
     with pytest.raises(scanreg.errors.InputError, match=r"^poses: 1 of the 2 scans have a pose; at least two need one"):
         scanreg.reconstruct([cloud, cloud], poses=[truth[0], None], run_dir=tmp_path / "two")
