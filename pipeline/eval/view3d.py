@@ -61,28 +61,41 @@ def _plotly_js_path() -> Path:
 def _plotly_js_packed() -> str:
     """plotly.js gzip-compressed and base64-encoded, as the page unpacks it: 2.0 MB in each view instead of 4.8 MB
     (a sweep's runs each write one, and MLflow keeps a copy). Compressing takes 0.25 s, so it is done once per
-    plotly file and kept in the user's cache folder (``$XDG_CACHE_HOME/scanreg``, else ``~/.cache/scanreg``),
-    named by the file's size and time; where that folder cannot be written it is done for each page."""
+    plotly file and kept in the user's cache folder (:func:`_cache_file`); where that folder cannot be written
+    it is done for each page."""
     import gzip
     import os
 
     js = _plotly_js_path()
-    st = js.stat()
-    root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "scanreg"
-    cached = root / f"plotly-{st.st_size}-{st.st_mtime_ns}.min.js.gz.b64"
-    try:
-        return cached.read_text(encoding="ascii")
-    except (OSError, UnicodeDecodeError):
-        pass
+    cached = _cache_file(js)
+    if cached is not None:
+        try:
+            return cached.read_text(encoding="ascii")
+        except (OSError, UnicodeDecodeError):
+            pass
     packed = base64.b64encode(gzip.compress(js.read_bytes(), compresslevel=9, mtime=0)).decode("ascii")
-    try:
-        root.mkdir(parents=True, exist_ok=True)
-        tmp = cached.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(packed, encoding="ascii")
-        os.replace(tmp, cached)  # whole or not at all, for a sweep's parallel jobs
-    except OSError:
-        pass
+    if cached is not None:
+        try:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cached.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_text(packed, encoding="ascii")
+            os.replace(tmp, cached)  # whole or not at all, for a sweep's parallel jobs
+        except OSError:
+            pass
     return packed
+
+
+def _cache_file(js: Path) -> Path | None:
+    """Where the packed ``js`` is kept: ``$XDG_CACHE_HOME/scanreg``, else ``~/.cache/scanreg``, named by the
+    file's size and time; None without a home folder."""
+    import os
+
+    try:
+        root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "scanreg"
+    except RuntimeError:
+        return None
+    st = js.stat()
+    return root / f"plotly-{st.st_size}-{st.st_mtime_ns}.min.js.gz.b64"
 
 
 # The page unpacks plotly.js (DecompressionStream: every browser since 2023) and runs it, then draws the figure.
