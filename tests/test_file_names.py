@@ -395,8 +395,12 @@ def test_the_view_carries_plotly_packed_and_cached(tmp_path, monkeypatch):
     packed = view3d._plotly_js_packed()
     assert gzip.decompress(base64.b64decode(packed)) == view3d._plotly_js_path().read_bytes()
     assert len(packed) < 0.5 * view3d._plotly_js_path().stat().st_size
-    assert [p.suffix for p in (tmp_path / "cache" / "scanreg").iterdir()] == [".b64"]  # (no temporary left)
+    cached = list((tmp_path / "cache" / "scanreg").iterdir())
+    assert [p.suffix for p in cached] == [".b64"]  # (no temporary left)
     assert view3d._plotly_js_packed() == packed
+    for cut in (len(packed) // 2 + 1, len(packed) // 8 * 4):  # damaged (cut short): made again, not served
+        cached[0].write_text(packed[:cut])
+        assert view3d._plotly_js_packed() == packed and cached[0].read_text() == packed
     (tmp_path / "file").write_text("")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "file"))  # a file where the folder would go
     assert view3d._plotly_js_packed() == packed

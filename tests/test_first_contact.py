@@ -51,14 +51,16 @@ def test_size_mismatch_names_both_extents_and_the_unit():
 
 def test_the_same_file_as_source_and_target_is_said(tmp_path, capsys):
     """Source and target the same file: the result is the identity; one warning says so and how to pose the
-    source. Not when a pose is set (the benchmark's closed mesh onto itself) or the scales differ."""
+    source. Not when a pose is set (the benchmark's closed mesh onto itself) or the file is read otherwise (scales,
+    columns: one file holding two clouds)."""
     from scanreg import build_stage
     from scanreg.types import RunContext
 
-    write_ply(tmp_path / "a.ply", Cloud(np.random.default_rng(0).random((200, 3))))
+    np.savetxt(tmp_path / "a.xyz", np.random.default_rng(0).random((200, 6)))
     for extra, said in [({}, True), ({"max_angle_deg": 30.0}, False), ({"source_scale": 2.0, "max_size_ratio": None},
-                                                                          False)]:
-        stage = build_stage("data", "files", source=str(tmp_path / "a.ply"), target=f"{tmp_path}/./a.ply", **extra)
+                                                                          False),
+                        ({"source_columns": "x y z - - -", "target_columns": "- - - x y z"}, False)]:
+        stage = build_stage("data", "files", source=str(tmp_path / "a.xyz"), target=f"{tmp_path}/./a.xyz", **extra)
         stage.load(RunContext())
         out = capsys.readouterr().out
         assert ("are the same file" in out and "data.max_angle_deg" in out) == said, (extra, out)

@@ -346,6 +346,9 @@ def test_a_scan_held_by_one_loose_pair_is_not_placed():
     e = edges((0, 1, 1.55))
     distrust_lone_loose_pairs(e, 2, p)  # a pair of scans: its one pair is the registration
     assert e[0].accepted
+    e = edges((0, 1, 1.55))
+    distrust_lone_loose_pairs(e, 3, p)  # a pair apart from the third scan: a group of its own, as a set of two
+    assert e[0].accepted
 
 
 def test_unordered_candidate_pairs_never_pair_a_scan_with_itself():
@@ -580,9 +583,28 @@ def test_a_folder_of_several_scan_formats_takes_them_all_and_says_what_it_left_o
     (tmp_path / "jaw" / "upper").mkdir(parents=True)
     (tmp_path / "jaw" / "upper" / "t1.ply").write_text("x")
     (tmp_path / "jaw" / "SOURCE.txt").write_text("from a repository")
-    with pytest.raises(Exception, match=r"no scan files in this folder .*; its subfolders upper hold some: name "
-                                        r"them, e.g. data.scans='.*/jaw/\*/\*.ply'"):
+    (tmp_path / "jaw" / "lower").mkdir()
+    (tmp_path / "jaw" / "lower" / "t2.PLY").write_text("x")
+    (tmp_path / "jaw" / "lower" / "t3.PLY").write_text("x")
+    with pytest.raises(Exception, match=r"no scans in this folder: its files SOURCE.txt hold no rows of 3 or more "
+                                        r"numbers .*; its subfolders lower, upper hold some: name them, e.g. "
+                                        r"data.scans='.*/jaw/\*/\*.PLY'"):  # (the files' own spelling)
         scan_paths(str(tmp_path / "jaw"))
+    # transforms in text are no scans: 3x4, stacked 4x4s, KITTI's rows of 12
+    poses = tmp_path / "poses"
+    poses.mkdir()
+    np.savetxt(poses / "T34.txt", np.eye(4)[:3])
+    np.savetxt(poses / "stack.txt", np.vstack([np.eye(4)] * 5))
+    np.savetxt(poses / "kitti.txt", np.tile(np.eye(4)[:3].ravel(), (50, 1)))
+    np.savetxt(poses / "scan_a.txt", np.random.default_rng(0).random((50, 4)))  # x y z intensity: a scan
+    np.savetxt(poses / "scan_b.txt", np.random.default_rng(1).random((50, 4)))
+    assert [q.name for q in scan_paths(str(poses))] == ["scan_a.txt", "scan_b.txt"]
+    # per-scan folders of one file name: ordered by the folders' numbers too
+    for k in (10, 2, 1):
+        (tmp_path / "views" / f"view_{k}").mkdir(parents=True)
+        (tmp_path / "views" / f"view_{k}" / "scan.ply").write_text("x")
+    assert [q.parent.name for q in scan_paths(str(tmp_path / "views" / "*" / "scan.ply"))] == \
+        ["view_1", "view_2", "view_10"]
 
 
 def test_poses_that_are_not_there_are_named_so(tmp_path):
@@ -764,7 +786,9 @@ def test_the_model_leaves_out_the_faces_across_a_depth_jump(capsys):
     scan = prepare_scan(mesh, stages, ctx, "step", salt=1, repair=False)
     between = lambda c: int(((c.points[:, 2] > 0.01) & (c.points[:, 2] < 0.29)).sum())  # noqa: E731
     assert between(scan.cloud) > 100
-    (kept,) = model_scans([scan], stages, ctx, 8.0)
+    (kept,) = model_scans([scan], [np.eye(4)], stages, ctx, 8.0)
     assert between(kept.cloud) == 0 and kept.cloud.n_points == scan.cloud.n_points
-    assert "the model leaves out 118 faces that bridge depth jumps in 1 of the 1 scans" in capsys.readouterr().out
-    assert model_scans([scan], stages, ctx, None)[0] is scan
+    assert "the model leaves out 118 faces that bridge depth jumps in 1 of the 1 placed scans" in \
+        capsys.readouterr().out
+    assert model_scans([scan], [np.eye(4)], stages, ctx, None)[0] is scan
+    assert model_scans([scan], [None], stages, ctx, 8.0)[0] is scan  # not placed: not in the model

@@ -71,11 +71,12 @@ class SweepCallback(Callback):
         client = tr._client()
         children = _children(client, info)
         failed = max(failed, sum(r.info.status != "FINISHED" for r in children))
+        total = max(total, len(children))  # (a job that tracked nothing, or that the store lost, counts too)
         log = RunLog(client, info["parent_run_id"])
-        log.log_metrics({"sweep_runs": len(children), "sweep_failed": failed})
-        log.end("FAILED" if failed else "FINISHED", f"{failed} of {len(children)} runs failed" if failed else None)
-        _sweep_outcome.update(failed=failed, total=len(children))
-        print(f"sweep: {len(children)} run(s), {failed} failed; parent run {info['parent_run_id']} in experiment "
+        log.log_metrics({"sweep_runs": total, "sweep_failed": failed})
+        log.end("FAILED" if failed else "FINISHED", f"{failed} of {total} runs failed" if failed else None)
+        _sweep_outcome.update(failed=failed, total=total)
+        print(f"sweep: {total} run(s), {failed} failed; parent run {info['parent_run_id']} in experiment "
               f"'{info['experiment']}' at {info['uri']}")
         if config.get("report") is not None and config.report.get("enabled"):
             from scanreg.app.report.write import report_for_sweep

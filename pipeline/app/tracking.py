@@ -249,7 +249,8 @@ def _log_request(request: dict) -> str:
     rec = RunRecord(**request["record"])
     sweep = request.get("sweep")
     tags = dict(rec.tags)
-    if sweep and (tr.p.uri is None or sweep["uri"] == tr.uri) and sweep["experiment"] == tr.p.experiment:
+    if sweep and sweep.get("parent_run_id") and (tr.p.uri is None or sweep["uri"] == tr.uri) and \
+            sweep["experiment"] == tr.p.experiment:  # (an untracked sweep's info has no parent run)
         tr.uri = sweep["uri"]
         client, eid = tr._client(), sweep["experiment_id"]
         tags["mlflow.parentRunId"] = sweep["parent_run_id"]
@@ -348,7 +349,7 @@ def end_interrupted_sweep(reason: str = "interrupted", status: str = "KILLED") -
     """After an interrupt of a sweep (in the launching process): every child run still RUNNING, and the parent,
     end KILLED with the reason, so that no run is left RUNNING. Returns the number of runs ended."""
     info = json.loads(os.environ.pop(SWEEP_ENV, "null") or "null")
-    if not info:
+    if not info or not info.get("parent_run_id"):  # (an untracked sweep: no run to end)
         return 0
     tr = MlflowTracking(MlflowTracking.Params(uri=info["uri"], experiment=info["experiment"]))
     client = tr._client()

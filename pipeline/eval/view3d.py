@@ -16,6 +16,7 @@ anyway.
 from __future__ import annotations
 
 import base64
+import contextlib
 import importlib.util
 import json
 from pathlib import Path
@@ -70,19 +71,38 @@ def _plotly_js_packed() -> str:
     cached = _cache_file(js)
     if cached is not None:
         try:
-            return cached.read_text(encoding="ascii")
-        except (OSError, UnicodeDecodeError):
+            text = cached.read_text(encoding="ascii")
+            if _whole_gzip(text, js.stat().st_size):  # (else damaged: made again)
+                return text
+        except (OSError, UnicodeDecodeError, ValueError):
             pass
     packed = base64.b64encode(gzip.compress(js.read_bytes(), compresslevel=9, mtime=0)).decode("ascii")
     if cached is not None:
+        import tempfile
+
+        tmp = None
         try:
             cached.parent.mkdir(parents=True, exist_ok=True)
-            tmp = cached.with_suffix(f".{os.getpid()}.tmp")
-            tmp.write_text(packed, encoding="ascii")
+            fd, tmp = tempfile.mkstemp(dir=cached.parent, suffix=".tmp")
+            with os.fdopen(fd, "w", encoding="ascii") as f:
+                f.write(packed)
             os.replace(tmp, cached)  # whole or not at all, for a sweep's parallel jobs
+            tmp = None
         except OSError:
             pass
+        finally:
+            if tmp is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
     return packed
+
+
+def _whole_gzip(text: str, size: int) -> bool:
+    """Whether ``text`` is base64 of a whole gzip stream of ``size`` bytes: its magic bytes first, and last the
+    uncompressed size (mod 2^32) that gzip ends with."""
+    if not text.startswith("H4sI") or len(text) % 4 or len(text) < 12:  # "H4sI": base64 of 1f 8b 08
+        return False
+    return int.from_bytes(base64.b64decode(text[-12:])[-4:], "little") == size % (1 << 32)
 
 
 def _cache_file(js: Path) -> Path | None:
@@ -109,6 +129,7 @@ _PAGE_SCRIPT = """<script>
   code.textContent = await new Response(stream).text();
   document.head.appendChild(code);
   var fig = JSON.parse(document.getElementById("figure").textContent);
+  document.getElementById("view").textContent = "";
   Plotly.newPlot("view", fig.data, fig.layout, {"responsive": true});
 })();
 </script>"""
@@ -124,7 +145,8 @@ def _write_page(path: Path, traces: list[dict], layout: dict, title: str = "scan
     height = int(layout.get("height", 800))
     page = (f'<!doctype html>\n<html>\n<head>\n<meta charset="utf-8" />\n<title>{html.escape(title)}</title>\n'
             f"<style>html, body {{height: 100%; margin: 0;}}</style>\n</head>\n<body>\n"
-            f'<div id="view" style="height:{height}px; width:100%;"></div>\n'
+            f'<div id="view" style="height:{height}px; width:100%;">This 3D view needs JavaScript and a browser '
+            "from 2023 or later (it unpacks plotly.js with DecompressionStream).</div>\n"
             f'<script id="plotly-js-gz" type="application/octet-stream">{_plotly_js_packed()}</script>\n'
             f'<script id="figure" type="application/json">{fig}</script>\n'
             f"{_PAGE_SCRIPT}\n</body>\n</html>\n")

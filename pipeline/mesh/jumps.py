@@ -32,8 +32,9 @@ def corner_edge_lengths(mesh: Mesh, q: float = 0.25) -> np.ndarray:
 
 
 def depth_jump_faces(mesh: Mesh, ratio: float) -> np.ndarray:
-    """Which faces bridge a depth jump: their longest edge is more than ``ratio`` times the median edge length at
-    each of their three corners (:func:`corner_edge_medians`; the largest of the three counts)."""
+    """Which faces bridge a depth jump: their longest edge is more than ``ratio`` times the edges at each of their
+    three corners (the lower quartile of the edge lengths there, :func:`corner_edge_lengths`; the largest of the
+    three counts)."""
     v, f = mesh.vertices, mesh.faces
     if not len(f):
         return np.zeros(0, bool)

@@ -102,6 +102,9 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
     anchor = groups[0][0]
     # the main group's spacings: its coarsest for the graph (as one spacing for all), its finest for the model
     spacing = min(levels[k] for k in groups[0])
+    if len(groups[0]) < 2:  # no verified pair: nothing to solve, merge or reconstruct (the caller says why)
+        timings.update({"prepare": (t1 - t0) / 1e9, "pairs": (t2 - t1) / 1e9})
+        return SetRegistration(problem.names, [None] * len(scans), groups, [], edges, scans, spacing, levels)
     poses, graph_metrics = stages.graph.solve(len(scans), edges, max(levels[k] for k in groups[0]), diagonal, anchor,
                                               ctx)
     res = SetRegistration(problem.names, poses, _groups(poses, edges, len(scans)), [], edges, scans, spacing, levels)
@@ -128,7 +131,8 @@ def register_scanset(problem: ScanSet, stages: Stages, params: MultiviewParams, 
             params.refine_iterations, link_scales=[max(levels[i], levels[j]) / spacing for i, j in links])
         res.poses = [refined[k] if k in placed else None for k in range(len(scans))]
     t4 = time.perf_counter_ns()
-    res.merged = merge(model_scans(scans, stages, ctx, params.max_edge_ratio), res.poses, params.merge_voxel * spacing)
+    res.merged = merge(model_scans(scans, res.poses, stages, ctx, params.max_edge_ratio), res.poses,
+                       params.merge_voxel * spacing)
     from_meshes = all(isinstance(g, Mesh) for g in problem.scans)
     res.surface = stages.surface.reconstruct(res.merged, from_meshes, spacing, ctx)
     if res.surface is None and not from_meshes and getattr(stages.surface.p, "when", None) == "meshes":
@@ -155,10 +159,12 @@ def distrust_lone_loose_pairs(edges: list[ViewEdge], n: int, p: MultiviewParams)
         return
     degree = np.bincount([k for e in edges if e.accepted for k in (e.i, e.j)], minlength=n)
     for e in edges:
-        if e.accepted and min(degree[e.i], degree[e.j]) == 1 and e.inlier_rms > p.predict_max_inlier_rms:
+        lone = min(degree[e.i], degree[e.j]) == 1 and max(degree[e.i], degree[e.j]) > 1  # (a pair apart: a group)
+        if e.accepted and lone and e.inlier_rms > p.predict_max_inlier_rms:
             e.accepted = False
-            e.reason = (f"the only verified pair of a scan, at an inlier RMS of {e.inlier_rms:.2f} spacings (above "
-                        f"multiview.predict_max_inlier_rms {p.predict_max_inlier_rms:g}): too loose to place it alone")
+            e.reason = (f"the one pair that would place a scan, at an inlier RMS of {e.inlier_rms:.2f} spacings "
+                        f"(above multiview.predict_max_inlier_rms {p.predict_max_inlier_rms:g}): too loose to "
+                        "place it alone")
 
 
 def warn_whole_objects(geometries: list, names: list[str]) -> None:
@@ -175,22 +181,23 @@ def warn_whole_objects(geometries: list, names: list[str]) -> None:
              "two whole objects as a pair: scanreg A B")
 
 
-def model_scans(scans: list[PreparedScan], stages: Stages, ctx: RunContext, ratio: Optional[float]) -> list[PreparedScan]:
-    """The scans as the model takes them: a mesh with faces that bridge a depth jump
+def model_scans(scans: list[PreparedScan], poses: list[Optional[np.ndarray]], stages: Stages, ctx: RunContext,
+                ratio: Optional[float]) -> list[PreparedScan]:
+    """The scans as the model takes them: a placed mesh (``poses`` not None) with faces that bridge a depth jump
     (:func:`~scanreg.mesh.jumps.depth_jump_faces` at ``ratio``; None: none) sampled again without them (the
     registration sampled every face, as a pair run does); a note says how many faces were left out."""
     if ratio is None:
         return scans
     out, dropped = [], {}
-    for s in scans:
-        jump = depth_jump_faces(s.mesh, ratio) if s.mesh is not None else None
+    for s, T in zip(scans, poses):
+        jump = depth_jump_faces(s.mesh, ratio) if s.mesh is not None and T is not None else None
         if jump is not None and jump.any() and not jump.all():
             dropped[s.name] = int(jump.sum())
             s = replace(s, cloud=stages.sampler.sample(submesh(s.mesh, ~jump), ctx))
         out.append(s)
     if dropped:
         note(f"scan set: the model leaves out {sum(dropped.values())} faces that bridge depth jumps in "
-             f"{len(dropped)} of the {len(scans)} scans (long thin faces of a range grid across a silhouette; "
+             f"{len(dropped)} of the {sum(T is not None for T in poses)} placed scans (long thin faces of a range grid across a silhouette; "
              "multiview.max_edge_ratio=null keeps them)")
     return out
 
@@ -407,11 +414,17 @@ def register_edge(i: int, j: int, scans: list[PreparedScan], described: dict[flo
     if rms / spacing > p.max_inlier_rms:
         problems.append(f"inlier RMS {rms / spacing:.2f} spacings > multiview.max_inlier_rms {p.max_inlier_rms:g}")
     own = min(search[i].normal_coherence(), search[j].normal_coherence())  # noisy normals agree less anywhere
-    if agree < p.min_normal_agreement * own:
-        problems.append(f"normals agree on {agree:.3f} < {p.min_normal_agreement * own:.3f} (multiview."
-                        f"min_normal_agreement {p.min_normal_agreement:g} of the scans' own {own:.3f})")
+    bar = max(MIN_NORMAL_AGREEMENT, p.min_normal_agreement * own)
+    if agree < bar:
+        problems.append(f"normals agree on {agree:.3f} < {bar:.3f} (multiview.min_normal_agreement "
+                        f"{p.min_normal_agreement:g} of the scans' own {own:.3f}, at least {MIN_NORMAL_AGREEMENT:g})")
     edge.accepted, edge.reason = not problems, "; ".join(problems)
     return edge
+
+
+MIN_NORMAL_AGREEMENT = 0.5
+"""The least share of a pair's overlapping points whose normals must agree, however little a scan's own normals
+agree among themselves (normals of random signs agree on about half: the check would be off)."""
 
 
 def _rejected(i: int, j: int, reason: str, metrics: dict | None = None) -> ViewEdge:

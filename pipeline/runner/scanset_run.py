@@ -28,6 +28,10 @@ def run_scanset(problem: ScanSet, stages: Stages, ctx: RunContext, m: dict[str, 
     timings: dict[str, float] = {}
     reg = register_scanset(problem, stages, p, ctx, timings)
     m.update({f"time_{k}_s": v for k, v in timings.items()})
+    if len(reg.groups[0]) < 2:  # no two scans placed together: the set was not registered
+        if ctx.run_dir is not None:  # poses.json: every pair and why
+            write_set_outputs(ctx.run_dir, reg, Result(None, m, {}, ctx.run_dir), {})
+        raise StageError(nothing_placed(reg), metrics=m)
     m.update({k: float(v) for k, v in problem.info.items() if isinstance(v, (int, float))})
     t0 = time.perf_counter_ns()
     anchor = reg.groups[0][0]
@@ -53,18 +57,15 @@ def run_scanset(problem: ScanSet, stages: Stages, ctx: RunContext, m: dict[str, 
         m.update(surface_metrics(reg.surface, reference, seed=ctx.seed))
     m["time_evaluate_s"] = (time.perf_counter_ns() - t0) / 1e9
     m["time_total_s"] = (time.perf_counter_ns() - t_start) / 1e9
-    if len(reg.groups[0]) > 1:  # (else one error line below says why)
-        _say_groups(reg)
-        if anchor != 0:
-            note(f"scan set: the world frame is {reg.names[anchor]}'s (the first scan, {reg.names[0]}, is not in the "
-                 "model's group)")
+    _say_groups(reg)
+    if anchor != 0:
+        note(f"scan set: the world frame is {reg.names[anchor]}'s (the first scan, {reg.names[0]}, is not in the "
+             "model's group)")
     res = Result(None, m, {f"scan_{k}": v for k, v in per_scan.items()}, ctx.run_dir)
     res.children = [(f"{reg.names[e.j]} -> {reg.names[e.i]}", edge_metrics(e)) for e in reg.edges]
     res.scanset = reg
     if ctx.run_dir is not None:
         res.artifacts = write_set_outputs(ctx.run_dir, reg, res, per_scan)
-    if len(reg.groups[0]) < 2:  # no two scans placed together: the set was not registered
-        raise StageError(nothing_placed(reg), metrics=m)
     return res
 
 

@@ -133,7 +133,9 @@ class Files(Provider):
         if lm is not None:
             lm = (lm[0] * self.p.target_scale, lm[1] * self.p.source_scale)
         posed = self.p.max_angle_deg > 0 or self.p.max_translation > 0
-        if not posed and self.p.source_scale == self.p.target_scale and _same_file(self.p.source, self.p.target):
+        same_reading = (self.p.source_scale == self.p.target_scale and
+                        (self.p.source_columns or self.p.columns) == (self.p.target_columns or self.p.columns))
+        if not posed and same_reading and _same_file(self.p.source, self.p.target):
             warn(f"data.source and data.target are the same file ({self.p.source}): the source lies on the target "
                  "already, so the result is the identity; to test the registration, move the source with "
                  "data.max_angle_deg=A data.max_translation=T (the truth follows the pose)")

@@ -145,7 +145,7 @@ def scan_paths(spec: Any) -> list[Path]:
             found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in SCAN_EXTS)
             scans = _folder_scans(found, str(item)) if found else []
             if not scans:
-                raise InputError(_no_scans(p, str(item)))
+                raise InputError(_no_scans(p, str(item), found))
             out += scans
         elif any(c in s for c in "*?["):
             found = sorted(Path(q) for q in globbing.glob(str(p)) if Path(q).is_file())
@@ -156,7 +156,7 @@ def scan_paths(spec: Any) -> list[Path]:
             out.append(Path(s) if s.startswith("pkg:") else p)
         else:
             raise InputError(f"data.scans {item}: no such file or folder ({p.absolute()})")
-    out = sorted(dict.fromkeys(out), key=lambda q: natural_key(q.name))
+    out = sorted(dict.fromkeys(out), key=lambda q: (natural_key(q.name), [natural_key(x) for x in q.parts]))
     if len(out) < 2:
         what = ", ".join(str(i) for i in items)
         raise InputError(f"data.scans {what}: {len(out)} scan{'' if len(out) == 1 else 's'}"
@@ -221,22 +221,45 @@ def _rows_of_points(path: Path) -> bool:
     for line in head.splitlines():
         cells = [c for c in re.split(r"[,;\s]+", line.strip()) if c]
         try:
-            rows.append(len([float(c) for c in cells]))
+            rows.append([float(c) for c in cells])
         except ValueError:
             continue  # a header or a note
-    rows = [n for n in rows if n >= 3]
-    return bool(rows) and not (rows == [4, 4, 4, 4] and len(head) < (1 << 16))
+    rows = [r for r in rows if len(r) >= 3]
+    return bool(rows) and not _transforms(rows, whole=len(head) < (1 << 16))
 
 
-def _no_scans(folder: Path, item: str) -> str:
-    """The error line for a folder without scans, naming its subfolders that hold some."""
-    msg = f"data.scans {item}: no scan files in this folder (expected {' '.join(sorted(SCAN_EXTS))})"
-    subs = sorted(d for d in folder.iterdir() if d.is_dir() and any(
-        q.is_file() and q.suffix.lower() in SCAN_EXTS for q in d.iterdir()))
+def _transforms(rows: list[list[float]], whole: bool) -> bool:
+    """Whether numeric ``rows`` are rigid transforms rather than points: one 3x4 or 4x4 matrix (``whole``: the
+    file's only rows), 4x4 matrices stacked (every 4th row 0 0 0 1), or rows of 12 (KITTI's poses, 3x4 each)."""
+    widths = {len(r) for r in rows}
+    if widths == {4} and whole and len(rows) in (3, 4):
+        return True
+    if widths == {4} and len(rows) % 4 == 0 and all(r == [0.0, 0.0, 0.0, 1.0] for r in rows[3::4]):
+        return True
+    return widths == {12}
+
+
+def _no_scans(folder: Path, item: str, found: list[Path]) -> str:
+    """The error line for a folder without scans (``found``: its generic files, none of them rows of points),
+    naming its subfolders that hold some."""
+    if found:
+        msg = (f"data.scans {item}: no scans in this folder: its files {_listed([q.name for q in found])} hold no "
+               "rows of 3 or more numbers (or a transform); name scan files: data=scanset data.scans=[A,B,...]")
+    else:
+        msg = f"data.scans {item}: no scan files in this folder (expected {' '.join(sorted(SCAN_EXTS))})"
+    subs: dict[str, list[str]] = {}
+    for d in sorted(folder.iterdir()):
+        try:
+            if d.is_dir():
+                names = [q.suffix for q in d.iterdir() if q.is_file() and q.suffix.lower() in SCAN_EXTS]
+                if names:
+                    subs[d.name] = names
+        except OSError:  # a folder that cannot be read (lost+found): not one of them
+            continue
     if subs:
-        exts = [q.suffix.lower() for d in subs for q in d.iterdir() if q.suffix.lower() in SCAN_EXTS]
-        common = max(sorted(set(exts)), key=exts.count)
-        msg += (f"; its subfolders {_listed([d.name for d in subs])} hold some: name them, e.g. "
+        exts = [e for names in subs.values() for e in names]
+        common = max(sorted(set(exts)), key=exts.count)  # as the files spell it: a pattern matches case
+        msg += (f"; its subfolders {_listed(list(subs))} hold some: name them, e.g. "
                 f"data.scans='{item.rstrip('/')}/*/*{common}' (or one subfolder)")
     return msg
 
