@@ -133,9 +133,10 @@ def test_the_summary_explains_success_beside_recall_and_prints_counts_in_full():
     from scanreg.types import Result
 
     res = Result(np.eye(4), {"n_source_points": 3007275.0, "success": 0.0, "registration_recall": 1.0,
-                             "rotation_error_deg": 0.91}, {}, None)
+                             "rotation_error_deg": 0.91, "p2s_mean": float("nan")}, {}, None)
     lines = summary_lines(res)
     assert any(ln.split() == ["n_source_points", "3007275"] for ln in lines)
+    assert any(ln.split() == ["p2s_mean", "-"] for ln in lines)  # not measured: '-', not 'nan'
     k = next(i for i, ln in enumerate(lines) if ln.startswith("registration_recall"))
     assert "the strict test" in lines[k + 1] and "3DMatch's looser one" in lines[k + 1]
     res.metrics["success"] = 1.0
