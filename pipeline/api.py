@@ -187,9 +187,10 @@ def reconstruct(scans: Any, *, poses: Any = None, overrides: Sequence[str] = (),
                 if len(Ts) != len(paths) or any(T is not None and T.shape != (4, 4) for T in Ts):
                     raise InputError(f"poses: expected one 4x4 transform (or None) per scan ({len(paths)}), got "
                                      f"{[None if T is None else T.shape for T in Ts]}")
-                if sum(T is not None for T in Ts) < 2:
-                    raise InputError(f"poses: {sum(T is not None for T in Ts)} of the {len(Ts)} scans have a pose; at "
-                                     "least two need one to evaluate the set (or poses=None: not evaluated)")
+                posed = sum(T is not None for T in Ts)
+                if posed < 2:
+                    raise InputError(f"poses: {posed} of the {len(Ts)} scans have a pose; at least two need one to "
+                                     "evaluate the set (or poses=None: not evaluated)")
                 (folder / "poses").mkdir(parents=True, exist_ok=True)
                 for path, T in zip(paths, Ts):
                     if T is not None:  # a scan without a pose: registered, not evaluated (as a missing file)

@@ -54,9 +54,8 @@ class Poisson:
     @staticmethod
     def frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(centre, axes)``: the points' centroid and principal axes (columns, a rotation: determinant +1), the
-        frame the octree is laid in, so that the surface does not depend on the pose of the world scan (in the
-        world frame the octree's cube spanned the bounding box of whatever pose the model was in: the bunny's
-        surface had 98k faces as scanned and 68-70k under random poses)."""
+        frame the octree is laid in. (``scanreg.eval.picture.principal_frame`` orders its axes largest first: the
+        same frame up to the axes' order and signs, which would change the surface's faces a little.)"""
         centre = points.mean(axis=0)
         centred = points - centre
         axes = np.linalg.eigh(centred.T @ centred)[1]
@@ -67,7 +66,11 @@ class Poisson:
     def depth(self, points: np.ndarray, spacing: float) -> int:
         """The octree depth for ``points`` sampled ``spacing`` apart (see ``resolution``)."""
         centre, axes = self.frame(points)
-        extent = self.p.scale * float(np.ptp((points - centre) @ axes, axis=0).max())
+        return self._depth((points - centre) @ axes, spacing)
+
+    def _depth(self, local: np.ndarray, spacing: float) -> int:
+        """:meth:`depth` of points given in their principal frame (``local``)."""
+        extent = self.p.scale * float(np.ptp(local, axis=0).max())
         cells = extent / (self.p.resolution * spacing) if spacing > 0 else 2.0 ** self.p.max_depth
         return int(np.clip(np.round(np.log2(max(cells, 1.0))), self.p.min_depth, self.p.max_depth))
 
@@ -84,11 +87,14 @@ class Poisson:
         normals = points.normals
         if normals is None:  # clouds without normals (when: always): estimated, outward (the merged model's outside)
             normals = orient_normals(points.points, estimate_normals(points.points))
+        # the octree laid in the points' principal frame, so that the surface does not depend on the pose of the
+        # world scan (in the world frame its cube would span whatever bounding box that pose gives)
         centre, axes = self.frame(points.points)
-        pc = to_o3d((points.points - centre) @ axes, normals @ axes)
+        local = (points.points - centre) @ axes
+        pc = to_o3d(local, normals @ axes)
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-                pc, depth=self.depth(points.points, spacing), scale=self.p.scale, linear_fit=False, n_threads=1)
+                pc, depth=self._depth(local, spacing), scale=self.p.scale, linear_fit=False, n_threads=1)
         if self.p.trim_quantile > 0:
             density = np.asarray(density)
             mesh.remove_vertices_by_mask(density < np.quantile(density, self.p.trim_quantile))

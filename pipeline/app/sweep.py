@@ -14,7 +14,7 @@ from omegaconf import DictConfig
 
 from scanreg.errors import ConfigError
 from scanreg.app.tracking import (SWEEP_ENV, SWEEP_FILE, MlflowTracking, RunLog, _children, _sweep_outcome,
-                              launcher_tags, sweep_size)
+                              launcher_tags, progress_counts, sweep_size)
 
 
 class SweepCallback(Callback):
@@ -101,8 +101,8 @@ def _progress_outcome(info: dict) -> tuple[int, int]:
     """``(failed, total)`` jobs of the sweep by its progress file: a job that did not report (its worker died)
     counts as failed when the sweep's size is known."""
     try:
-        lines = Path(info["progress"]).read_text().split()
+        done, failed = progress_counts(info["progress"])
     except OSError:
-        lines = []
-    total = max(len(lines), info.get("total") or 0)
-    return total - lines.count("FINISHED"), total
+        done, failed = 0, 0
+    total = max(done, info.get("total") or 0)
+    return failed + total - done, total

@@ -383,6 +383,12 @@ def sweep_size(config: DictConfig) -> int | None:
         return None
 
 
+def progress_counts(path: str) -> tuple[int, int]:
+    """``(done, failed)`` jobs by a sweep's progress file: one line per job, ``FINISHED`` or its failure."""
+    lines = Path(path).read_text().split()
+    return len(lines), sum(s != "FINISHED" for s in lines)
+
+
 def report_progress(status: str, what: str = "") -> None:
     """After a sweep job: append to the sweep's progress file and print one line, the job's outcome with a
     progress bar and the estimated time left (the job's full table is in its folder, ``summary.txt``)."""
@@ -392,10 +398,9 @@ def report_progress(status: str, what: str = "") -> None:
     try:
         with open(info["progress"], "a") as f:
             f.write(status + "\n")
-        done_lines = Path(info["progress"]).read_text().split()
+        done, failed = progress_counts(info["progress"])
     except OSError:
         return
-    done, failed = len(done_lines), sum(s != "FINISHED" for s in done_lines)
     elapsed = time.time() - info["start"]
     total = info.get("total")
     try:

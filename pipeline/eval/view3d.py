@@ -68,11 +68,12 @@ def _plotly_js_packed() -> str:
     import os
 
     js = _plotly_js_path()
-    cached = _cache_file(js)
+    st = js.stat()
+    cached = _cache_file(st)
     if cached is not None:
         try:
             text = cached.read_text(encoding="ascii")
-            if _whole_gzip(text, js.stat().st_size):  # (else damaged: made again)
+            if _whole_gzip(text, st.st_size):  # (else damaged: made again)
                 return text
         except (OSError, UnicodeDecodeError, ValueError):
             pass
@@ -105,16 +106,15 @@ def _whole_gzip(text: str, size: int) -> bool:
     return int.from_bytes(base64.b64decode(text[-12:])[-4:], "little") == size % (1 << 32)
 
 
-def _cache_file(js: Path) -> Path | None:
-    """Where the packed ``js`` is kept: ``$XDG_CACHE_HOME/scanreg``, else ``~/.cache/scanreg``, named by the
-    file's size and time; None without a home folder."""
+def _cache_file(st) -> Path | None:
+    """Where packed plotly.js is kept: ``$XDG_CACHE_HOME/scanreg``, else ``~/.cache/scanreg``, named by the
+    file's size and time (``st``: its ``os.stat``); None without a home folder."""
     import os
 
     try:
         root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "scanreg"
     except RuntimeError:
         return None
-    st = js.stat()
     return root / f"plotly-{st.st_size}-{st.st_mtime_ns}.min.js.gz.b64"
 
 

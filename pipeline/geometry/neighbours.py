@@ -19,6 +19,7 @@ class ClosestPoints:
     def __init__(self, target: Cloud, mesh: Mesh | None = None):
         self.mesh = mesh
         self.normals = target.normals
+        self._coherence: float | None = None  # (normal_coherence, computed on first use)
         if mesh is not None:
             import open3d as o3d
 
@@ -37,10 +38,10 @@ class ClosestPoints:
 
     def normal_coherence(self) -> float:
         """The share of the target cloud's points whose normal agrees (cosine above 0.5) with that of their
-        nearest other point (the nearest at a distance above 0, among the 3 nearest): how far its normals can agree with another scan's at all (clean normals 0.93-0.98 on
-        the Stanford scans, 0.75-0.78 with noise of 0.37 spacings); 1 without normals or points to compare.
-        Computed once."""
-        if getattr(self, "_coherence", None) is None:
+        nearest other point (the nearest at a distance above 0, among the 3 nearest): how far its normals can
+        agree with another scan's at all (clean normals 0.93-0.98 on the Stanford scans, 0.75-0.78 with noise of
+        0.37 spacings); 1 without normals or points to compare. Computed once."""
+        if self._coherence is None:
             if self.mesh is not None or self.normals is None or len(self.points) < 2:
                 self._coherence = 1.0
             else:

@@ -9,16 +9,22 @@ from __future__ import annotations
 
 import numpy as np
 
-from scanreg.geometry import Mesh
+from scanreg.geometry import Mesh, row_norms
 
 
-def corner_edge_lengths(mesh: Mesh, q: float = 0.25) -> np.ndarray:
+def edge_lengths(mesh: Mesh) -> np.ndarray:
+    """(F, 3) lengths of each face's edges; edge k joins corner k and corner k+1."""
+    v, f = mesh.vertices, mesh.faces
+    return row_norms(v[f[:, [1, 2, 0]]] - v[f])
+
+
+def corner_edge_lengths(mesh: Mesh, q: float = 0.25, length: np.ndarray | None = None) -> np.ndarray:
     """Per vertex, the ``q`` quantile (lower) of the lengths of the face edges at it (each face's two edges at the
-    corner; 0 for a vertex no face uses)."""
+    corner; 0 for a vertex no face uses); ``length``: :func:`edge_lengths` of ``mesh`` when already computed."""
     v, f = mesh.vertices, mesh.faces
     if not len(f):
         return np.zeros(len(v))
-    length = np.linalg.norm(v[f[:, [1, 2, 0]]] - v[f], axis=2)  # edge k joins corner k and corner k+1
+    length = edge_lengths(mesh) if length is None else length
     vert = np.concatenate([f.ravel(), f[:, [1, 2, 0]].ravel()])
     lens = np.concatenate([length.ravel(), length.ravel()])
     order = np.lexsort((lens, vert))
@@ -35,9 +41,8 @@ def depth_jump_faces(mesh: Mesh, ratio: float) -> np.ndarray:
     """Which faces bridge a depth jump: their longest edge is more than ``ratio`` times the edges at each of their
     three corners (the lower quartile of the edge lengths there, :func:`corner_edge_lengths`; the largest of the
     three counts)."""
-    v, f = mesh.vertices, mesh.faces
-    if not len(f):
+    if not len(mesh.faces):
         return np.zeros(0, bool)
-    longest = np.linalg.norm(v[f[:, [1, 2, 0]]] - v[f], axis=2).max(axis=1)
-    local = corner_edge_lengths(mesh)[f].max(axis=1)
-    return longest > ratio * local
+    length = edge_lengths(mesh)
+    local = corner_edge_lengths(mesh, length=length)[mesh.faces].max(axis=1)
+    return length.max(axis=1) > ratio * local

@@ -99,13 +99,13 @@ def summary_lines(res: Result) -> list[str]:
     return lines
 
 
-def _shown(v: float) -> str:
-    """A number as the summary prints it: 6 significant digits, whole numbers of a million and more in full (a
-    point count of 3 007 275, not 3.00728e+06), ``-`` for a number not measured (NaN)."""
+def _shown(v: float, digits: int = 6) -> str:
+    """A number as the summary prints it: ``digits`` significant digits, whole numbers of a million and more in
+    full (a point count of 3 007 275, not 3.00728e+06), ``-`` for a number not measured (NaN)."""
     v = float(v)
     if v != v:
         return "-"
-    return f"{int(v)}" if v.is_integer() and 1e6 <= abs(v) < 1e15 else f"{v:.6g}"
+    return f"{int(v)}" if v.is_integer() and 1e6 <= abs(v) < 1e15 else f"{v:.{digits}g}"
 
 
 def repair_table(m: dict, prefix: str = "repair_", role: str = "source") -> list[str]:
@@ -140,7 +140,6 @@ def set_summary_lines(res: Result) -> list[str]:
     width = max(len(n) for n in reg.names)
     lines += ["", f"{'scan':<{width}}  placed  " + "  ".join(f"{c:>22}" for c in cols)]
     for k, name in enumerate(reg.names):
-        vals = "  ".join(f"{'-' if v != v else format(v, '.4g'):>22}"
-                         for v in (float(res.histories[f'scan_{c}'][k]) for c in cols))
+        vals = "  ".join(f"{_shown(res.histories[f'scan_{c}'][k], 4):>22}" for c in cols)
         lines.append(f"{name:<{width}}  {'yes' if reg.poses[k] is not None else 'no':>6}  {vals}")
     return lines

@@ -197,8 +197,8 @@ def model_scans(scans: list[PreparedScan], poses: list[Optional[np.ndarray]], st
         out.append(s)
     if dropped:
         note(f"scan set: the model leaves out {sum(dropped.values())} faces that bridge depth jumps in "
-             f"{len(dropped)} of the {sum(T is not None for T in poses)} placed scans (long thin faces of a range grid across a silhouette; "
-             "multiview.max_edge_ratio=null keeps them)")
+             f"{len(dropped)} of the {sum(T is not None for T in poses)} placed scans (long thin faces of a range "
+             "grid across a silhouette; multiview.max_edge_ratio=null keeps them)")
     return out
 
 

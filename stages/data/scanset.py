@@ -41,7 +41,8 @@ class ScanSetProvider(Provider):
         scans: Any = None
         """The scans: a folder (its scan files, .ply .stl .obj .off .pcd .xyz .pts .asc in any mix; .txt .csv
         .npy only in a folder of no other scan file; a scan in two formats once), a glob (``scans/*.ply``), or a
-        list of paths; ``shared:`` and ``pkg:`` names allowed. Sorted by file name; the first is the world frame of the result."""
+        list of paths; ``shared:`` and ``pkg:`` names allowed. Sorted by file name, numbers by value (``scan_2``
+        before ``scan_10``); the first is the world frame of the result."""
         poses: Optional[str] = None
         """Ground truth (optional): a Stanford ``.conf`` file (``bmesh NAME tx ty tz qx qy qz qw`` lines), or a
         folder or glob of 4x4 files (text or .npy), one per scan, matched by file stem; each maps the scan into
@@ -171,9 +172,9 @@ T.npy beside scans is none); among themselves, the most common one."""
 
 def _folder_scans(found: list[Path], item: str) -> list[Path]:
     """The scans among a folder's files of scan formats ``found`` (sorted): every one, in whatever format, but
-    ``.txt``/``.csv``/``.npy`` files only when the folder has no other scan file (then those of the most common
-    of them), and of files with the same stem (a scan
-    exported twice, ``s1.ply`` and ``s1.stl``) the one in the folder's most common format; a note names the
+    ``.txt``/``.csv``/``.npy`` files only when the folder has no other scan file (then those that hold rows of
+    points, :func:`_rows_of_points`, of the most common format among them), and of files with the same stem (a
+    scan exported twice, ``s1.ply`` and ``s1.stl``) the one in the folder's most common format; a note names the
     files left out. (The most common format alone was taken: a folder of .ply, .stl, .obj and .xyz scans gave one
     scan.)"""
     exts = [q.suffix.lower() for q in found]
@@ -206,9 +207,9 @@ def natural_key(name: str) -> tuple:
 
 
 def _rows_of_points(path: Path) -> bool:
-    """Whether a generic file (.txt .csv .npy) holds rows of at least 3 numbers other than one 4x4 transform, by
-    its shape (.npy) or its first 64 kB (text): a README, notes or a ground-truth ``T.npy`` beside text scans
-    are none."""
+    """Whether a generic file (.txt .csv .npy) holds rows of at least 3 numbers that are not transforms
+    (:func:`_transforms`), by its shape (.npy) or its first 64 kB (text): a README, notes or a ground-truth
+    ``T.npy`` beside text scans are none."""
     try:
         if path.suffix.lower() == ".npy":
             shape = np.load(path, mmap_mode="r", allow_pickle=False).shape
