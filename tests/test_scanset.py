@@ -727,6 +727,21 @@ def test_a_folder_of_one_scan_is_named_in_one_line(tmp_path):
         scan_paths(str(tmp_path))
 
 
+def test_a_copied_scan_is_warned_of_by_name(tmp_path, capsys):
+    from scanreg.stages.data.scanset import ScanSetProvider
+
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(500, 3)), rng.normal(size=(500, 3))
+    for name, pts in (("s1.npy", a), ("s2.npy", b), ("s3.npy", a.copy()), ("s4.npy", b + 1e-12)):
+        np.save(tmp_path / name, pts)
+    ScanSetProvider(ScanSetProvider.Params(scans=str(tmp_path))).load(RunContext())
+    out = capsys.readouterr().out
+    assert out.count("warning:") == 1 and "1 scan is a copy, the same points as an earlier one: s3.npy (of s1.npy);" in out
+    np.save(tmp_path / "s4.npy", b)
+    ScanSetProvider(ScanSetProvider.Params(scans=str(tmp_path))).load(RunContext())
+    assert "2 scans are copies, the same points as an earlier one: s3.npy (of s1.npy), s4.npy (of s2.npy);" in capsys.readouterr().out
+
+
 def _step_grid(n: int = 60, step: float = 0.3) -> tuple[Mesh, np.ndarray]:
     """A range grid over a step: z = 0 for the first half of the columns, ``step`` for the rest, triangulated
     as a scanner's grid (two faces per cell), and the mask of the faces that join the two levels."""

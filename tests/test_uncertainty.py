@@ -3,12 +3,12 @@ deviation uncertainty, FDI numbers, and the interactive 3D view opened in headle
 
 import json
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from browser import screenshot
 from conftest import run_cli, shared
 from scanreg.geometry import Cloud, make_T
 from scanreg.eval.metrics import EvalParams
@@ -158,28 +158,6 @@ def arch_view(tmp_path: Path) -> Path:
     m, paths, view = evaluate_deviation(tmp_path, Cloud(src, nrm), Cloud(src, nrm), cp, part, p, "tooth", pose=pc)
     assert (tmp_path / "deviation_teeth.csv").exists() and "dev_pose_sigma_median_um" in m
     return write_view(tmp_path / "view3d.html", target, Cloud(src + [40.0, 0, 0], nrm), np.eye(4), src, None, view, p)
-
-
-def chromium() -> str:
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        pytest.skip("headless Chromium not installed (Debian: apt-get install -y chromium); the HTML view is not "
-                    "rendered")
-    return exe
-
-
-def screenshot(html: Path, out: Path) -> np.ndarray:
-    """Render ``html`` in headless Chromium with networking disabled (a proxy that does not exist, no DNS);
-    the pixels as an RGB array."""
-    from PIL import Image
-
-    cmd = [chromium(), "--headless=new", "--no-sandbox", "--disable-gpu", "--use-gl=swiftshader",
-           "--enable-unsafe-swiftshader", "--proxy-server=http://127.0.0.1:9", "--proxy-bypass-list=<-loopback>",
-           "--host-resolver-rules=MAP * ~NOTFOUND", "--virtual-time-budget=15000", "--window-size=1100,1000",
-           f"--user-data-dir={out.parent / 'chromium-profile'}", f"--screenshot={out}", html.as_uri()]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
-    assert out.exists(), r.stderr[-2000:]
-    return np.asarray(Image.open(out).convert("RGB")).astype(int)
 
 
 def coloured_share(img: np.ndarray) -> tuple[float, float]:

@@ -118,7 +118,8 @@ def _cache_file(st) -> Path | None:
     return root / f"plotly-{st.st_size}-{st.st_mtime_ns}.min.js.gz.b64"
 
 
-# The page unpacks plotly.js (DecompressionStream: every browser since 2023) and runs it, then draws the figure.
+# The page unpacks plotly.js (DecompressionStream: every browser since 2023) and runs it, then draws the figure;
+# drawn, it says so in <html data-drawn="true"> (for scripts that capture the view: the tests' headless browser).
 _PAGE_SCRIPT = """<script>
 (async function () {
   var packed = atob(document.getElementById("plotly-js-gz").textContent);
@@ -130,7 +131,8 @@ _PAGE_SCRIPT = """<script>
   document.head.appendChild(code);
   var fig = JSON.parse(document.getElementById("figure").textContent);
   document.getElementById("view").textContent = "";
-  Plotly.newPlot("view", fig.data, fig.layout, {"responsive": true});
+  await Plotly.newPlot("view", fig.data, fig.layout, {"responsive": true});
+  document.documentElement.dataset.drawn = "true";
 })();
 </script>"""
 

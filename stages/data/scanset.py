@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import glob as globbing
+import hashlib
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,7 +11,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from scanreg.errors import ConfigError, InputError, note
+from scanreg.errors import ConfigError, InputError, note, warn
 from scanreg.eval.checks import likely_units
 from scanreg.geometry import bbox_diagonal, invert_T, points_of, transform_geometry
 from scanreg.io import CLOUD_EXTS, MESH_EXTS, expand_path, read_geometry, read_input, read_stanford_conf, read_transform
@@ -85,6 +86,7 @@ class ScanSetProvider(Provider):
             scans.append(g)
             info["n_invalid_points"] = info.get("n_invalid_points", 0) + bad
         check_sizes(scans, self.p.max_size_ratio)
+        warn_copies(scans)
         poses = read_poses(self.p.poses, names) if self.p.poses else None
         if self.p.max_angle_deg > 0 or self.p.max_translation > 0:
             diagonal = bbox_diagonal(np.vstack([points_of(g) for g in scans]))
@@ -130,6 +132,24 @@ def check_sizes(scans: list, max_size_ratio: float | None) -> None:
         f"scan {scans[k].source} is {d[k]:.4g} across (bounding-box diagonal) and the set's median scan {med:.4g}: "
         f"{off[k]:.3g}x apart, likely {unit}; multiply its coordinates by {scale:g} (or set "
         f"data.max_size_ratio=null to register the scans as they are)")
+
+
+def warn_copies(scans: list) -> None:
+    """One warning naming the scans that hold exactly the same points as an earlier one (a file copied under
+    another name, or the same scan exported twice): a copy pairs with its original perfectly and adds nothing
+    to the model; both are kept."""
+    first: dict[bytes, str] = {}
+    copies = []
+    for g in scans:
+        key = hashlib.sha256(np.ascontiguousarray(points_of(g), dtype=np.float64).tobytes()).digest()
+        if key in first:
+            copies.append(f"{g.source} (of {first[key]})")
+        else:
+            first[key] = g.source
+    if copies:
+        warn(f"scan set: {len(copies)} scan{'s are copies' if len(copies) > 1 else ' is a copy'}, the same points "
+             f"as an earlier one: {', '.join(copies[:3])}{', ...' if len(copies) > 3 else ''}; a copy adds "
+             "nothing to the model (both are kept)")
 
 
 def scan_paths(spec: Any) -> list[Path]:
