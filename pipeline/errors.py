@@ -40,8 +40,19 @@ def note(msg: str) -> None:
 
 def _line(text: str) -> None:
     """``text`` and its newline in one write (``print`` makes two when standard output is unbuffered, and the
-    lines of two processes, such as a pair's two repairs, would interleave)."""
+    lines of two processes, such as a pair's two repairs, would interleave); and the same line in the run
+    folder's log (:func:`log_line`)."""
     import sys
 
     sys.stdout.write(text + "\n")
     sys.stdout.flush()
+    log_line(text)
+
+
+def log_line(text: str) -> None:
+    """``text`` into the log of the run (Hydra's ``main.log`` in the run folder, which the command line's
+    config writes at INFO and shows on the console only from WARNING: the console has the line already). Outside
+    a command-line run no handler takes it."""
+    import logging
+
+    logging.getLogger("scanreg").info(text)

@@ -33,6 +33,10 @@ def test_demo_recovers_random_pose_and_logs(tmp_path, mlflow_uri):
     for f in ("aligned_source.ply", "target.ply", "config.yaml"):
         assert (out / f).exists(), f
     assert "rotation_error_deg" in r.stdout and "stage" in r.stdout
+    # the run folder keeps what the console said: the table (summary.txt) and each note (main.log), shown once
+    assert (out / "summary.txt").read_text().startswith("stage ") and f"results: {out}" in r.stdout
+    note = "note: repair=meshfix: data.mesh pkg:pymeshfix/examples/StanfordBunny.ply: no outer border"
+    assert r.stdout.count(note) == 1 and (out / "main.log").read_text().count(note) == 1
     df = runs(mlflow_uri, "demo")
     row = df.iloc[0]
     assert row["status"] == "FINISHED"
@@ -161,6 +165,7 @@ def test_bad_input_one_line_error_and_failed_run(tmp_path, mlflow_uri, case):
     df = runs(mlflow_uri, f"bad_{case}")
     assert list(df["status"]) == ["FAILED"]
     assert message in df.iloc[0]["tags.error"]
+    assert lines[-1] in (tmp_path / "out" / "main.log").read_text()  # the run folder keeps the reason too
 
 
 def test_a_config_error_found_in_the_job_leaves_no_folder(tmp_path):
@@ -172,6 +177,11 @@ def test_a_config_error_found_in_the_job_leaves_no_folder(tmp_path):
     (tmp_path / "outputs" / "runs" / "old").mkdir(parents=True)
     assert run_cli(["data=scanset", "tracking=none"], tmp_path).returncode == 2
     assert sorted(p.name for p in (tmp_path / "outputs" / "runs").iterdir()) == ["old"]
+    old = tmp_path / "outputs" / "runs" / "old"  # an earlier run's folder, reused: its log stays, the error added
+    (old / "config.yaml").write_text("seed: 0\n")
+    (old / "main.log").write_text("earlier run\n")
+    assert run_cli(["data=scanset", "tracking=none", f"hydra.run.dir={old}"], tmp_path).returncode == 2
+    assert (old / "main.log").read_text().startswith("earlier run\n") and (old / "config.yaml").exists()
 
 
 @pytest.mark.slow

@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from scanreg.app.config import (PRESET_GROUPS, STAGE_GROUPS, config_error_line, git_revision, interpolation_error_line,
                                 register_schemas)
-from scanreg.errors import ConfigError, ScanregError, warn
+from scanreg.errors import ConfigError, ScanregError, log_line, warn
 from scanreg.stages.registry import CONF_PACKAGE
 
 # The exit codes (documentation: Getting started, Errors and exit codes); 0: done.
@@ -38,6 +38,7 @@ EXIT_INTERRUPTED = 130
 
 def _err(msg: str) -> None:
     print(f"error: {msg}", file=sys.stderr, flush=True)
+    log_line(f"error: {msg}")
 
 
 def check_config(cfg: DictConfig):
@@ -113,11 +114,12 @@ def run_job(cfg: DictConfig) -> dict | float | None:
     run_id = _log(tracker, record.ended("FINISHED", None, res.metrics, res.histories,
                                         [run_dir / "config.yaml", *res.artifacts]), multirun, children)
     where = f"results: {run_dir}" + (f"  (MLflow run {run_id})" if run_id else "")
+    lines = summary_lines(res)
+    (run_dir / "summary.txt").write_text("\n".join([*lines, "", where]) + "\n")  # the table, kept with the run
     if multirun:  # one line per job on the console; the full table in the job's folder
-        (run_dir / "summary.txt").write_text("\n".join([*summary_lines(res), "", where]) + "\n")
         report_progress("FINISHED", job_line(res.metrics))
     else:
-        print("\n".join(summary_lines(res)))
+        print("\n".join(lines))
         print(where)
     objective = cfg.get("objective")
     if objective:  # what a tuning sweeper (Optuna) minimises
@@ -153,16 +155,16 @@ def _log(tracker, record, multirun: bool, children=()) -> str | None:
 
 
 def _unmake_run_dir(run_dir: Path) -> None:
-    """Remove what Hydra made for a run that a configuration error stopped before it began (``.hydra/`` and an
-    empty ``main.log``), and the folder when nothing else is in it, with the folders above it that it leaves
-    empty, up to the working directory (``outputs/runs/DATE/``): a run that never ran leaves no folder."""
+    """Remove what Hydra made for a run that a configuration error stopped before it began (``.hydra/`` and
+    ``main.log``, which holds only the lines the console showed), and the folder when nothing else is in it, with
+    the folders above it that it leaves empty, up to the working directory (``outputs/runs/DATE/``): a run that
+    never ran leaves no folder."""
     import shutil
 
     shutil.rmtree(run_dir / ".hydra", ignore_errors=True)
-    log = run_dir / "main.log"
     try:
-        if log.is_file() and log.stat().st_size == 0:
-            log.unlink()
+        if not (run_dir / "config.yaml").exists():  # (the folder of an earlier run, reused, keeps its log)
+            (run_dir / "main.log").unlink(missing_ok=True)
         run_dir.rmdir()  # only when empty
         here = Path.cwd().resolve()
         for parent in run_dir.resolve().parents:
