@@ -215,8 +215,7 @@ def test_reconstruct_places_every_view_and_closes_the_model(tmp_path, views):
     assert np.array_equal(rec.poses["scan000.ply"], np.eye(4))
     for f in ("merged.ply", "reconstruction.ply", "reconstruction.png", "view3d.html", "result.json"):
         assert (tmp_path / f).is_file(), f
-    again = scanreg.reconstruct([_o3d(s) for s in scans], overrides=["surface=none"], run_dir=tmp_path / "again")
-    assert all(np.array_equal(again.poses[n], rec.poses[n]) for n in rec.poses)  # bit for bit
+    # (the same poses bit for bit from a second run: test_a_coarser_scan_of_another_object_leaves_the_others_...)
 
 
 @pytest.mark.slow
@@ -226,11 +225,13 @@ def test_a_set_of_clouds_without_normals_is_placed_and_says_it_is_not_refined(tm
     import scanreg
 
     scans, truth = views
-    clouds = [barycentric_sample(s, 20000, np.random.default_rng(k))[0] for k, s in enumerate(scans)]
-    rec = scanreg.reconstruct(clouds, poses=truth, overrides=["surface=none"], run_dir=tmp_path)
-    assert rec.metrics["multiview_pairs"] == 0 and rec.metrics["success"] == 1  # measured: 0.138 deg
+    clouds = [barycentric_sample(s, 20000, np.random.default_rng(k))[0] for k, s in enumerate(scans[:5])]
+    rec = scanreg.reconstruct(clouds, poses=truth[:5], overrides=["surface=none"], run_dir=tmp_path)
+    assert rec.metrics["multiview_pairs"] == 0 and rec.metrics["success"] == 1
+    # measured: 0.059 deg, 0.020 % of the diagonal
+    assert rec.metrics["scans_placed"] == 5 and rec.metrics["scan_rotation_error_max_deg"] < 0.15
     out = capsys.readouterr().out
-    assert out.count("note: scan set: 8 of the 8 scans are point clouds without normals") == 1
+    assert out.count("note: scan set: 5 of the 5 scans are point clouds without normals") == 1
     assert "joint refinement (point-to-plane) is skipped" in out
 
 
@@ -414,18 +415,19 @@ def test_a_coarser_scan_of_another_object_leaves_the_others_as_they_are(tmp_path
 
 @pytest.mark.slow
 def test_a_coarser_scan_of_the_object_leaves_the_others_at_their_spacing(tmp_path, views):
-    """One view as a cloud of 3,000 points (2.2x the others' spacing): its pairs at its spacing, the rest and the
-    model at theirs. Measured: worst scan 0.064 deg (at its spacing for all, as before: 0.132 deg)."""
+    """One of five views as a cloud of 3,000 points (2.2x the others' spacing): its pairs at its spacing, the rest
+    and the model at theirs. Measured: worst scan 0.061 deg, 0.014 % of the diagonal (of eight views: 0.064 deg,
+    and at the cloud's spacing for all, as before, 0.132 deg)."""
     import scanreg
 
     scans, truth = views
     pts, nrm = barycentric_sample(scans[3], 3000, np.random.default_rng(3))[:2]
-    mixed = [_o3d(s) for s in scans]
+    mixed = [_o3d(s) for s in scans[:5]]
     mixed[3] = np.hstack([pts, nrm])
-    rec = scanreg.reconstruct(mixed, poses=truth, overrides=["surface=none"], run_dir=tmp_path)
+    rec = scanreg.reconstruct(mixed, poses=truth[:5], overrides=["surface=none"], run_dir=tmp_path)
     m = rec.metrics
-    assert m["scans_placed"] == 8 and m["success"] == 1
-    assert m["scan_rotation_error_max_deg"] < 0.1 and m["scan_translation_error_max_rel"] < 0.0008
+    assert m["scans_placed"] == 5 and m["success"] == 1
+    assert m["scan_rotation_error_max_deg"] < 0.1 and m["scan_translation_error_max_rel"] < 0.0004
     assert 0.0015 < m["spacing"] < 0.002  # the model at the views' spacing (0.0017), not the cloud's (0.0037)
 
 
