@@ -49,10 +49,16 @@ def _line(text: str) -> None:
     log_line(text)
 
 
+RUN_LOG = "scanreg.run"
+"""The logger of the lines a run prints (notes, warnings, errors). Only a command-line run gives it a handler
+(``main.log`` in the run folder, :func:`scanreg.app.main.run_log`), which passes nothing on to the root logger's
+handlers (Hydra's or an application's console would print the lines again)."""
+
+
 def log_line(text: str) -> None:
-    """``text`` into the log of the run (Hydra's ``main.log`` in the run folder, which the command line's
-    config writes at INFO and shows on the console only from WARNING: the console has the line already). Outside
-    a command-line run no handler takes it."""
+    """``text`` into the run's log when it has one (:data:`RUN_LOG`); else nothing (the console has the line)."""
     import logging
 
-    logging.getLogger("scanreg").info(text)
+    log = logging.getLogger(RUN_LOG)
+    if log.handlers:
+        log.info(text)

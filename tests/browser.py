@@ -7,6 +7,7 @@ the stream for virtual time. Here the time is real and the wait ends when the pa
 ``document.documentElement.dataset.drawn`` (:mod:`scanreg.eval.view3d`)."""
 
 import base64
+import contextlib
 import json
 import os
 import select
@@ -59,22 +60,19 @@ class _DevTools:
         return json.loads(msg)
 
 
-def _launch(profile: Path, to_browser: int, from_browser: int) -> subprocess.Popen:
-    """Chromium reading the protocol on its fd 3 and writing on its fd 4; networking off (a proxy that does not
-    exist, no DNS): the page must be whole by itself."""
-
-    def fds_3_and_4():
-        a, b = os.dup(to_browser), os.dup(from_browser)  # first away from 3 and 4, which either may be
-        os.dup2(a, 3)
-        os.dup2(b, 4)
-
-    cmd = [chromium(), "--headless=new", "--no-sandbox", "--disable-gpu", "--use-gl=swiftshader",
+def _launch(exe: str, profile: Path, to_browser: int, from_browser: int) -> subprocess.Popen:
+    """Chromium reading the protocol on its fd 3 and writing on its fd 4 (a shell puts the pipes there: the
+    test process's own fds 3 and 4 may be anything); networking off (a proxy that does not exist, no DNS): the
+    page must be whole by itself."""
+    cmd = [exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--use-gl=swiftshader",
            "--enable-unsafe-swiftshader", "--proxy-server=http://127.0.0.1:9", "--proxy-bypass-list=<-loopback>",
            "--host-resolver-rules=MAP * ~NOTFOUND", f"--user-data-dir={profile}", "--remote-debugging-pipe",
            "about:blank"]
-    with open(profile.parent / "chromium.log", "wb") as log:
-        return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log, stderr=log, preexec_fn=fds_3_and_4,
-                                pass_fds=(3, 4), start_new_session=True)
+    # (left to right: 3 first, from the lower of the two pipe ends, neither of which is 3 unless it is this one)
+    shell = f'exec "$@" 3<&{to_browser} 4>&{from_browser}'
+    with open(profile / "chromium.log", "wb") as log:
+        return subprocess.Popen(["bash", "-c", shell, "bash", *cmd], stdin=subprocess.DEVNULL, stdout=log,
+                                stderr=log, pass_fds=(to_browser, from_browser), start_new_session=True)
 
 
 def screenshot(html: Path, out: Path, size=(1100, 1000), timeout: float = 300.0) -> np.ndarray:
@@ -82,11 +80,12 @@ def screenshot(html: Path, out: Path, size=(1100, 1000), timeout: float = 300.0)
     Fails when the page has not drawn its view within ``timeout`` seconds, with what the page shows."""
     from PIL import Image
 
+    exe = chromium()
     profile = out.parent / f"{out.stem}-chromium-profile"
     profile.mkdir(parents=True, exist_ok=True)
     to_r, to_w = os.pipe()
     from_r, from_w = os.pipe()
-    proc = _launch(profile, to_r, from_w)
+    proc = _launch(exe, profile, to_r, from_w)
     os.close(to_r)
     os.close(from_w)
     cdp = _DevTools(to_w, from_r, time.monotonic() + timeout)
@@ -96,17 +95,20 @@ def screenshot(html: Path, out: Path, size=(1100, 1000), timeout: float = 300.0)
         cdp("Emulation.setDeviceMetricsOverride", s, width=size[0], height=size[1], deviceScaleFactor=1,
             mobile=False)
         cdp("Page.navigate", s, url=html.as_uri())
-        state = "document.documentElement.dataset.drawn === 'true'"
-        while not cdp("Runtime.evaluate", s, expression=state, returnByValue=True)["result"].get("value"):
-            if time.monotonic() > cdp.deadline - 5:
+        state = "document.documentElement.dataset.drawn || ''"
+        while (drawn := cdp("Runtime.evaluate", s, expression=state, returnByValue=True)["result"].get("value")
+               or "") != "true":
+            if drawn or time.monotonic() > cdp.deadline - 5:
                 shown = cdp("Runtime.evaluate", s, expression="document.body.innerText.slice(0, 300)",
                             returnByValue=True)["result"].get("value")
-                pytest.fail(f"{html.name} not drawn in {timeout:.0f} s; the page shows: {shown!r}")
+                pytest.fail(f"{html.name} not drawn ({drawn or f'not in {timeout:.0f} s'}); the page shows: "
+                            f"{shown!r}; Chromium's log ends: {_tail(profile / 'chromium.log')!r}")
             time.sleep(0.25)
         frames = "new Promise(r => requestAnimationFrame(() => requestAnimationFrame(() => r(true))))"
         cdp("Runtime.evaluate", s, expression=frames, awaitPromise=True)
         out.write_bytes(base64.b64decode(cdp("Page.captureScreenshot", s, format="png")["data"]))
-        cdp("Browser.close")
+        with contextlib.suppress(RuntimeError, TimeoutError, OSError):  # (it may close the pipe before it answers)
+            cdp("Browser.close")
     finally:
         os.close(to_w)
         os.close(from_r)
@@ -116,3 +118,10 @@ def screenshot(html: Path, out: Path, size=(1100, 1000), timeout: float = 300.0)
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     return np.asarray(Image.open(out).convert("RGB")).astype(int)
+
+
+def _tail(path: Path, n: int = 600) -> str:
+    try:
+        return path.read_text(errors="replace")[-n:]
+    except OSError:
+        return ""

@@ -203,7 +203,7 @@ def test_dental_pose_sigmas_agree_with_the_bootstrap(tmp_path):
     assert set(t["tooth"]) <= set(range(31, 39)) | set(range(41, 49))  # FDI, mandible
     html = out / "view3d.html"
     assert html.exists() and html.stat().st_size < 15e6
-    if shutil.which("chromium"):
+    if shutil.which("chromium") or shutil.which("chromium-browser"):
         red, blue = coloured_share(screenshot(html, tmp_path / "dental.png"))
         assert red + blue > 0.002, (red, blue)
 

@@ -12,6 +12,7 @@ import os
 import sys
 import time
 import traceback
+from contextlib import contextmanager
 from pathlib import Path
 
 import hydra
@@ -228,9 +229,31 @@ def job_line(m: dict) -> str:
     return ", ".join(parts)
 
 
+@contextmanager
+def run_log(run_dir: Path):
+    """While a job runs, its note, warning and error lines (:data:`scanreg.errors.RUN_LOG`) are appended to
+    ``run_dir/main.log``, time-stamped, and not passed on to the console's handlers (the console has them)."""
+    import logging
+
+    from scanreg.errors import RUN_LOG
+
+    log = logging.getLogger(RUN_LOG)
+    handler = logging.FileHandler(run_dir / "main.log", delay=True)
+    handler.setFormatter(logging.Formatter("[%(asctime)s] %(message)s"))
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    try:
+        yield
+    finally:
+        log.removeHandler(handler)
+        handler.close()
+
+
 @hydra.main(config_path=f"pkg://{CONF_PACKAGE}", config_name="config", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> dict | None:
-    return run_job(cfg)
+    with run_log(Path(HydraConfig.get().runtime.output_dir)):
+        return run_job(cfg)
 
 
 def _stdout_gone() -> None:

@@ -119,7 +119,8 @@ def _cache_file(st) -> Path | None:
 
 
 # The page unpacks plotly.js (DecompressionStream: every browser since 2023) and runs it, then draws the figure;
-# drawn, it says so in <html data-drawn="true"> (for scripts that capture the view: the tests' headless browser).
+# drawn, it says so in <html data-drawn="true"> (for scripts that capture the view: the tests' headless browser),
+# and on a failure, there and in the page, why.
 _PAGE_SCRIPT = """<script>
 (async function () {
   var packed = atob(document.getElementById("plotly-js-gz").textContent);
@@ -133,7 +134,10 @@ _PAGE_SCRIPT = """<script>
   document.getElementById("view").textContent = "";
   await Plotly.newPlot("view", fig.data, fig.layout, {"responsive": true});
   document.documentElement.dataset.drawn = "true";
-})();
+})().catch(function (e) {
+  document.getElementById("view").textContent = "The 3D view could not be drawn: " + e;
+  document.documentElement.dataset.drawn = "error: " + e;
+});
 </script>"""
 
 
