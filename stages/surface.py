@@ -7,7 +7,7 @@ from typing import Optional
 
 import numpy as np
 
-from scanreg.geometry import Cloud, Mesh, estimate_normals, orient_normals, to_o3d
+from scanreg.geometry import Cloud, Mesh, estimate_normals, orient_normals, principal_axes, to_o3d
 from scanreg.stages.registry import SURFACE
 from scanreg.types import RunContext
 
@@ -51,21 +51,9 @@ class Poisson:
     def __init__(self, params: Params):
         self.p = params
 
-    @staticmethod
-    def frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(centre, axes)``: the points' centroid and principal axes (columns, a rotation: determinant +1), the
-        frame the octree is laid in. (``scanreg.eval.picture.principal_frame`` orders its axes largest first: the
-        same frame up to the axes' order and signs, which would change the surface's faces a little.)"""
-        centre = points.mean(axis=0)
-        centred = points - centre
-        axes = np.linalg.eigh(centred.T @ centred)[1]
-        if np.linalg.det(axes) < 0:
-            axes[:, 2] = -axes[:, 2]
-        return centre, axes
-
     def depth(self, points: np.ndarray, spacing: float) -> int:
         """The octree depth for ``points`` sampled ``spacing`` apart (see ``resolution``)."""
-        centre, axes = self.frame(points)
+        centre, axes = principal_axes(points)
         return self._depth((points - centre) @ axes, spacing)
 
     def _depth(self, local: np.ndarray, spacing: float) -> int:
@@ -89,7 +77,7 @@ class Poisson:
             normals = orient_normals(points.points, estimate_normals(points.points))
         # the octree laid in the points' principal frame, so that the surface does not depend on the pose of the
         # world scan (in the world frame its cube would span whatever bounding box that pose gives)
-        centre, axes = self.frame(points.points)
+        centre, axes = principal_axes(points.points)
         local = (points.points - centre) @ axes
         pc = to_o3d(local, normals @ axes)
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):

@@ -149,6 +149,22 @@ def test_grid_mesh_joins_continuous_pixels_only():
     assert len(m.faces) == 4 + 2 + 1 and len(m.vertices) == 6 + 5
 
 
+def test_principal_axes_of_a_turned_box_are_its_turned_edges():
+    """A box's corners, 2 x 4 x 6, turned by R and moved: the centroid, the axes as R's columns
+    (smallest spread first, each up to its sign), a rotation (determinant +1); the picture's frame puts the
+    largest spread first, right-handed."""
+    from scanreg.eval.picture import principal_frame
+    from scanreg.geometry import principal_axes
+
+    local = np.array([[x, y, z] for x in (-1, 1) for y in (-2, 2) for z in (-3, 3)], float)  # a box's corners
+    R = Rotation.from_rotvec([0.3, -0.5, 0.8]).as_matrix()
+    pts = local @ R.T + [5.0, -2.0, 1.0]
+    centre, axes = principal_axes(pts)
+    assert np.allclose(centre, pts.mean(axis=0)) and np.isclose(np.linalg.det(axes), 1.0)
+    assert np.allclose(np.abs(axes.T @ R), np.eye(3), atol=1e-9)
+    assert np.allclose(np.ptp(principal_frame(pts), axis=0), [6.0, 4.0, 2.0])
+
+
 def test_poisson_surface_is_one_closed_part_at_a_depth_any_pose_gives(bunny):
     from scanreg.api import build_stage
 

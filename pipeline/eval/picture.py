@@ -5,17 +5,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scanreg.geometry import Mesh
+from scanreg.geometry import Mesh, principal_axes
 
 
 def principal_frame(points: np.ndarray) -> np.ndarray:
-    """The points centred and turned into their principal axes (largest spread first): the same picture in any
-    pose."""
-    centred = points - points.mean(axis=0)
-    w, v = np.linalg.eigh(centred.T @ centred)
-    v = v[:, ::-1]
-    v[:, 2] = np.cross(v[:, 0], v[:, 1])  # right-handed
-    return centred @ v
+    """The points centred and turned into their principal axes (:func:`scanreg.geometry.principal_axes`), the
+    largest spread first: the same picture in any pose."""
+    centre, axes = principal_axes(points)
+    v = axes[:, ::-1].copy()
+    v[:, 2] = np.cross(v[:, 0], v[:, 1])  # right-handed again after the reversal
+    return (points - centre) @ v
 
 
 def write_mesh_picture(path: Path, mesh: Mesh, title: str = "", max_faces: int = 150_000) -> Path:

@@ -40,6 +40,18 @@ def invert_T(T: np.ndarray) -> np.ndarray:
     return make_T(R.T, -R.T @ t)
 
 
+def principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(centre, axes)``: the points' centroid and their principal axes as the columns of a rotation (the
+    smallest spread first; the sign of the last flipped when needed for determinant +1). The frame follows the
+    points in any pose, up to the axes' signs."""
+    centre = points.mean(axis=0)
+    centred = points - centre
+    axes = np.linalg.eigh(centred.T @ centred)[1]
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] = -axes[:, 2]
+    return centre, axes
+
+
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a rotation matrix in degrees (robust near 0 and 180)."""
     c = (np.trace(R) - 1.0) / 2.0
