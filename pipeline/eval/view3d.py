@@ -26,6 +26,7 @@ import numpy as np
 from scanreg.errors import ConfigError
 from scanreg.eval.deviation import colour_range, display_unit
 from scanreg.geometry import Mesh, random_subset
+from scanreg.io import write_atomic
 
 RDBU_R = [[0.0, "rgb(5,48,97)"], [0.1, "rgb(33,102,172)"], [0.2, "rgb(67,147,195)"], [0.3, "rgb(146,197,222)"],
           [0.4, "rgb(209,229,240)"], [0.5, "rgb(247,247,247)"], [0.6, "rgb(253,219,199)"], [0.7, "rgb(244,165,130)"],
@@ -65,7 +66,6 @@ def _plotly_js_packed() -> str:
     plotly file and kept in the user's cache folder (:func:`_cache_file`); where that folder cannot be written
     it is done for each page."""
     import gzip
-    import os
 
     js = _plotly_js_path()
     st = js.stat()
@@ -79,22 +79,8 @@ def _plotly_js_packed() -> str:
             pass
     packed = base64.b64encode(gzip.compress(js.read_bytes(), compresslevel=9, mtime=0)).decode("ascii")
     if cached is not None:
-        import tempfile
-
-        tmp = None
-        try:
-            cached.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=cached.parent, suffix=".tmp")
-            with os.fdopen(fd, "w", encoding="ascii") as f:
-                f.write(packed)
-            os.replace(tmp, cached)  # whole or not at all, for a sweep's parallel jobs
-            tmp = None
-        except OSError:
-            pass
-        finally:
-            if tmp is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(tmp)
+        with contextlib.suppress(OSError):  # (a folder that cannot be written: packed again for the next page)
+            write_atomic(cached, packed.encode("ascii"))
     return packed
 
 

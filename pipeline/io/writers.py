@@ -3,10 +3,31 @@
 from __future__ import annotations
 
 import os
+import tempfile
+from pathlib import Path
 
 import numpy as np
 
 from scanreg.geometry import Cloud, Geometry, Mesh
+
+def write_atomic(path: Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` whole or not at all (parallel jobs of a sweep never read half a file): a
+    temporary file in the same folder, with an ordinary file's permissions (mkstemp makes it private), renamed into
+    place; on any failure the temporary is removed and the error raised. Makes the folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
 
 def write_ply(path: str | os.PathLike, g: Geometry, colors: np.ndarray | None = None,
               scalars: dict[str, np.ndarray] | None = None, edges: np.ndarray | None = None,

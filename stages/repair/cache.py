@@ -22,7 +22,6 @@ import hashlib
 import io
 import json
 import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -30,6 +29,7 @@ import numpy as np
 
 from scanreg.errors import note
 from scanreg.geometry import Mesh
+from scanreg.io import write_atomic
 from scanreg.types import Repaired, RunContext
 
 CACHE_FORMAT = 1
@@ -108,23 +108,11 @@ class RepairCache:
         return mesh, {k: float(v) for k, v in metrics.items()}
 
     def store(self, key: str, mesh: Mesh, metrics: dict[str, float]) -> Path:
-        """Write the entry atomically (a temporary file in the same directory, renamed into place)."""
-        self.dir.mkdir(parents=True, exist_ok=True)
+        """Write the entry atomically (:func:`scanreg.io.write_atomic`)."""
         buf = io.BytesIO()
         np.savez(buf, vertices=mesh.vertices, faces=mesh.faces, closure_faces=np.int64(mesh.closure_faces),
                  metrics=np.str_(json.dumps(metrics, allow_nan=True)))
-        fd, tmp = tempfile.mkstemp(dir=self.dir, prefix=f".{key[:16]}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(buf.getvalue())
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)  # as an ordinary file (mkstemp makes it private)
-            os.replace(tmp, self.path(key))
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return self.path(key)
+        return write_atomic(self.path(key), buf.getvalue())
 
     def lock(self, key: str) -> Path | None:
         """Take the lock on ``key`` (the path to release), or None when another job holds it."""
