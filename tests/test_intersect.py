@@ -196,6 +196,48 @@ def test_candidate_pairs_are_all_overlapping_boxes():
     assert set(zip(i.tolist(), j.tolist())) == brute and len(i) == len(brute)
 
 
+@pytest.mark.parametrize("n_wide", [3, 60])
+def test_near_boxes_keep_every_box_that_overlaps_a_seed(n_wide):
+    """The incremental test's search starts from the boxes near its new faces (_near_boxes): every box that
+    overlaps a seed box is among them, with a few or many seeds far wider than most boxes (a long face across a
+    filled hole), and most boxes far from the seeds are not."""
+    from scanreg.mesh.intersect import WIDE_SEEDS, _near_boxes
+
+    rng = np.random.default_rng(n_wide)
+    n = 4000
+    lo = rng.uniform(0, 100, (n, 3))
+    hi = lo + rng.uniform(0, 1, (n, 3)) * rng.choice([1] * 99 + [30], (n, 1))  # 1 % long boxes
+    seed = np.zeros(n, bool)
+    seed[rng.choice(n, 40, replace=False)] = True
+    wide = rng.choice(np.flatnonzero(~seed), n_wide, replace=False)
+    hi[wide] = lo[wide] + rng.uniform(5, 20, (n_wide, 3))
+    seed[wide] = True
+    assert (n_wide > WIDE_SEEDS) == (n_wide == 60)
+    near = _near_boxes(lo, hi, seed)
+    assert (np.diff(near) > 0).all()
+    s = np.flatnonzero(seed)
+    overlap = ((lo[:, None] <= hi[s][None]) & (lo[s][None] <= hi[:, None])).all(axis=2).any(axis=1)
+    assert np.isin(np.flatnonzero(overlap), near).all()
+    if n_wide < WIDE_SEEDS:
+        assert len(near) < 0.5 * n
+
+
+def test_in_cells_around_keeps_every_point_within_a_cell_of_a_seed():
+    """in_cells_around: every point within one cell side of a seed along each axis is kept (those exactly one
+    side away too), and points farther than two sides are not."""
+    from scanreg.geometry import in_cells_around
+
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-5, 5, (20000, 3))
+    seeds = rng.uniform(-3, 3, (30, 3))
+    h = 0.37
+    pts[:30] = seeds + h * rng.choice([-1.0, 1.0], (30, 3))  # exactly one side away along every axis
+    got = in_cells_around(pts, seeds, h)
+    cheb = np.abs(pts[:, None] - seeds[None]).max(axis=2).min(axis=1)
+    assert got[cheb <= h].all() and not got[cheb > 2 * h * (1 + 1e-6)].any()
+    assert not in_cells_around(pts, seeds[:0], h).any()
+
+
 def test_predicates_are_exact_near_degeneracy():
     # points on a plane through the origin with rounded coordinates: orient3d's float value is noise, the sign
     # must be the exact one (checked with fractions)
@@ -296,15 +338,47 @@ def test_incremental_equals_full(monkeypatch):
     assert (inc.mask & (perm >= keep.sum())).any()  # some of the new faces cross others
 
 
+def test_incremental_confirms_its_face_keys_by_the_corners(monkeypatch):
+    """Faces whose keys match a previous mesh's count as kept only when their corners are the same: with keys
+    made of the vertex indices alone (every moved face collides with its earlier self), a copy whose vertices
+    moved into the other sphere is tested incrementally and equals the full test."""
+    import scanreg.mesh.intersect as intersect
+
+    v, f = _two_spheres()
+    by_indices = lambda v_, f_: intersect._mix(np.sort(f_, axis=1).astype(np.uint64) @ np.array(  # noqa: E731
+        [1, 1 << 20, 1 << 40], np.uint64))
+    monkeypatch.setattr(intersect, "face_keys", by_indices)
+    base = self_intersections(v, f)
+    rng = np.random.default_rng(4)
+    v2 = v.copy()
+    moved = rng.choice(len(v) // 2, 25, replace=False)
+    v2[moved] += [0.6, 0.0, 0.0]  # the first sphere's vertices pushed through the second
+    calls = _spy_incremental(monkeypatch)
+    inc = self_intersections(v2, f, previous=base)
+    assert calls == [1]
+    full = self_intersections(v2, f)
+    assert _pair_set(inc) == _pair_set(full) and np.array_equal(inc.mask, full.mask)
+    assert _pair_set(full) != _pair_set(base)
+
+
+def test_same_corners_compares_the_sets_of_corners():
+    from scanreg.mesh.intersect import same_corners
+
+    a, b, c, d = np.eye(3), np.ones(3), np.zeros(3), np.full(3, 2.0)
+    P = np.array([[a[0], a[1], a[2]], [a[0], a[1], a[2]], [a[0], a[1], a[2]], [b, b, c], [b, c, c]])
+    Q = np.array([[a[2], a[0], a[1]], [a[1], a[0], a[2]], [a[0], a[1], d], [c, c, b], [b, c, d]])
+    assert same_corners(P, Q).tolist() == [True, True, False, True, False]
+
+
 def test_previous_is_used_only_when_it_shares_half_the_faces(monkeypatch):
     """``previous`` is used when it holds more than half of the new mesh's faces (a sampled pre-check, then
     the full count); an unrelated previous, one sharing too few faces, one more than MAX_RATIO times larger,
     and a mesh under MIN_FACES are tested in full; the result is the full test's in every case."""
-    from scanreg.mesh.intersect import MAX_RATIO, MIN_FACES, PROBE, _face_keys, _shares_half
+    from scanreg.mesh.intersect import MAX_RATIO, MIN_FACES, PROBE, face_keys, _shares_half
 
     rng = np.random.default_rng(2)
     v, f = _two_spheres()
-    keys = _face_keys(v, f.astype(np.int64))
+    keys = face_keys(v, f.astype(np.int64))
     assert len(keys) > 2 * PROBE  # the pre-check samples the faces
 
     def outcome(k):  # an outcome with these face keys (only the keys decide whether it is used)

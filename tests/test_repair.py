@@ -138,6 +138,61 @@ def test_distances_to_are_exact_point_to_triangle_distances():
     assert np.abs(d - point_distances(raycasting_scene(bunny), pts)).max() < 1e-6 * bbox_diagonal(bunny.vertices)
 
 
+def test_shared_faces_are_the_same_triangles_in_space():
+    """shared_faces: a mesh and an edited copy (vertices renumbered, corners rotated, faces reordered, some faces
+    moved, one face flipped, one face new): the faces left as they were are shared both ways (a flipped face is
+    the same triangle), the moved and new ones are not."""
+    from scanreg.geometry import Mesh
+    from scanreg.mesh.distances import shared_faces
+
+    rng = np.random.default_rng(0)
+    a = load("pkg:pymeshlab/tests/sample_meshes/bunny.obj")
+    v, f = a.vertices.copy(), a.faces.copy()
+    moved_v = rng.choice(len(v), 20, replace=False)
+    v[moved_v] += 1e-9  # their faces are not the same any more
+    f[5] = f[5, ::-1]  # flipped: the same triangle
+    f = np.vstack([f, [[0, 1, 2]]])  # new
+    f = np.roll(f, 1, axis=1)  # corners rotated
+    renum = rng.permutation(len(v))
+    v, f = v[renum], np.argsort(renum)[f]
+    perm = rng.permutation(len(f))
+    b = Mesh(v, f[perm])
+    in_a, in_b = shared_faces(a, b)
+    moved = np.isin(a.faces, moved_v).any(axis=1)
+    assert np.array_equal(in_a, ~moved)
+    expect_b = np.append(~moved, False)[perm]  # (the new face [0, 1, 2] is no face of a)
+    assert np.array_equal(in_b, expect_b) and in_b.sum() == in_a.sum()
+    # hash collisions (every key one of 4 values) cost faces their sharing, never give a false one
+    import scanreg.mesh.intersect as intersect
+
+    keys = intersect.face_keys
+    intersect.face_keys = lambda v, f: keys(v, f) % np.uint64(4)
+    try:
+        in_a, in_b = shared_faces(a, b)
+    finally:
+        intersect.face_keys = keys
+    assert not (in_a & moved).any() and not (in_b & ~expect_b).any()
+
+
+def test_distances_near_equal_the_whole_meshs():
+    """distances_near measures on the faces near the points only, yet gives the whole mesh's distances bit for
+    bit: points on and near the surface, and points far from it (farther than the reach: measured again)."""
+    from scanreg.geometry import bbox_diagonal
+    from scanreg.mesh.distances import area_samples, distances_near, exact_distances, raycast_distances
+
+    bunny = load("pkg:pymeshfix/examples/StanfordBunny.ply")
+    rng = np.random.default_rng(2)
+    diag = bbox_diagonal(bunny.vertices)
+    pts = area_samples(bunny, 300, 3)
+    pts = np.vstack([pts[:200] + rng.normal(0, 1e-3 * diag, (200, 3)),
+                     pts[200:] + rng.normal(0, 0.1 * diag, (100, 3))])  # 100 far from the surface
+    reach = 2e-3 * diag
+    for measure in (exact_distances, raycast_distances):
+        whole = measure(bunny, pts)
+        assert (whole > reach).sum() > 50
+        assert np.array_equal(distances_near(bunny, pts, reach, measure), whole)
+
+
 def test_close_as_shell_on_an_open_surface():
     """A bumpy open sheet closed as a thin shell: watertight, outward oriented, no self-intersection, the
     scanned side unchanged and recovered by Mesh.scanned()."""

@@ -32,7 +32,8 @@ import numpy as np
 from scanreg.errors import ScanregError, StageError, note, warn
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.mesh.census import MIN_COMPONENT_SHARE, OPEN_BORDER_RATIO, mesh_census
-from scanreg.mesh.distances import area_samples, distances_to, point_distances, raycasting_scene
+from scanreg.mesh.distances import (area_samples_on_faces, distances_near, exact_distances, raycast_distances,
+                                    shared_faces)
 from scanreg.mesh.intersect import Intersections, intersections_among
 from scanreg.mesh.shell import close_as_shell
 from scanreg.mesh.slivers import collapse_folds, collapse_slivers
@@ -98,10 +99,10 @@ class GuardParams:
     the ``max_removed_area`` limit 0.10 with 20000 (0.003 with 10000); the ``displacement_quantile`` 0.99 is
     read between the true 0.9886 and 0.9914 quantiles (+-2 standard errors of the 1 % tail's count) with 20000;
     the sampled Hausdorff maximum misses a displaced region of area share a with probability (1 - a)^n, 5 % for
-    a = 1.5e-4 of the kept surface with 20000. Distances themselves are exact point-to-triangle distances:
-    from the input to the output Open3D's (float32 coordinates, exact up to about 1e-7 of their magnitude; its
-    raycasting scene serves the samples and the parts' vertices in one query),
-    from the output to the input libigl's in double precision (:func:`~scanreg.mesh.distances.distances_to`)."""
+    a = 1.5e-4 of the kept surface with 20000. Distances themselves are exact point-to-triangle distances, 0 for
+    the points on faces the repair left as they were: from the input to the output Open3D's (float32
+    coordinates, exact up to about 1e-7 of their magnitude), from the output to the input libigl's in double
+    precision (:func:`~scanreg.mesh.distances.distances_to`)."""
     open_border: str = "auto"
     """What becomes of an open scan's outer border. ``auto``: a mesh with an outer border (a boundary loop at
     least ``open_border_ratio`` times as long as the square root of its part's area,
@@ -240,23 +241,46 @@ def _input_side(p: GuardParams, mesh: Mesh, seed: int) -> dict:
     rank = np.arange(len(order)) - np.repeat(np.cumsum(per) - per, per)
     stride = np.maximum(1, -(-per // VERTICES_PER_PART))
     probe = order[rank % stride[vcomp[order]] == 0]
+    samples, face = area_samples_on_faces(kept_in, p.audit_samples, seed)
+    kept_faces = np.flatnonzero(large[lab]) if kept_in is not mesh else None  # (submesh keeps the faces' order)
     return {"areas": ca, "large": large, "diag": bbox_diagonal(kept_in.vertices), "edge": _median_edge(kept_in),
-            "probe": probe, "probe_part": vcomp[probe],
-            "samples": area_samples(kept_in, p.audit_samples, seed)}
+            "probe": probe, "probe_part": vcomp[probe], "samples": samples,
+            "sample_face": face if kept_faces is None else kept_faces[face]}
+
+
+NEAR_EDGES = 4.0
+"""The audit measures a distance on the output's (or the input's) faces near the point first: those within the
+larger of ``removed_tolerance`` and this many median edges (:func:`~scanreg.mesh.distances.distances_near`; the
+values are the same, only a point farther than that is measured again on the whole mesh)."""
 
 
 def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, seed: int) -> dict[str, float]:
     """The input's parts sorted into removed on purpose, kept, and lost; the distances between the kept input
     surface and the output (see the module docstring); ``ins``: :func:`_input_side`. The other way, from
-    ``audit_samples`` samples on the output (seeded by ``seed``) to the input, large where holes were filled."""
+    ``audit_samples`` samples on the output (seeded by ``seed``) to the input, large where holes were filled.
+
+    Where the repair left the surface as it was, a point is on both surfaces: the samples on the faces that
+    the input and the output share (:func:`~scanreg.mesh.distances.shared_faces`), and the input's vertices on
+    such faces, are at distance 0; the others are measured, on the surface near them (:data:`NEAR_EDGES`), so
+    that the audit of a repair that changed little costs little."""
     ca, large, diag, edge = ins["areas"], ins["large"], ins["diag"], ins["edge"]
     tol = p.removed_tolerance * diag
-    # one raycasting scene of the output for both of its uses (the input's vertices, the input's samples)
-    scene_out = raycasting_scene(out)
+    reach = max(tol, NEAR_EDGES * edge)
+    in_shared, out_shared = shared_faces(mesh, out)
+    on_out = np.zeros(len(mesh.vertices), bool)
+    on_out[mesh.faces[in_shared].ravel()] = True
     probe, part = ins["probe"], ins["probe_part"]
-    d = point_distances(scene_out, np.concatenate([mesh.vertices[probe], ins["samples"]]))  # one query
+    # input -> output in one query (Open3D's raycasting): the parts' probe vertices, then the kept surface's samples
+    points = np.concatenate([mesh.vertices[probe], ins["samples"]])
+    moved = ~np.concatenate([on_out[probe], in_shared[ins["sample_face"]]])
+    d = np.zeros(len(points))
+    d[moved] = distances_near(out, points[moved], reach, raycast_distances)
     far = np.bincount(part, d[:len(probe)] > tol, minlength=len(ca)) / np.bincount(part, minlength=len(ca))
-    d_out = distances_to(mesh)(area_samples(out, p.audit_samples, seed))
+    # output -> input (libigl's, double precision)
+    samples_out, face_out = area_samples_on_faces(out, p.audit_samples, seed)
+    d_out = np.zeros(len(samples_out))
+    new = ~out_shared[face_out]
+    d_out[new] = distances_near(mesh, samples_out[new], reach, exact_distances)
     return _distance_report(p, ca, large, diag, edge, far > 0.5, d[len(probe):], d_out)
 
 
