@@ -1,5 +1,6 @@
-"""Distances between surfaces: exact point-to-triangle distances (Open3D's raycasting scene, libigl's AABB tree)
-and the area-weighted samples they are measured from."""
+"""Distances between surfaces: exact point-to-triangle distances in double precision (libigl's AABB tree), measured
+on the whole surface or near the points only, the faces two meshes share, and the area-weighted samples the
+distances are measured from."""
 
 from __future__ import annotations
 
@@ -7,34 +8,6 @@ import numpy as np
 
 from scanreg.geometry import Mesh, area_weighted_draws, barycentric_sample, in_cells_around, points_on_faces
 from scanreg.mesh.topology import _face_areas
-
-
-def raycasting_scene(mesh: Mesh):
-    """Open3D's raycasting scene of ``mesh``'s triangles (exact point-to-triangle distances)."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
-                        o3d.core.Tensor(mesh.faces.astype(np.uint32)))
-    return scene
-
-
-def point_distances(scene, points: np.ndarray) -> np.ndarray:
-    """Distances from ``points`` to the surface in ``scene`` (:func:`raycasting_scene`)."""
-    import open3d as o3d
-
-    return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy().astype(np.float64)
-
-
-def raycast_distances(mesh: Mesh, points: np.ndarray) -> np.ndarray:
-    """Distances from ``points`` to the surface of ``mesh`` by Open3D's raycasting scene (single precision)."""
-    return point_distances(raycasting_scene(mesh), points)
-
-
-def exact_distances(mesh: Mesh, points: np.ndarray) -> np.ndarray:
-    """Distances from ``points`` to the surface of ``mesh`` by libigl's AABB tree (double precision,
-    :func:`distances_to`)."""
-    return distances_to(mesh)(points)
 
 
 def surface_distances(a: Mesh, b: Mesh, n: int, seed: int) -> np.ndarray:
@@ -45,8 +18,8 @@ def surface_distances(a: Mesh, b: Mesh, n: int, seed: int) -> np.ndarray:
 
 def distances_to(mesh: Mesh):
     """The function of points (n, 3) that gives their exact distances to the surface of ``mesh`` (the nearest
-    point on any face, in double precision; libigl's AABB tree, built here once). Open3D's raycasting scene
-    (:func:`raycasting_scene`) computes in single precision."""
+    point on any face, in double precision; libigl's AABB tree, built here once). (Open3D's raycasting scene
+    computes in single precision, and a process that forks must not have used it: oneTBB.)"""
     import igl
 
     v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
@@ -57,6 +30,11 @@ def distances_to(mesh: Mesh):
     def distances(points: np.ndarray) -> np.ndarray:
         return np.sqrt(tree.squared_distance(v, f, np.ascontiguousarray(points, dtype=np.float64))[0])
     return distances
+
+
+def exact_distances(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """Distances from ``points`` to the surface of ``mesh`` (:func:`distances_to`)."""
+    return distances_to(mesh)(points)
 
 
 def area_samples(mesh: Mesh, n: int, seed: int) -> np.ndarray:

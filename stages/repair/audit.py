@@ -32,8 +32,7 @@ import numpy as np
 from scanreg.errors import ScanregError, StageError, note, warn
 from scanreg.geometry import Mesh, bbox_diagonal, row_norms, submesh
 from scanreg.mesh.census import MIN_COMPONENT_SHARE, OPEN_BORDER_RATIO, mesh_census
-from scanreg.mesh.distances import (area_samples_on_faces, distances_near, exact_distances, raycast_distances,
-                                    shared_faces)
+from scanreg.mesh.distances import area_samples_on_faces, distances_near, exact_distances, shared_faces
 from scanreg.mesh.intersect import Intersections, intersections_among
 from scanreg.mesh.shell import close_as_shell
 from scanreg.mesh.slivers import collapse_folds, collapse_slivers
@@ -270,13 +269,13 @@ def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, seed: int
     on_out = np.zeros(len(mesh.vertices), bool)
     on_out[mesh.faces[in_shared].ravel()] = True
     probe, part = ins["probe"], ins["probe_part"]
-    # input -> output in one query (Open3D's raycasting): the parts' probe vertices, then the kept surface's samples
+    # input -> output in one query: the parts' probe vertices, then the kept surface's samples
     points = np.concatenate([mesh.vertices[probe], ins["samples"]])
     moved = ~np.concatenate([on_out[probe], in_shared[ins["sample_face"]]])
     d = np.zeros(len(points))
-    d[moved] = distances_near(out, points[moved], reach, raycast_distances)
+    d[moved] = distances_near(out, points[moved], reach, exact_distances)
     far = np.bincount(part, d[:len(probe)] > tol, minlength=len(ca)) / np.bincount(part, minlength=len(ca))
-    # output -> input (libigl's, double precision)
+    # output -> input
     samples_out, face_out = area_samples_on_faces(out, p.audit_samples, seed)
     d_out = np.zeros(len(samples_out))
     new = ~out_shared[face_out]
