@@ -92,11 +92,10 @@ def self_intersections(vertices: np.ndarray, faces: np.ndarray,
         return Intersections(v, f, np.zeros((0, 2), np.int64))
     keys = face_keys(v, f) if len(f) >= MIN_FACES else None
     out = Intersections(v, f, np.zeros((0, 2), np.int64), keys)
-    vw, fw, live = _welded(v, f)
-    pairs = None
     if keys is not None and previous is not None and previous.keys is not None and _shares_half(out, previous):
-        pairs = _incremental(vw, fw, live, out, previous)
-    out.pairs = pairs if pairs is not None else _all_pairs(vw, fw, live)
+        out.pairs = _incremental(v, f, out, previous)
+    else:
+        out.pairs = _all_pairs(*_welded(v, f))
     return out
 
 
@@ -490,14 +489,7 @@ def _all_pairs(v: np.ndarray, f: np.ndarray, live: np.ndarray, among: np.ndarray
     fl = f[idx]
     P = v[fl]  # (m, 3 corners, 3)
     lo, hi = _boxes(P)
-    if among is None:
-        i, j = candidate_pairs(lo, hi)
-    else:
-        # only the faces whose boxes can overlap one in ``among`` take part in the search (an edit's few faces:
-        # their neighbourhood, not the whole mesh); the same pairs, the boxes decide
-        sub = _near_boxes(lo, hi, among[idx])
-        i, j = candidate_pairs(lo[sub], hi[sub], among[idx][sub])
-        i, j = sub[i], sub[j]
+    i, j = candidate_pairs(lo, hi, None if among is None else among[idx])
     if not len(i):
         return np.zeros((0, 2), np.int64)
     if among is None:
@@ -535,9 +527,14 @@ def _near_boxes(lo: np.ndarray, hi: np.ndarray, seed: np.ndarray) -> np.ndarray:
             if found is None:
                 return np.arange(len(lo))
             near |= found
-    if len(wide) <= WIDE_SEEDS:
-        for w in wide:
-            near |= rows_all(lo <= hi[w]) & rows_all(hi >= lo[w])
+    if len(wide) <= WIDE_SEEDS and len(wide):
+        lo_k = [np.ascontiguousarray(lo[:, k]) for k in range(3)]
+        hi_k = [np.ascontiguousarray(hi[:, k]) for k in range(3)]
+        for w in wide:  # the box test axis by axis, on the boxes left (few after the first axis)
+            at = np.flatnonzero((lo_k[0] <= hi_k[0][w]) & (hi_k[0] >= lo_k[0][w]))
+            for k in (1, 2):
+                at = at[(lo_k[k][at] <= hi_k[k][w]) & (hi_k[k][at] >= lo_k[k][w])]
+            near[at] = True
     return np.flatnonzero(near | seed)
 
 
@@ -590,10 +587,9 @@ def _shares_half(new: Intersections, old: Intersections) -> bool:
     return int(_member(new.sorted_keys()[1], old_sorted).sum()) > n_new // 2
 
 
-def _incremental(v: np.ndarray, f: np.ndarray, live: np.ndarray, new: Intersections,
-                 old: Intersections) -> np.ndarray:
-    """The intersecting pairs of the welded mesh ``(v, f)`` (``live``: its non-degenerate faces; ``new``: its
-    keys) from ``old``'s, testing only the pairs with a face ``old`` did not have."""
+def _incremental(v: np.ndarray, f: np.ndarray, new: Intersections, old: Intersections) -> np.ndarray:
+    """The intersecting pairs of the mesh ``(v, f)`` (``new``: its keys) from ``old``'s, testing only the pairs
+    with a face ``old`` did not have (:func:`_pairs_with`)."""
     order, srt = new.sorted_keys()
     old_order, old_srt = old.sorted_keys()
     # a face matches when its key occurs once in each mesh and the corner coordinates are equal
@@ -615,7 +611,19 @@ def _incremental(v: np.ndarray, f: np.ndarray, live: np.ndarray, new: Intersecti
     mapped = new_of_old[old.pairs] if len(old.pairs) else np.zeros((0, 2), np.int64)
     mapped = mapped[rows_all(mapped >= 0)]
     mapped = np.sort(mapped, axis=1)
-    fresh = live & ~kept
-    if not fresh.any():
+    if kept.all():
         return mapped
-    return np.concatenate([mapped, _all_pairs(v, f, live, among=fresh)])
+    return np.concatenate([mapped, _pairs_with(v, f, ~kept)])
+
+
+def _pairs_with(v: np.ndarray, f: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+    """The intersecting pairs of the mesh ``(v, f)`` with at least one face in ``fresh`` (a mask), found among the
+    faces whose boxes can reach a fresh face (:func:`_near_boxes`), welded and tested for degeneracy among
+    themselves only: a pair's outcome depends on its two faces and on the fans of the vertices they share, and
+    a face of such a fan shares a point with a fresh face, so its box reaches it. The same pairs as the test of
+    the whole mesh (an edit's test: the cost of its neighbourhood)."""
+    sub = _near_boxes(*_boxes(v[f]), fresh)
+    ids, own = np.unique(f[sub], return_inverse=True)
+    vw, fw, live = _welded(v[ids], own.reshape(-1, 3))
+    pairs = _all_pairs(vw, fw, live, among=fresh[sub] & live)
+    return sub[pairs] if len(pairs) else pairs
