@@ -251,6 +251,21 @@ def test_runs_without_ground_truth_in_a_group_with_it_are_not_judged():
     assert display_table(t, ["k"], [])["success [Wilson 95 %]"][0].startswith("1/3 = 33 %")
 
 
+def test_console_table_lines_up_groups_named_in_wide_characters():
+    """Groups named by files in Chinese or Japanese (two terminal columns a character): every line of the console
+    table takes the same terminal width, and a label too long for its column is cut with an ellipsis to fit."""
+    from scanreg.app.report.tables import console_table
+    from scanreg.runner.outputs import clipped, text_columns
+
+    df = pd.DataFrame({"params.data.source": ["扫描一号.ply", "scan_b.ply", "スキャン.ply"] * 2, "status": ["FINISHED"] * 6,
+                       "metrics.success": [1.0, 0.0, 1.0, 1.0, 1.0, 1.0], "metrics.time_total_s": [1.0] * 6})
+    lines = console_table(summarize(df, ["data.source"]), ["data.source"]).splitlines()
+    assert len(lines) == 4 and len({text_columns(ln) for ln in lines}) == 1
+    assert any("扫描一号.ply" in ln for ln in lines)
+    assert clipped("扫描一号.ply", 6) == "扫描…" and text_columns(clipped("扫描一号.ply", 7)) <= 7
+    assert clipped("short", 8) == "short"
+
+
 def test_scan_set_runs_are_tabled_by_their_placed_scans_and_worst_scan():
     """Scan-set runs log no pair errors: the tables show the placed scans and the worst scan's errors (they
     showed '-' under rot_deg and transl, the set's numbers only in report.csv)."""

@@ -830,8 +830,8 @@ def test_the_model_leaves_out_the_faces_across_a_depth_jump(capsys):
 def test_the_scan_table_aligns_names_in_wide_characters():
     """The per-scan table pads names by terminal columns: a scan named in Chinese (two columns a character) lines
     up with the rest (padded by characters, its row was four columns short)."""
-    from scanreg.runner.outputs import _columns, _padded
+    from scanreg.runner.outputs import padded, text_columns
 
     names = ["bun000.ply", "兔子_正面.ply", "e\u0301.ply"]  # wide characters; a combining accent (no column)
-    assert [_columns(n) for n in names] == [10, 13, 5]
-    assert [_padded(n, 13) for n in names] == ["bun000.ply   ", "兔子_正面.ply", "e\u0301.ply" + " " * 8]
+    assert [text_columns(n) for n in names] == [10, 13, 5]
+    assert [padded(n, 13) for n in names] == ["bun000.ply   ", "兔子_正面.ply", "e\u0301.ply" + " " * 8]

@@ -137,15 +137,15 @@ def set_summary_lines(res: Result) -> list[str]:
     lines += [""] + [f"{k:<32} {_shown(m[k])}" for k in SET_KEYS if k in m]
     cols = [c for c in ("rotation_error_deg", "translation_error_rel", "residual_rms", "residual_overlap")
             if f"scan_{c}" in res.histories]
-    width = max(_columns(n) for n in [*reg.names, "scan"])
-    lines += ["", _padded("scan", width) + "  placed  " + "  ".join(f"{c:>22}" for c in cols)]
+    width = max(text_columns(n) for n in [*reg.names, "scan"])
+    lines += ["", padded("scan", width) + "  placed  " + "  ".join(f"{c:>22}" for c in cols)]
     for k, name in enumerate(reg.names):
         vals = "  ".join(f"{_shown(res.histories[f'scan_{c}'][k], 4):>22}" for c in cols)
-        lines.append(f"{_padded(name, width)}  {'yes' if reg.poses[k] is not None else 'no':>6}  {vals}")
+        lines.append(f"{padded(name, width)}  {'yes' if reg.poses[k] is not None else 'no':>6}  {vals}")
     return lines
 
 
-def _columns(text: str) -> int:
+def text_columns(text: str) -> int:
     """How many columns ``text`` takes in a terminal: East Asian wide and full-width characters (a file named
     in Chinese or Japanese) take two, combining marks none."""
     import unicodedata
@@ -153,6 +153,20 @@ def _columns(text: str) -> int:
     return sum(0 if unicodedata.combining(c) else 2 if unicodedata.east_asian_width(c) in "WF" else 1 for c in text)
 
 
-def _padded(text: str, width: int) -> str:
-    """``text`` padded with spaces to ``width`` terminal columns (:func:`_columns`)."""
-    return text + " " * max(0, width - _columns(text))
+def padded(text: str, width: int, right: bool = False) -> str:
+    """``text`` padded with spaces to ``width`` terminal columns (:func:`text_columns`), on the right (left-aligned
+    text) or, with ``right``, on the left."""
+    pad = " " * max(0, width - text_columns(text))
+    return pad + text if right else text + pad
+
+
+def clipped(text: str, width: int) -> str:
+    """``text`` cut to at most ``width`` terminal columns, its last one an ellipsis when cut."""
+    if text_columns(text) <= width:
+        return text
+    out = ""
+    for c in text:
+        if text_columns(out + c) > width - 1:
+            break
+        out += c
+    return out + "…"

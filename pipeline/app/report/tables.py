@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 
 from scanreg.app.report.stats import interval, wilson_interval
+from scanreg.runner.outputs import clipped, padded, text_columns
 
 STAGES = ("load", "repair", "sample", "coarse", "icp", "evaluate", "total")
 
@@ -429,14 +430,14 @@ def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100) ->
 
     rows = [[str(r["_label"]) if "_label" in table else "all", *[cell(r, c) for c, _ in cols]]
             for _, r in table.iterrows()]
-    widths = [max(len(h), *(len(x[i]) for x in rows)) if rows else len(h)
+    # widths in terminal columns (a group named by a file in Chinese or Japanese takes two per character)
+    widths = [max(text_columns(h), *(text_columns(x[i]) for x in rows)) if rows else text_columns(h)
               for i, h in enumerate([head, *[h for _, h in cols]])]
     room = width - sum(widths[1:]) - 2 * len(cols)
     widths[0] = max(8, min(widths[0], room))
-    clip = lambda t, w: t if len(t) <= w else t[: w - 1] + "…"
-    lines = ["  ".join([clip(head, widths[0]).ljust(widths[0]),
-                        *[h.rjust(w) for (_, h), w in zip(cols, widths[1:])]])]
+    lines = ["  ".join([padded(clipped(head, widths[0]), widths[0]),
+                        *[padded(h, w, right=True) for (_, h), w in zip(cols, widths[1:])]])]
     for x in rows:
-        lines.append("  ".join([clip(x[0], widths[0]).ljust(widths[0]),
-                                *[v.rjust(w) for v, w in zip(x[1:], widths[1:])]]))
+        lines.append("  ".join([padded(clipped(x[0], widths[0]), widths[0]),
+                                *[padded(v, w, right=True) for v, w in zip(x[1:], widths[1:])]]))
     return "\n".join(lines)
