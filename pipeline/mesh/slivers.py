@@ -12,7 +12,7 @@ import numpy as np
 from scanreg.geometry import Mesh, col_max, col_min, rows_any, submesh
 from scanreg.mesh.intersect import intersections_among
 from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, _cached, _mesh_edges, _min_angles_deg, _per_face, intersections,
-                                   known, mesh_stats, min_angles_deg, non_manifold_vertex_mask, non_manifold_vertices,
+                                   known, min_angles_deg, non_manifold_vertex_mask, non_manifold_vertices,
                                    remember, self_intersecting_count, self_intersecting_faces)
 
 
@@ -249,8 +249,8 @@ def _joined(onto: dict[int, int], n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def fold_counts(mesh: Mesh) -> np.ndarray:
     """``[self-intersecting faces, non-manifold edges, non-manifold vertices]``: what an edge collapse can add."""
-    return np.array([self_intersecting_count(mesh), mesh_stats(mesh)["non_manifold_edges"],
-                     non_manifold_vertices(mesh)])
+    counts = _mesh_edges(mesh)[2]  # (mesh_stats' non_manifold_edges, without the rest of its statistics)
+    return np.array([self_intersecting_count(mesh), int((counts > 2).sum()), non_manifold_vertices(mesh)])
 
 
 def collapse_folds(before: Mesh, after: Mesh, sites: bool = False) -> tuple[np.ndarray, ...]:
