@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scanreg.geometry import Mesh, submesh
+from scanreg.geometry import Mesh, rows_any, submesh
 from scanreg.mesh.topology import (_face_components, boundary_edges, dilate_faces, face_labels, loop_labels,
                                    non_manifold_vertex_mask)
 
@@ -150,10 +150,11 @@ def stitch(mesh: Mesh, regions: list[Region], repaired: list[tuple[np.ndarray, n
     inside = np.zeros(len(f), bool)
     for r in regions:
         inside[r.faces] = True
-    rest = f[~inside]
     n = len(v)
     outside = _used(f, ~inside, n)
-    rest_keys = np.sort(_keys(_edges(rest), n))
+    # the edges of the faces outside the regions that touch one (a cut edge's face outside is one of them)
+    touch = ~inside & rows_any(_used(f, inside, n)[f])
+    rest_keys = np.sort(_keys(_edges(f[touch]), n))
     kept = ~inside  # the mesh's faces in the result
     new_v, new_f, top = [v], [], n
     split = False  # a region given back in more pieces than it had
