@@ -196,7 +196,7 @@ def test_candidate_pairs_are_all_overlapping_boxes():
     assert set(zip(i.tolist(), j.tolist())) == brute and len(i) == len(brute)
 
 
-@pytest.mark.parametrize("n_wide", [3, 60])
+@pytest.mark.parametrize("n_wide", [3, 300])
 def test_near_boxes_keep_every_box_that_overlaps_a_seed(n_wide):
     """The incremental test's search starts from the boxes near its new faces (_near_boxes): every box that
     overlaps a seed box is among them, with a few or many seeds far wider than most boxes (a long face across a
@@ -212,7 +212,7 @@ def test_near_boxes_keep_every_box_that_overlaps_a_seed(n_wide):
     wide = rng.choice(np.flatnonzero(~seed), n_wide, replace=False)
     hi[wide] = lo[wide] + rng.uniform(5, 20, (n_wide, 3))
     seed[wide] = True
-    assert (n_wide > WIDE_SEEDS) == (n_wide == 60)
+    assert (n_wide > WIDE_SEEDS) == (n_wide == 300)
     near = _near_boxes(lo, hi, seed)
     assert (np.diff(near) > 0).all()
     s = np.flatnonzero(seed)

@@ -538,7 +538,7 @@ def _near_boxes(lo: np.ndarray, hi: np.ndarray, seed: np.ndarray) -> np.ndarray:
     return np.flatnonzero(near | seed)
 
 
-WIDE_SEEDS = 32
+WIDE_SEEDS = 256
 """:func:`_near_boxes` compares at most this many seeds wider than most boxes with every box one by one."""
 
 
