@@ -236,6 +236,9 @@ def test_in_cells_around_keeps_every_point_within_a_cell_of_a_seed():
     cheb = np.abs(pts[:, None] - seeds[None]).max(axis=2).min(axis=1)
     assert got[cheb <= h].all() and not got[cheb > 2 * h * (1 + 1e-6)].any()
     assert not in_cells_around(pts, seeds[:0], h).any()
+    # seeds whose cells cannot be numbered in 63 bits, or not finite: None (take every point), never a wrong mask
+    assert in_cells_around(np.array([[1e19, 0, 0]]), np.array([[0, 0, 0], [1e19, 0, 0]]), 1.0) is None
+    assert in_cells_around(np.zeros((1, 3)), np.array([[0, 0, 0], [np.nan, 0, 0]]), 1.0) is None
 
 
 def test_predicates_are_exact_near_degeneracy():

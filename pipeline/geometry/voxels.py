@@ -212,16 +212,19 @@ def in_cells_around(points: np.ndarray, seeds: np.ndarray, cell: float) -> np.nd
     """Which of ``points`` (n, 3) lie in the cell of a seed (``seeds`` (m, 3)) or in one of its 26 neighbours, on a
     grid of cubes of side ``cell``: every point within ``cell`` of a seed along each axis is among them (the
     side is widened by a millionth for the rounding of the cells' coordinates). None when the seeds' cells
-    cannot be numbered in 63 bits (then take every point)."""
+    cannot be numbered in 63 bits, or a seed is not finite (then take every point)."""
     points, seeds = np.asarray(points, np.float64), np.asarray(seeds, np.float64)
     h = cell * (1 + 1e-6)
     if not (len(seeds) and h > 0 and np.isfinite(h)):
         return None if len(seeds) else np.zeros(len(points), bool)
-    org = col_min(seeds) - 2 * h
-    cells = np.floor((seeds - org) / h).astype(np.int64)
-    dims = col_max(cells) + 3
-    if float(np.prod(dims.astype(float))) > 2.0 ** 62:
+    if not np.isfinite(seeds).all():
         return None
+    org = col_min(seeds) - 2 * h
+    rel = np.floor((seeds - org) / h)
+    if float(np.prod(col_max(rel) + 3)) > 2.0 ** 62:  # (checked in floats, before the cast could wrap)
+        return None
+    cells = rel.astype(np.int64)
+    dims = col_max(cells) + 3
     off = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3)
     around = (np.unique(cells, axis=0)[:, None] + off).reshape(-1, 3)
     keys = np.unique((around[:, 0] * dims[1] + around[:, 1]) * dims[2] + around[:, 2])

@@ -70,13 +70,14 @@ def shared_faces(a: Mesh, b: Mesh) -> tuple[np.ndarray, np.ndarray]:
     face ``b`` has twice, one copy is marked. (A repair's input and output: what it left as it was.)"""
     from scanreg.mesh.intersect import face_keys, same_corners
 
-    ka, kb = face_keys(a.vertices, a.faces), face_keys(b.vertices, b.faces)
+    va, vb = (np.ascontiguousarray(m.vertices, dtype=np.float64) for m in (a, b))
+    ka, kb = face_keys(va, a.faces), face_keys(vb, b.faces)
     order = np.argsort(kb, kind="stable")
     sk = kb[order]
     at = np.minimum(np.searchsorted(sk, ka), max(len(sk) - 1, 0))
     i = np.flatnonzero(sk[at] == ka) if len(sk) else np.zeros(0, np.int64)
     j = order[at[i]]
-    same = same_corners(a.vertices[a.faces[i]], b.vertices[b.faces[j]])
+    same = same_corners(va[a.faces[i]], vb[b.faces[j]])
     in_a, in_b = np.zeros(len(a.faces), bool), np.zeros(len(b.faces), bool)
     in_a[i[same]] = True
     in_b[j[same]] = True  # (of a face b has twice, the copy a's lookup found)

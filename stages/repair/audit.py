@@ -98,10 +98,9 @@ class GuardParams:
     the ``max_removed_area`` limit 0.10 with 20000 (0.003 with 10000); the ``displacement_quantile`` 0.99 is
     read between the true 0.9886 and 0.9914 quantiles (+-2 standard errors of the 1 % tail's count) with 20000;
     the sampled Hausdorff maximum misses a displaced region of area share a with probability (1 - a)^n, 5 % for
-    a = 1.5e-4 of the kept surface with 20000. Distances themselves are exact point-to-triangle distances, 0 for
-    the points on faces the repair left as they were: from the input to the output Open3D's (float32
-    coordinates, exact up to about 1e-7 of their magnitude), from the output to the input libigl's in double
-    precision (:func:`~scanreg.mesh.distances.distances_to`)."""
+    a = 1.5e-4 of the kept surface with 20000. Distances themselves are exact point-to-triangle distances in
+    double precision both ways (libigl's, :func:`~scanreg.mesh.distances.distances_to`), 0 for the points on
+    faces the repair left as they were."""
     open_border: str = "auto"
     """What becomes of an open scan's outer border. ``auto``: a mesh with an outer border (a boundary loop at
     least ``open_border_ratio`` times as long as the square root of its part's area,
