@@ -15,13 +15,14 @@ from scanreg.geometry.transforms import (apply_T, horn_quaternion, invert_T, kab
                                          principal_axes, random_pose, rigid_points_normals, rotate_normals,
                                          rotation_angle_deg, rotation_from_cross_covariance, transform_errors,
                                          transform_geometry)
-from scanreg.geometry.voxels import (LOCALITY_SPAN, in_cells_around, locality_ordered, morton_order, sparse_voxel_mask, voxel_cells,
-                                     voxel_count, voxel_groups, voxel_occupancy, voxel_representatives)
+from scanreg.geometry.voxels import (LOCALITY_SPAN, in_cells_around, locality_ordered, morton_order, sparse_voxel_mask,
+                                     voxel_cells, voxel_count, voxel_groups, voxel_occupancy, voxel_representatives)
 
 __all__ = [
     "LOCALITY_SPAN", "ClosestPoints", "Cloud", "Geometry", "Mesh", "apply_T", "area_weighted_draws",
     "barycentric_sample", "bbox_diagonal", "col_max", "col_min", "cross3", "estimate_normals", "estimate_spacing",
-    "face_normals", "far_offset", "horn_quaternion", "in_cells_around", "invert_T", "kabsch_batch", "kabsch_svd", "locality_ordered", "make_T",
+    "face_normals", "far_offset", "horn_quaternion", "in_cells_around", "invert_T", "kabsch_batch", "kabsch_svd",
+    "locality_ordered", "make_T",
     "morton_order", "neighbourhoods", "orient_normals", "points_of", "points_on_faces", "principal_axes", "random_pose",
     "random_subset", "rigid_points_normals", "rotate_normals", "rotation_angle_deg", "rotation_from_cross_covariance",
     "row_norms", "rows_all", "rows_any",

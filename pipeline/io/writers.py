@@ -10,6 +10,7 @@ import numpy as np
 
 from scanreg.geometry import Cloud, Geometry, Mesh
 
+
 def write_atomic(path: Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` whole or not at all (parallel jobs of a sweep never read half a file): a
     temporary file in the same folder, with an ordinary file's permissions (mkstemp makes it private), renamed into

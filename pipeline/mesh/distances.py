@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from scanreg.geometry import Mesh, area_weighted_draws, barycentric_sample, in_cells_around, points_on_faces
+from scanreg.mesh.intersect import face_boxes, face_keys, largest_sides, same_corners
 from scanreg.mesh.topology import _face_areas
 
 
@@ -68,8 +69,6 @@ def shared_faces(a: Mesh, b: Mesh) -> tuple[np.ndarray, np.ndarray]:
     Faces are paired by a hash of their corners (:func:`~scanreg.mesh.intersect.face_keys`) and count as shared
     only when their corners are equal too, so a hash collision costs a face its sharing, never a false one. Of a
     face ``b`` has twice, one copy is marked. (A repair's input and output: what it left as it was.)"""
-    from scanreg.mesh.intersect import face_keys, same_corners
-
     va, vb = (np.ascontiguousarray(m.vertices, dtype=np.float64) for m in (a, b))
     ka, kb = face_keys(va, a.faces), face_keys(vb, b.faces)
     order = np.argsort(kb, kind="stable")
@@ -84,18 +83,6 @@ def shared_faces(a: Mesh, b: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return in_a, in_b
 
 
-NEAR_QUANTILE = 0.99
-""":func:`distances_near`: faces whose largest box side is above this quantile of the mesh's are always kept in
-the local part (the few long ones); the cells are sized by the others."""
-
-
-def _box_sides(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Each face's bounding box's largest side."""
-    c = [v[f[:, k]] for k in range(3)]
-    box = np.maximum(np.maximum(c[0], c[1]), c[2]) - np.minimum(np.minimum(c[0], c[1]), c[2])
-    return np.maximum(np.maximum(box[:, 0], box[:, 1]), box[:, 2])
-
-
 def distances_near(mesh: Mesh, points: np.ndarray, reach: float, measure, _retry: bool = True) -> np.ndarray:
     """The distances from ``points`` to the surface of ``mesh`` as ``measure(mesh, points)`` gives them, measured
     on the faces that can lie within ``reach`` of a point only: the same values wherever the distance is at most
@@ -105,13 +92,13 @@ def distances_near(mesh: Mesh, points: np.ndarray, reach: float, measure, _retry
     of the whole mesh.
 
     The faces kept are found on a grid of cells of side ``reach`` plus the faces' largest box side (at its
-    :data:`NEAR_QUANTILE`, :func:`~scanreg.geometry.in_cells_around`): a face within ``reach`` of a point has
-    its first corner in the point's cell or in a neighbouring one; the longer faces are always kept."""
+    :data:`~scanreg.mesh.intersect.NARROW_QUANTILE`, :func:`~scanreg.geometry.in_cells_around`): a face within
+    ``reach`` of a point has its first corner in the point's cell or in a neighbouring one; the longer faces are
+    always kept."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if not len(points) or not len(mesh.faces):
         return measure(mesh, points)
-    side = _box_sides(mesh.vertices, mesh.faces)
-    s = float(np.quantile(side, NEAR_QUANTILE))
+    side, s = largest_sides(*face_boxes(mesh.vertices[mesh.faces]))
     cells = in_cells_around(mesh.vertices[mesh.faces[:, 0]], points, reach + s)
     if cells is None:
         return measure(mesh, points)

@@ -385,7 +385,7 @@ def _pair_hits(P: np.ndarray, fl: np.ndarray, i: np.ndarray, j: np.ndarray,
     return hit
 
 
-def _boxes(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def face_boxes(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The bounding boxes (lo, hi) of faces given by their corners ``P`` (m, 3, 3): ``P.min(axis=1)`` and
     ``P.max(axis=1)``, the same values, faster."""
     return np.minimum(np.minimum(P[:, 0], P[:, 1]), P[:, 2]), np.maximum(np.maximum(P[:, 0], P[:, 1]), P[:, 2])
@@ -419,7 +419,7 @@ def intersecting_across(vertices: np.ndarray, faces: np.ndarray, groups: np.ndar
     k = int(g.max()) + 1
     face_order = np.arange(len(f)) if (g[1:] >= g[:-1]).all() else np.argsort(g, kind="stable")
     start = np.searchsorted(g[face_order], np.arange(k + 1))
-    lo, hi = _boxes(v[f[face_order]])  # the faces by group
+    lo, hi = face_boxes(v[f[face_order]])  # the faces by group
     present = np.flatnonzero(start[1:] > start[:-1])
     if len(present) < 2:
         return out
@@ -452,7 +452,7 @@ def intersecting_across(vertices: np.ndarray, faces: np.ndarray, groups: np.ndar
     vw, fw, live = _welded(v[ids], own.reshape(-1, 3))
     idx, fw = idx[live], fw[live]
     Pw = vw[fw]
-    i, j = candidate_pairs(*_boxes(Pw))
+    i, j = candidate_pairs(*face_boxes(Pw))
     across = g[idx[i]] != g[idx[j]]
     i, j = i[across], j[across]
     if not len(i):
@@ -488,7 +488,7 @@ def _all_pairs(v: np.ndarray, f: np.ndarray, live: np.ndarray, among: np.ndarray
     idx = np.flatnonzero(live)
     fl = f[idx]
     P = v[fl]  # (m, 3 corners, 3)
-    lo, hi = _boxes(P)
+    lo, hi = face_boxes(P)
     i, j = candidate_pairs(lo, hi, None if among is None else among[idx])
     if not len(i):
         return np.zeros((0, 2), np.int64)
@@ -515,9 +515,7 @@ def _near_boxes(lo: np.ndarray, hi: np.ndarray, seed: np.ndarray) -> np.ndarray:
     are compared with every box, up to :data:`WIDE_SEEDS` of them (more: a grid as wide as the widest)."""
     if not seed.any():
         return np.zeros(0, np.int64)
-    d = hi - lo
-    side = np.maximum(np.maximum(d[:, 0], d[:, 1]), d[:, 2])
-    s = float(np.quantile(side, 0.99))
+    side, s = largest_sides(lo, hi)
     near = side > s
     narrow, wide = seed & ~near, np.flatnonzero(seed & near)
     groups = [narrow] if len(wide) <= WIDE_SEEDS else [narrow, seed & near]
@@ -540,6 +538,16 @@ def _near_boxes(lo: np.ndarray, hi: np.ndarray, seed: np.ndarray) -> np.ndarray:
 
 WIDE_SEEDS = 256
 """:func:`_near_boxes` compares at most this many seeds wider than most boxes with every box one by one."""
+NARROW_QUANTILE = 0.99
+"""The grids that find the faces near an edit (:func:`_near_boxes`, :func:`scanreg.mesh.distances.distances_near`)
+are as wide as the faces' largest box sides up to this quantile; the wider faces are always taken."""
+
+
+def largest_sides(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
+    """Each box's largest side, and their :data:`NARROW_QUANTILE`."""
+    d = hi - lo
+    side = np.maximum(np.maximum(d[:, 0], d[:, 1]), d[:, 2])
+    return side, float(np.quantile(side, NARROW_QUANTILE))
 
 
 def _mix(z: np.ndarray) -> np.ndarray:
@@ -622,7 +630,7 @@ def _pairs_with(v: np.ndarray, f: np.ndarray, fresh: np.ndarray) -> np.ndarray:
     themselves only: a pair's outcome depends on its two faces and on the fans of the vertices they share, and
     a face of such a fan shares a point with a fresh face, so its box reaches it. The same pairs as the test of
     the whole mesh (an edit's test: the cost of its neighbourhood)."""
-    sub = _near_boxes(*_boxes(v[f]), fresh)
+    sub = _near_boxes(*face_boxes(v[f]), fresh)
     ids, own = np.unique(f[sub], return_inverse=True)
     vw, fw, live = _welded(v[ids], own.reshape(-1, 3))
     pairs = _all_pairs(vw, fw, live, among=fresh[sub] & live)

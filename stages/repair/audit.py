@@ -249,7 +249,7 @@ def _input_side(p: GuardParams, mesh: Mesh, seed: int) -> dict:
 NEAR_EDGES = 4.0
 """The audit measures a distance on the output's (or the input's) faces near the point first: those within the
 larger of ``removed_tolerance`` and this many median edges (:func:`~scanreg.mesh.distances.distances_near`; the
-values are the same, only a point farther than that is measured again on the whole mesh)."""
+values are the same, only a point farther than that is measured again on a wider neighbourhood)."""
 
 
 def _audit_distances(p: GuardParams, mesh: Mesh, out: Mesh, ins: dict, seed: int) -> dict[str, float]:
