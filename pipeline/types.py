@@ -20,6 +20,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from scanreg.errors import ConfigError
 from scanreg.geometry import Cloud, Geometry, Mesh
 
 
@@ -52,9 +53,19 @@ class RunContext:
     in_sweep: bool = False
     """The run is a job of a Hydra multirun sweep (``repair.cache: auto`` caches repaired meshes only then)."""
 
+    def __post_init__(self):
+        checked_seed(self.seed)
+
     def rng(self, salt: int = 0) -> np.random.Generator:
         """A generator seeded by the run's seed and ``salt`` (each use its own salt)."""
         return np.random.default_rng([self.seed, salt])
+
+
+def checked_seed(value: Any) -> int:
+    """``value`` as a run's seed: an integer >= 0 (NumPy's generators take no other); else a ConfigError."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise ConfigError(f"seed must be an integer >= 0, got {value!r}")
+    return int(value)
 
 
 @dataclass

@@ -321,3 +321,22 @@ def test_a_sweep_jobs_line_says_its_result():
     assert job_line({"rms": 0.00123, "time_total_s": 2.0}) == "rms 0.00123, 2.0 s"
     assert job_line({"n_scans": 10.0, "scans_placed": 9.0, "scan_rotation_error_max_deg": 0.353,
                      "time_total_s": 14.1}) == "9/10 scans placed, worst rot 0.353°, 14.1 s"
+
+
+@pytest.mark.parametrize("override, message", [
+    ("evaluate.inlier_distance=0", "evaluate: inlier_distance must be > 0, got 0.0"),
+    ("evaluate.success_rotation_deg=-2", "evaluate: success_rotation_deg must be > 0, got -2.0"),
+    ("evaluate.success_translation=0", "evaluate: success_translation must be > 0, got 0.0"),
+    ("evaluate.deviation_max_distance=-1", "evaluate: deviation_max_distance must be > 0 or null, got -1.0"),
+    ("evaluate.deviation_bands=[0.05,-1]", "evaluate: deviation_bands must all be > 0, got [0.05, -1.0]"),
+    ("seed=-1", "seed must be an integer >= 0, got -1"),
+])
+def test_settings_that_cannot_mean_anything_stop_before_the_run(override, message):
+    """A user's trial: ``evaluate.inlier_distance=-3`` ran, reported fitness 0 and 'the registration failed' on a
+    pose 0.04 deg off, with exit 0; ``seed=-1`` failed after the run had started, as an internal error. Each is a
+    config error now, one line, before anything runs (the CLI's exit 2; the API's ConfigError)."""
+    from scanreg.app.main import check_config
+
+    with pytest.raises(ConfigError) as e:
+        check_config(compose([override, "data.source=a.ply", "data.target=b.ply", "tracking=none"]))
+    assert str(e.value) == message

@@ -835,3 +835,40 @@ def test_the_scan_table_aligns_names_in_wide_characters():
     names = ["bun000.ply", "兔子_正面.ply", "e\u0301.ply"]  # wide characters; a combining accent (no column)
     assert [text_columns(n) for n in names] == [10, 13, 5]
     assert [padded(n, 13) for n in names] == ["bun000.ply   ", "兔子_正面.ply", "e\u0301.ply" + " " * 8]
+
+
+def test_the_set_scores_do_not_depend_on_the_scans_frames():
+    """A user's trial: every scan of the bunny set moved by its own random pose (the true poses with it) turned 2
+    right edges (0.4-0.5 deg off) into false ones, measured at the frames' origins, and changed
+    ``model_diagonal`` (a box along the world's axes) from 0.251 to 0.280. The edges are judged at the centroid
+    of the scan they move, the diagonal is the box's along the model's principal axes."""
+    from scanreg.eval.scanset import edge_truth
+    from scanreg.geometry import apply_T, bbox_diagonal, invert_T, make_T, principal_box_diagonal, random_pose
+    from scanreg.types import ViewEdge
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-1.0, 1.0, (2000, 3)) * [0.08, 0.05, 0.02]
+    moved = apply_T(random_pose(rng, 180.0, 3.0), pts)
+    assert principal_box_diagonal(moved) == pytest.approx(principal_box_diagonal(pts), rel=1e-12)
+    assert abs(bbox_diagonal(moved) / bbox_diagonal(pts) - 1) > 0.01  # (the box along the axes turns with them)
+    # two scans whose true relative pose is known; an edge 0.4 deg off about scan 1's centroid, in frames put
+    # 5 m from their scans: at the centroid it is right, at the origin 3.5 cm (17 % of the diagonal) off
+    centre = np.array([5.0, 0.0, 0.0])
+    G = [np.eye(4), random_pose(rng, 180.0, 0.1)]
+    small = make_T(Rotation.from_rotvec([0.0, 0.0, np.radians(0.4)]).as_matrix(), [0.0, 0.0, 0.0])
+    about = make_T(np.eye(3), centre) @ small @ make_T(np.eye(3), -centre)
+    edge = ViewEdge(0, 1, invert_T(G[0]) @ G[1] @ about, np.eye(6), np.zeros(3), 1.0, 0.5, 1.0, accepted=True)
+    assert edge_truth([edge], G, 0.2, 2.0, 0.01, [np.zeros(3), centre])[0] == 1.0
+    assert edge_truth([edge], G, 0.2, 2.0, 0.01)[0] == 0.0  # at the origin: false
+
+
+def test_a_pose_file_beside_the_scans_is_named_when_not_read(tmp_path):
+    """A user's trial: a folder of scans with Stanford's ``bun.conf`` beside them registered without ground truth
+    and nothing said whether the .conf had been used. A note names it and the setting that reads it."""
+    from scanreg.stages.data.scanset import unread_pose_files
+
+    for name in ("a.ply", "b.ply", "poses.conf", "notes.txt"):
+        (tmp_path / name).write_text("x")
+    (tmp_path / "sub.conf").mkdir()
+    assert unread_pose_files(str(tmp_path)) == [(str(tmp_path), tmp_path / "poses.conf")]
+    assert unread_pose_files([str(tmp_path / "a.ply"), str(tmp_path / "b.ply")]) == []  # files named: no folder

@@ -358,3 +358,56 @@ def test_a_sweep_set_by_a_config_file_leaves_no_launcher_workers(tmp_path):
         except OSError:
             pass
     assert left == [], f"{len(left)} process(es) of the sweep left running"
+
+
+# --------------------------------------------------------------------------- 5. Hydra's probe of the run mode
+
+
+def test_only_experiment_files_set_the_run_mode():
+    """:func:`startup.skip_mode_probe` relies on this: no config file but the experiments sets ``hydra.mode``, so
+    a command that selects no experiment (and no other config) runs in the mode its command line says."""
+    import yaml
+
+    from scanreg.stages.registry import conf_dir
+
+    setters = []
+    for f in sorted(conf_dir().rglob("*.yaml")):
+        doc = yaml.safe_load(f.read_text()) or {}
+        if isinstance(doc, dict) and isinstance(doc.get("hydra"), dict) and "mode" in doc["hydra"]:
+            setters.append(f.relative_to(conf_dir()).parts[0])
+    assert setters and set(setters) == {"experiment"}
+
+
+@pytest.mark.parametrize("argv, skipped", [
+    (["data.source=a.ply", "data.target=b.ply", "icp=horn", "seed=3"], True),
+    ([], True),
+    (["experiment=bunny_benchmark"], False), (["+experiment=x"], False), (["hydra.mode=MULTIRUN"], False),
+    (["hydra/launcher=basic"], False), (["hydra.run.dir=out"], False), (["++hydra.job.chdir=true"], False),
+    (["--config-dir", "c", "data=x"], False), (["-cd", "c"], False), (["-cn", "other"], False),
+    (["-m", "seed=0,1"], False), (["--multirun"], False),
+])
+def test_the_mode_probe_is_skipped_only_when_nothing_can_set_the_mode(argv, skipped, monkeypatch):
+    """Where it is skipped, Hydra gets the real probe's answer for such a command (None: as the command line
+    says) without composing the config; an experiment's own probe answers MULTIRUN."""
+    from hydra._internal.hydra import Hydra
+
+    monkeypatch.setattr(Hydra, "get_mode", Hydra.get_mode)  # (restored after the test)
+    original = Hydra.get_mode
+    assert startup.skip_mode_probe(argv) is skipped and (Hydra.get_mode is not original) is skipped
+    if skipped:
+        assert Hydra.get_mode(None, "config", argv) is None
+
+
+def test_the_real_probe_answers_what_the_skip_assumes():
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.types import RunMode
+
+    from scanreg.app.config import CONF_PACKAGE, register_schemas
+
+    register_schemas()
+    with initialize_config_module(config_module=CONF_PACKAGE, version_base="1.3"):
+        hydra = GlobalHydra.instance().hydra
+        assert hydra.get_mode("config", ["data.source=a.ply", "data.target=b.ply", "icp=horn", "seed=3"]) is None
+        assert hydra.get_mode("config", []) is None
+        assert hydra.get_mode("config", ["experiment=bunny_benchmark"]) == RunMode.MULTIRUN

@@ -49,7 +49,9 @@ def check_config(cfg: DictConfig):
     from scanreg.app.tracking import TRACKING
     from scanreg.runner import build_stages
     from scanreg.stages.registry import make_params
+    from scanreg.types import checked_seed
 
+    checked_seed(cfg.get("seed"))
     stages = build_stages(cfg)
     stages.data.require()
     if cfg.get("report") is not None and cfg.report.get("enabled"):

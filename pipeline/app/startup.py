@@ -10,6 +10,8 @@ run (``experiments/benchmarks/end_to_end.md`` measures them) and each has a test
    of the imported module graph (Open3D, SciPy, Hydra) only delays the prompt.
 4. :func:`quick_help`: ``scanreg --help`` without Hydra's help machinery, which formats every config group's
    options whether or not the template uses them.
+5. :func:`skip_mode_probe`: Hydra composes the whole config once only to read ``hydra.mode``, then again for
+   the run; for a command that names nothing that could set it, its answer is known without composing.
 
 Library callers use :func:`scanreg.app.main.main` and the Python API, which need none of these.
 """
@@ -180,3 +182,28 @@ def quick_help(overrides: list[str]) -> str | None:
         return string.Template(str(compose(overrides, return_hydra_config=True).hydra.help.template)).substitute({})
     except Exception:  # noqa: BLE001  # Hydra's own path reports it, or the template uses Hydra's variables
         return None
+
+
+# --------------------------------------------------------------------------- 5. Hydra's probe of the run mode
+
+MODE_SETTERS = ("experiment=", "experiment@", "hydra.", "hydra/", "hydra@")
+"""Overrides (with or without ``+``/``++``) that can set ``hydra.mode``: in scanreg's configs only the experiment
+files set it (``tests/test_startup.py`` checks that every other file leaves it alone)."""
+
+
+def skip_mode_probe(argv: list[str]) -> bool:
+    """Before a run, Hydra composes the whole config in multirun mode only to read ``hydra.mode``
+    (``Hydra.get_mode``), and without a mode set there (None) runs as the command line says. When ``argv`` names
+    no experiment, no ``hydra`` key or group, no other config (``--config-dir``/``-cd``, ``--config-name``/``-cn``,
+    ``--config-path``/``-cp``) and is no ``-m`` sweep, that answer is None: the probe is replaced by it, and the
+    config is composed once. True if it was."""
+    for a in argv:
+        if a.lstrip("+").startswith(MODE_SETTERS) or a.startswith(("-c", "--config", "-m", "--multirun")):
+            return False
+    from hydra._internal.hydra import Hydra
+
+    def get_mode(self, config_name, overrides):
+        return None
+
+    Hydra.get_mode = get_mode
+    return True

@@ -164,10 +164,16 @@ class EvalParams:
             raise ValueError(f"pose_bootstrap must be >= 0, got {self.pose_bootstrap}")
         if not 0 <= self.match_recall_ratio <= 1:
             raise ValueError(f"match_recall_ratio must be in [0, 1], got {self.match_recall_ratio}")
-        for name in ("repeatability_distance", "overlap_distance", "match_inlier_distance", "recall_rotation_deg",
+        for name in ("inlier_distance", "success_rotation_deg", "success_translation", "deviation_tolerance",
+                     "repeatability_distance", "overlap_distance", "match_inlier_distance", "recall_rotation_deg",
                      "recall_translation"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("deviation_range", "deviation_max_distance", "deviation_max_angle_deg"):
+            if getattr(self, name) is not None and not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0 or null, got {getattr(self, name)}")
+        if not all(b > 0 for b in self.deviation_bands):
+            raise ValueError(f"deviation_bands must all be > 0, got {list(self.deviation_bands)}")
         if self.recall_translation_abs is not None and not self.recall_translation_abs > 0:
             raise ValueError(f"recall_translation_abs must be > 0 or null, got {self.recall_translation_abs}")
         if not 0 <= self.fitness_warn <= 1:
@@ -185,7 +191,7 @@ def low_fitness_warning(fitness: float, threshold: float) -> str | None:
         return None
     return (f"only {fitness:.1%} of the source lies on the target after alignment (fitness < evaluate.fitness_warn "
             f"{threshold:g}): unless the scans overlap that little, the registration failed; and at so little "
-            "overlap a wrong pose can fit as well as the right one (see view3d.html)")
+            "overlap a wrong pose can fit as well as the right one, as tightly (the pose_sigma_* too; see view3d.html)")
 
 
 def sparse_pair_warning(source_spacing: float, target_spacing: float, n_source: int, n_target: int,
@@ -230,8 +236,8 @@ def alignment_metrics(distances: np.ndarray, p: EvalParams, spacing: float) -> d
 def gt_metrics(T: np.ndarray, T_gt: np.ndarray, diagonal: float, p: EvalParams, prefix: str = "",
                at: np.ndarray | None = None) -> dict[str, float]:
     """The errors of ``T`` against the ground truth ``T_gt`` and the success and recall tests on them; the
-    translation error at the origin, or at ``at`` (a source far from the origin: its centre,
-    :func:`~scanreg.geometry.far_offset`)."""
+    translation error is how far the two poses move the point ``at`` apart (the source's centre, where its
+    points are: then it does not depend on where the source's frame has its origin; None: the origin)."""
     rot, trans = transform_errors(T, T_gt, at)
     out = {
         f"{prefix}rotation_error_deg": rot,

@@ -36,13 +36,16 @@ def pose_errors(poses: list[Optional[np.ndarray]], poses_gt: list[Optional[np.nd
 
 
 def edge_truth(edges: list[ViewEdge], poses_gt: list[Optional[np.ndarray]], diagonal: float, max_rotation_deg: float,
-               max_translation: float) -> np.ndarray:
+               max_translation: float, centres: Optional[list[np.ndarray]] = None) -> np.ndarray:
     """Whether each edge's transform is right (within the limits, translation as a share of ``diagonal``); NaN
-    for an edge with a scan without a true pose."""
+    for an edge with a scan without a true pose. The translation error is measured at the centre of the scan
+    the edge moves (``centres``, each in its scan's frame, as :func:`pose_errors` has them; without them at its
+    frame's origin)."""
     ok = np.full(len(edges), np.nan)
     for k, e in enumerate(edges):
         if poses_gt[e.i] is not None and poses_gt[e.j] is not None:
-            rot, t = transform_errors(e.T_i_j, invert_T(poses_gt[e.i]) @ poses_gt[e.j])
+            at = None if centres is None else centres[e.j]
+            rot, t = transform_errors(e.T_i_j, invert_T(poses_gt[e.i]) @ poses_gt[e.j], at)
             ok[k] = float(rot <= max_rotation_deg and t <= max_translation * diagonal)
     return ok
 
@@ -68,7 +71,7 @@ def set_metrics(poses: list[Optional[np.ndarray]], edges: list[ViewEdge], anchor
     judged = np.array([G is not None for G in poses_gt])  # the scans with a true pose
     within = placed & (np.nan_to_num(rot, nan=np.inf) < tol_rotation_deg) & \
         (np.nan_to_num(trans, nan=np.inf) < tol_translation)
-    truth = edge_truth(edges, poses_gt, diagonal, false_rotation_deg, false_translation)
+    truth = edge_truth(edges, poses_gt, diagonal, false_rotation_deg, false_translation, centres)
     right, wrong = truth == 1.0, truth == 0.0
     if not judged.all():
         m["scans_evaluated"] = float(judged.sum())

@@ -122,3 +122,9 @@ def validate_mesh(mesh: Mesh) -> Mesh:
 
 def bbox_diagonal(pts: np.ndarray) -> float:
     return float(np.linalg.norm(col_max(pts) - col_min(pts)))
+
+
+def bbox_centre(pts: np.ndarray) -> np.ndarray:
+    """The centre of the points' axis-aligned bounding box (3,)."""
+    return 0.5 * (col_min(pts) + col_max(pts))
+

@@ -52,6 +52,18 @@ def principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, axes
 
 
+def principal_box_diagonal(points: np.ndarray) -> float:
+    """The diagonal of the points' bounding box along their principal axes (:func:`principal_axes`): unlike
+    :func:`~scanreg.geometry.bbox_diagonal`, the same however the points are rotated or moved (up to rounding;
+    a shape without unique principal axes, such as a sphere or a cube, gets the box of whichever axes rounding
+    picks). 0 for fewer than two points."""
+    if len(points) < 2:
+        return 0.0
+    centre, axes = principal_axes(np.asarray(points, float))
+    along = (points - centre) @ axes
+    return float(np.linalg.norm(along.max(axis=0) - along.min(axis=0)))
+
+
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a rotation matrix in degrees (robust near 0 and 180)."""
     c = (np.trace(R) - 1.0) / 2.0

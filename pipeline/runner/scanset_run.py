@@ -11,7 +11,7 @@ import numpy as np
 
 from scanreg.errors import StageError, note, warn
 from scanreg.eval.scanset import scan_residuals, set_metrics, surface_metrics
-from scanreg.geometry import Mesh, bbox_diagonal, invert_T, transform_geometry
+from scanreg.geometry import Mesh, invert_T, principal_box_diagonal, transform_geometry
 from scanreg.io import write_ply
 from scanreg.runner.build import Stages
 from scanreg.runner.scanset import SetRegistration, register_scanset
@@ -35,7 +35,8 @@ def run_scanset(problem: ScanSet, stages: Stages, ctx: RunContext, m: dict[str, 
     m.update({k: float(v) for k, v in problem.info.items() if isinstance(v, (int, float))})
     t0 = time.perf_counter_ns()
     anchor = reg.groups[0][0]
-    diagonal = bbox_diagonal(reg.merged.points) if reg.merged is not None and reg.merged.n_points else 0.0
+    # the model's size, the same in any pose of the set (its box along its principal axes)
+    diagonal = principal_box_diagonal(reg.merged.points) if reg.merged is not None and reg.merged.n_points else 0.0
     sm, per_scan = set_metrics(reg.poses, reg.edges, anchor, diagonal, problem.poses_gt, p.success_rotation_deg,
                                p.success_translation, p.false_edge_rotation_deg, p.false_edge_translation,
                                [s.cloud.points.mean(axis=0) for s in reg.scans])

@@ -83,11 +83,12 @@ class MultiviewParams:
     success_rotation_deg: float = 0.5
     """With ground truth, a scan is within tolerance when its rotation error is below this (degrees) ..."""
     success_translation: float = 0.0025
-    """... and its translation error below this share of the model's bounding-box diagonal."""
+    """... and its translation error (the shift of its centroid) below this share of the model's diagonal (its
+    box along its principal axes, ``model_diagonal``)."""
     false_edge_rotation_deg: float = 2.0
     """With ground truth, an accepted edge is false when its transform is off by more than this (degrees) ..."""
     false_edge_translation: float = 0.01
-    """... or by more than this share of the diagonal."""
+    """... or moves the centroid of the scan it places by more than this share of the model's diagonal."""
 
     def check(self):
         if self.all_pairs < 2 or self.window < 1 or self.neighbours < 1:

@@ -24,7 +24,7 @@ from scanreg.eval.metrics import (METRES_PER_UNIT, EvalParams, alignment_metrics
                                   inverted_gt_warning, low_fitness_warning, sparse_pair_warning, surface_deviation)
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pairs_covariance,
                                       relative_motion)
-from scanreg.geometry import (ClosestPoints, Geometry, Mesh, apply_T, bbox_diagonal, estimate_spacing, far_offset,
+from scanreg.geometry import (ClosestPoints, Geometry, Mesh, apply_T, bbox_centre, bbox_diagonal, estimate_spacing,
                               transform_geometry)
 from scanreg.process import blas_single_thread, start_isolated
 from scanreg.runner.build import Stages
@@ -173,7 +173,7 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     m.update(surface_deviation(aligned, on_surface, ev, spacing))
     masks = None
     if T_gt is not None:
-        at = far_offset(src.points)  # (zero: at the origin, unless the source lies far from it)
+        at = bbox_centre(src.points)  # the translation error where the source is, not at its frame's origin
         m.update(gt_metrics(T0, T_gt, pair.diagonal, ev, prefix="coarse_", at=at))
         m.update(gt_metrics(T, T_gt, pair.diagonal, ev, at=at))
         line = inverted_gt_warning(T, T_gt, m, pair.diagonal, ev, at)

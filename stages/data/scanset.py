@@ -88,6 +88,10 @@ class ScanSetProvider(Provider):
         check_sizes(scans, self.p.max_size_ratio)
         warn_copies(scans)
         poses = read_poses(self.p.poses, names) if self.p.poses else None
+        if poses is None:
+            for item, conf in unread_pose_files(self.p.scans):
+                note(f"data.scans {item}: {conf.name} beside the scans looks like their poses (a Stanford .conf); "
+                     f"it is not read unless named: add data.poses={conf} to score the registration against it")
         if self.p.max_angle_deg > 0 or self.p.max_translation > 0:
             diagonal = bbox_diagonal(np.vstack([points_of(g) for g in scans]))
             for k, g in enumerate(scans):
@@ -156,8 +160,7 @@ def scan_paths(spec: Any) -> list[Path]:
     """The scan files ``spec`` names (a folder, a glob, a list), sorted by name (numbers by value: ``scan_2``
     before ``scan_10``, :func:`natural_key`); one :class:`InputError` line for a path that is missing or names no
     scan."""
-    items = list(spec) if isinstance(spec, (list, tuple)) or hasattr(spec, "__iter__") and not isinstance(spec, str) \
-        else [spec]
+    items = _items(spec)
     out: list[Path] = []
     for item in items:
         s = expand_path(str(item))
@@ -182,6 +185,24 @@ def scan_paths(spec: Any) -> list[Path]:
         what = ", ".join(str(i) for i in items)
         raise InputError(f"data.scans {what}: {len(out)} scan{'' if len(out) == 1 else 's'}"
                          + (f" ({out[0].name})" if out else "") + "; a scan set needs at least 2")
+    return out
+
+
+def _items(spec: Any) -> list:
+    """``data.scans`` as a list of its items (one path, folder or glob; or a list of them)."""
+    return list(spec) if isinstance(spec, (list, tuple)) or hasattr(spec, "__iter__") and not isinstance(spec, str) \
+        else [spec]
+
+
+def unread_pose_files(spec: Any) -> list[tuple[str, Path]]:
+    """The Stanford ``.conf`` files (each scan's pose) in the folders ``spec`` names, with the item that named
+    each folder: ground truth that ``data.poses`` would read, which a folder alone does not."""
+    items = _items(spec)
+    out = []
+    for item in items:
+        p = Path(expand_path(str(item))).expanduser()
+        if p.is_dir():
+            out += [(str(item), q) for q in sorted(p.glob("*.conf")) if q.is_file()]
     return out
 
 
