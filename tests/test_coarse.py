@@ -201,6 +201,24 @@ def test_lo_ransac_falls_back_to_uniform_keypoints():
     assert m["coarse_fallback"] == 1 and transform_errors(T, T_gt)[0] < 0.35, m  # measured: 0.107 deg
     with pytest.raises(StageError, match="too few keypoints"):
         build_coarse("lo_ransac", helpers, fallback_voxel=None).align(tgt, src, sp, RunContext(seed=0))
+    # with fallback_k, the fallback matches each keypoint's 5 nearest descriptors: more matches than the matcher's
+    # own 3 (the default), the configured matcher left as it was
+    wide = build_coarse("lo_ransac", helpers, fallback_k=5).align(tgt, src, sp, RunContext(seed=0)).metrics
+    assert wide["coarse_correspondences"] > 1.4 * m["coarse_correspondences"], (m, wide)
+    assert helpers["matcher"].p.k == 3
+
+
+def test_the_fallback_matcher_is_the_configured_one_with_fallback_k():
+    from scanreg.stages.matcher import MutualKNN
+
+    matcher = build(MATCHER, "mutual_knn", mutual=True)
+    wide = build_coarse("lo_ransac", {"matcher": matcher}, fallback_k=5)._fallback_matcher()
+    assert isinstance(wide, MutualKNN) and wide.p.k == 5 and wide.p.mutual and matcher.p.k == 3
+    assert build_coarse("lo_ransac", {"matcher": matcher})._fallback_matcher() is matcher  # (default: null)
+    other = object()  # a matcher without a k is used as it is
+    assert build_coarse("lo_ransac", {"matcher": other}, fallback_k=5)._fallback_matcher() is other
+    with pytest.raises(Exception, match="fallback_k must be >= 1 or null"):
+        build_coarse("lo_ransac", fallback_k=0)
 
 
 def test_landmarks_known_transform_and_a_bad_pick():

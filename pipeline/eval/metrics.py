@@ -191,7 +191,8 @@ def low_fitness_warning(fitness: float, threshold: float) -> str | None:
         return None
     return (f"only {fitness:.1%} of the source lies on the target after alignment (fitness < evaluate.fitness_warn "
             f"{threshold:g}): unless the scans overlap that little, the registration failed; and at so little "
-            "overlap a wrong pose can fit as well as the right one, as tightly (the pose_sigma_* too; see view3d.html)")
+            "overlap a wrong pose can fit as well as the right one, and its pose_sigma_* be as small (see "
+            "view3d.html)")
 
 
 def sparse_pair_warning(source_spacing: float, target_spacing: float, n_source: int, n_target: int,

@@ -127,4 +127,3 @@ def bbox_diagonal(pts: np.ndarray) -> float:
 def bbox_centre(pts: np.ndarray) -> np.ndarray:
     """The centre of the points' axis-aligned bounding box (3,)."""
     return 0.5 * (col_min(pts) + col_max(pts))
-

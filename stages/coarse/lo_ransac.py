@@ -88,6 +88,15 @@ class LoRansac(CoarseBase):
         denser and detector-free, they still match where salient points are few or not repeatable (flat indoor
         scenes). Logged as ``coarse_fallback`` (0:
         the configured keypoints served, 1: the uniform ones). null: no fallback, fail at once."""
+        fallback_k: Optional[int] = None
+        """The fallback's matching looks this far: each uniform keypoint's ``fallback_k`` nearest descriptors
+        (the matcher's ``k`` in place of its own; the configured keypoints keep it). null: the matcher's own
+        ``k`` (the paper's mutual 3-NN). 5 suits pairs that overlap little: uniform keypoints are many and alike,
+        and where the fallback is needed at 10-20 % overlap a true match is often not among the 3 nearest (the
+        bunny benchmark's 10-20 % bin 8 of 16 against 7 at its pose seed 0, 7 against 6 at seed 1, no case lost
+        at any overlap); but the fallback's matches about double and so does its RANSAC's time: the 3DMatch
+        pair, which always falls back, takes 2.2 s in the coarse stage against 1.3 s, at the same final pose
+        (``experiments/benchmarks/low_overlap.md``)."""
         voxel: Optional[float] = 4.0
         """Run the whole coarse stage (keypoints, descriptors, matching, RANSAC) on the clouds voxel-downsampled to
         this edge, in sampling spacings of the full clouds (one point per voxel, the one nearest the voxel's
@@ -144,6 +153,8 @@ class LoRansac(CoarseBase):
                 raise ValueError(f"voxel must be > 0 or null, got {self.voxel}")
             if self.fallback_voxel is not None and not self.fallback_voxel > 0:
                 raise ValueError(f"fallback_voxel must be > 0 or null, got {self.fallback_voxel}")
+            if self.fallback_k is not None and self.fallback_k < 1:
+                raise ValueError(f"fallback_k must be >= 1 or null, got {self.fallback_k}")
             if not 0 < self.miss_probability < 1:
                 raise ValueError(f"miss_probability must be in (0, 1), got {self.miss_probability}")
             if self.batch < 1 or self.max_iterations < 1:
@@ -194,24 +205,34 @@ class LoRansac(CoarseBase):
             if ctx.verbose:
                 print(f"coarse=lo_ransac: {first}; trying uniform keypoints every {self.p.fallback_voxel:g} spacings")
             try:
-                res = self._attempt(target, source, spacing, uniform)
+                res = self._attempt(target, source, spacing, uniform, self._fallback_matcher())
             except StageError as second:
                 raise StageError(f"{first}; the fallback to uniform keypoints failed too: "
                                  f"{str(second).removeprefix('coarse=lo_ransac: ')}") from None
             res.metrics["coarse_fallback"] = 1
             return res
 
-    def _attempt(self, target: Cloud, source: Cloud, spacing: float, salience) -> CoarseResult:
-        """Keypoints by ``salience``, descriptors, matches and RANSAC; a :class:`StageError` when any is too few."""
+    def _fallback_matcher(self):
+        """The matcher of the fallback's uniform keypoints: the configured one with ``k`` = ``fallback_k`` (when
+        it has a ``k``)."""
+        params = getattr(self.matcher, "p", None)
+        if self.p.fallback_k is None or not hasattr(params, "k"):
+            return self.matcher
+        return type(self.matcher)(replace(params, k=self.p.fallback_k))
+
+    def _attempt(self, target: Cloud, source: Cloud, spacing: float, salience, matcher=None) -> CoarseResult:
+        """Keypoints by ``salience``, descriptors, matches (by ``matcher``, default the configured one) and RANSAC;
+        a :class:`StageError` when any is too few."""
         kt, ks = salience.keypoints(target, spacing), salience.keypoints(source, spacing)
         if len(kt) < 3 or len(ks) < 3:
             raise StageError(f"coarse=lo_ransac: too few keypoints (target {len(kt)}, source {len(ks)}); "
                              "lower the salience radii or use more points")
         dt, ds = self.descriptor.compute(target, kt, spacing), self.descriptor.compute(source, ks, spacing)
-        return self._matched(Described(target, spacing, kt, dt), Described(source, spacing, ks, ds), self.p)
+        return self._matched(Described(target, spacing, kt, dt), Described(source, spacing, ks, ds), self.p, matcher)
 
-    def _matched(self, t: Described, s: Described, p: Params) -> CoarseResult:
-        """Descriptor matches and RANSAC between two described clouds (one spacing), with the parameters ``p``;
+    def _matched(self, t: Described, s: Described, p: Params, matcher=None) -> CoarseResult:
+        """Descriptor matches (by ``matcher``, default the configured one) and RANSAC between two described clouds
+        (one spacing), with the parameters ``p``;
         when a cloud had no normals and the descriptor says how its histograms read with the normals turned over
         (:meth:`~scanreg.stages.descriptor.FPFH.flipped`), both ways, the one with more inliers kept (ties: as
         oriented). Each cloud's estimated normals are oriented consistently on their own, so that one of the two
@@ -220,11 +241,11 @@ class LoRansac(CoarseBase):
         turned = flip(t.descriptors) if flip is not None and (t.cloud.normals is None or
                                                                s.cloud.normals is None) else None
         if turned is None:
-            return self._matched_once(t, s, p)
+            return self._matched_once(t, s, p, matcher)
         results, errors = [], []
         for k, dt in enumerate((t.descriptors, turned)):
             try:
-                res = self._matched_once(Described(t.cloud, t.spacing, t.keypoints, dt), s, p)
+                res = self._matched_once(Described(t.cloud, t.spacing, t.keypoints, dt), s, p, matcher)
                 res.metrics["coarse_normals_turned"] = k
                 results.append(res)
             except StageError as e:
@@ -233,9 +254,9 @@ class LoRansac(CoarseBase):
             raise errors[0]
         return max(results, key=lambda r: r.metrics["coarse_inliers"])  # (the first of equals: as oriented)
 
-    def _matched_once(self, t: Described, s: Described, p: Params) -> CoarseResult:
+    def _matched_once(self, t: Described, s: Described, p: Params, matcher=None) -> CoarseResult:
         """:meth:`_matched` with the descriptors as they are."""
-        pairs = self.matcher.match(t.descriptors, s.descriptors)
+        pairs = (matcher or self.matcher).match(t.descriptors, s.descriptors)
         metrics = {"coarse_keypoints_target": len(t.keypoints), "coarse_keypoints_source": len(s.keypoints),
                    "coarse_correspondences": len(pairs)}
         if len(pairs) < 3:
@@ -301,7 +322,7 @@ class LoRansac(CoarseBase):
             except StageError:
                 if p.fallback_voxel is None or getattr(self.salience, "name", "") == "uniform":
                     raise
-            res = self._matched(self._uniformly(target), self._uniformly(source), p)
+            res = self._matched(self._uniformly(target), self._uniformly(source), p, self._fallback_matcher())
             res.metrics["coarse_fallback"] = 1
             return res
 
