@@ -54,7 +54,7 @@ class RunContext:
     """The run is a job of a Hydra multirun sweep (``repair.cache: auto`` caches repaired meshes only then)."""
 
     def __post_init__(self):
-        checked_seed(self.seed)
+        object.__setattr__(self, "seed", checked_seed(self.seed))
 
     def rng(self, salt: int = 0) -> np.random.Generator:
         """A generator seeded by the run's seed and ``salt`` (each use its own salt)."""
@@ -62,7 +62,10 @@ class RunContext:
 
 
 def checked_seed(value: Any) -> int:
-    """``value`` as a run's seed: an integer >= 0 (NumPy's generators take no other); else a ConfigError."""
+    """``value`` as a run's seed: an integer >= 0 (NumPy's generators take no other), or its digits as a string
+    (``seed='7'``, an environment variable); else a ConfigError."""
+    if isinstance(value, str) and value.strip().isdigit():
+        value = int(value.strip())
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
         raise ConfigError(f"seed must be an integer >= 0, got {value!r}")
     return int(value)

@@ -208,6 +208,16 @@ def test_lo_ransac_falls_back_to_uniform_keypoints():
     assert helpers["matcher"].p.k == 3
 
 
+@pytest.mark.slow
+def test_fallback_k_leaves_a_pair_that_needs_no_fallback_as_it_was():
+    """ISS serves on bun045 -> bun000 (no fallback): with fallback_k = 5 the same matches and pose, bit for bit."""
+    tgt, src, T_gt, sp, helpers = stanford_case(7, 20000, build(SALIENCE, "iss"))
+    base = build_coarse("lo_ransac", helpers).align(tgt, src, sp, RunContext(seed=0))
+    wide = build_coarse("lo_ransac", helpers, fallback_k=5).align(tgt, src, sp, RunContext(seed=0))
+    assert base.metrics["coarse_fallback"] == 0 and transform_errors(base.T_target_source, T_gt)[0] < 2.0
+    assert np.array_equal(wide.T_target_source, base.T_target_source) and wide.metrics == base.metrics
+
+
 def test_the_fallback_matcher_is_the_configured_one_with_fallback_k():
     from scanreg.stages.matcher import MutualKNN
 

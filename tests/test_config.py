@@ -4,6 +4,7 @@ default lives in its stage's Params dataclass; composition errors are one clear 
 import dataclasses
 import enum
 
+import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
@@ -340,3 +341,16 @@ def test_settings_that_cannot_mean_anything_stop_before_the_run(override, messag
     with pytest.raises(ConfigError) as e:
         check_config(compose([override, "data.source=a.ply", "data.target=b.ply", "tracking=none"]))
     assert str(e.value) == message
+
+
+def test_a_seed_given_as_digits_is_a_seed():
+    """``seed='7'`` (quoted, or from an environment variable) ran before the seed check and still does; the API's
+    RunContext holds it as an int."""
+    from scanreg.app.main import check_config
+    from scanreg.types import RunContext, checked_seed
+
+    check_config(compose(["seed='7'", "data.source=a.ply", "data.target=b.ply", "tracking=none"]))
+    assert checked_seed("7") == 7 and checked_seed(np.int64(3)) == 3 and RunContext(seed="3").seed == 3
+    for bad in (-1, "x", "-2", 1.5, True):
+        with pytest.raises(ConfigError, match="seed must be an integer >= 0"):
+            checked_seed(bad)

@@ -226,6 +226,9 @@ def test_reconstruct_places_every_view_and_closes_the_model(tmp_path, views):
     assert m["edges_predicted"] >= 4 and m["edges_retried"] == 0 and m["edges_rejected_right"] == 0
     assert m["surface_closed_manifold"] == 1 and m["surface_self_intersecting_faces"] == 0
     assert rec.merged.extra["scan"].max() == 7 and rec.merged.normals is not None
+    from scanreg.geometry import principal_box_diagonal
+
+    assert m["model_diagonal"] == principal_box_diagonal(rec.merged.points)  # (the same in any pose of the set)
     poses = json.loads((tmp_path / "poses.json").read_text())
     assert poses["world"] == "scan000.ply" and np.allclose(poses["poses"]["scan003.ply"], rec.poses["scan003.ply"])
     assert np.array_equal(rec.poses["scan000.ply"], np.eye(4))
@@ -862,13 +865,37 @@ def test_the_set_scores_do_not_depend_on_the_scans_frames():
     assert edge_truth([edge], G, 0.2, 2.0, 0.01)[0] == 0.0  # at the origin: false
 
 
-def test_a_pose_file_beside_the_scans_is_named_when_not_read(tmp_path):
+def test_a_pose_file_beside_the_scans_is_named_when_not_read(tmp_path, capsys):
     """A user's trial: a folder of scans with Stanford's ``bun.conf`` beside them registered without ground truth
     and nothing said whether the .conf had been used. A note names it and the setting that reads it."""
+    import scanreg
     from scanreg.stages.data.scanset import unread_pose_files
 
-    for name in ("a.ply", "b.ply", "poses.conf", "notes.txt"):
-        (tmp_path / name).write_text("x")
+    rng = np.random.default_rng(0)
+    for name in ("a.ply", "b.ply"):
+        write_ply(tmp_path / name, Cloud(rng.random((200, 3))))
+    (tmp_path / "poses.conf").write_text("camera 0 0 0 0 0 0 1\n")
     (tmp_path / "sub.conf").mkdir()
     assert unread_pose_files(str(tmp_path)) == [(str(tmp_path), tmp_path / "poses.conf")]
     assert unread_pose_files([str(tmp_path / "a.ply"), str(tmp_path / "b.ply")]) == []  # files named: no folder
+    stages = scanreg.runner.build_stages(scanreg.compose(["data=scanset", f"data.scans={tmp_path}"]))
+    stages.data.load(RunContext(seed=0))
+    assert f"poses.conf beside the scans looks like their poses (a Stanford .conf); it is not read unless named: " \
+           f"add data.poses={tmp_path / 'poses.conf'}" in capsys.readouterr().out
+
+
+def test_set_metrics_judge_each_edge_where_its_scan_is():
+    """set_metrics hands the scans' centres to the edge test: an edge right at its scan's centroid, far off at its
+    frame's origin 5 m away, is not counted false."""
+    from scanreg.eval.scanset import set_metrics
+    from scanreg.geometry import make_T
+    from scanreg.types import ViewEdge
+
+    centre = np.array([5.0, 0.0, 0.0])
+    G = [np.eye(4), random_pose(np.random.default_rng(6), 180.0, 0.1)]
+    small = make_T(Rotation.from_rotvec([0.0, 0.0, np.radians(0.4)]).as_matrix(), [0.0, 0.0, 0.0])
+    about = make_T(np.eye(3), centre) @ small @ make_T(np.eye(3), -centre)
+    edge = ViewEdge(0, 1, invert_T(G[0]) @ G[1] @ about, np.eye(6), np.zeros(3), 1.0, 0.5, 1.0, accepted=True)
+    args = ([np.eye(4), G[1] @ about], [edge], 0, 0.2, G, 0.5, 0.0025, 2.0, 0.01)
+    assert set_metrics(*args, centres=[np.zeros(3), centre])[0]["edges_false"] == 0
+    assert set_metrics(*args)[0]["edges_false"] == 1  # (at the origins)

@@ -378,27 +378,30 @@ def test_only_experiment_files_set_the_run_mode():
     assert setters and set(setters) == {"experiment"}
 
 
+SKIPPED = [["data.source=a.ply", "data.target=b.ply", "icp=horn", "seed=3"], [], ["hydrax=1"], ["experiments=1"]]
+"""Commands whose mode no config can set: the probe is skipped (and the real probe answers None for each)."""
+
+
 @pytest.mark.parametrize("argv, skipped", [
-    (["data.source=a.ply", "data.target=b.ply", "icp=horn", "seed=3"], True),
-    ([], True),
-    (["experiment=bunny_benchmark"], False), (["+experiment=x"], False), (["hydra.mode=MULTIRUN"], False),
+    *[(a, True) for a in SKIPPED],
+    (["experiment=bunny_benchmark"], False), (["+experiment=x"], False), (["experiment@pkg=x"], False),
+    (["hydra.mode=MULTIRUN"], False), (["hydra={mode:MULTIRUN}"], False), (["+hydra={mode:MULTIRUN}"], False),
     (["hydra/launcher=basic"], False), (["hydra.run.dir=out"], False), (["++hydra.job.chdir=true"], False),
-    (["--config-dir", "c", "data=x"], False), (["-cd", "c"], False), (["-cn", "other"], False),
-    (["-m", "seed=0,1"], False), (["--multirun"], False),
+    (["--config-dir", "c", "data=x"], False), (["--config-dir=c"], False), (["-cd", "c"], False),
+    (["-cn", "other"], False), (["-m", "seed=0,1"], False), (["--multirun"], False), (["--multi"], False),
 ])
 def test_the_mode_probe_is_skipped_only_when_nothing_can_set_the_mode(argv, skipped, monkeypatch):
-    """Where it is skipped, Hydra gets the real probe's answer for such a command (None: as the command line
-    says) without composing the config; an experiment's own probe answers MULTIRUN."""
+    """Where it is skipped, Hydra gets None (run as the command line says) without composing the config."""
     from hydra._internal.hydra import Hydra
 
     monkeypatch.setattr(Hydra, "get_mode", Hydra.get_mode)  # (restored after the test)
     original = Hydra.get_mode
     assert startup.skip_mode_probe(argv) is skipped and (Hydra.get_mode is not original) is skipped
-    if skipped:
-        assert Hydra.get_mode(None, "config", argv) is None
 
 
 def test_the_real_probe_answers_what_the_skip_assumes():
+    """Hydra's own probe, composed: None for every command the skip applies to; MULTIRUN where an experiment or
+    a ``hydra`` override sets it (the skip leaves those to it)."""
     from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
     from hydra.types import RunMode
@@ -408,6 +411,7 @@ def test_the_real_probe_answers_what_the_skip_assumes():
     register_schemas()
     with initialize_config_module(config_module=CONF_PACKAGE, version_base="1.3"):
         hydra = GlobalHydra.instance().hydra
-        assert hydra.get_mode("config", ["data.source=a.ply", "data.target=b.ply", "icp=horn", "seed=3"]) is None
-        assert hydra.get_mode("config", []) is None
-        assert hydra.get_mode("config", ["experiment=bunny_benchmark"]) == RunMode.MULTIRUN
+        for argv in SKIPPED:
+            assert hydra.get_mode("config", argv) is None, argv
+        for argv in (["experiment=bunny_benchmark"], ["hydra={mode:MULTIRUN}"]):
+            assert hydra.get_mode("config", argv) == RunMode.MULTIRUN, argv

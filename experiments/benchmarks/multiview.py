@@ -171,7 +171,7 @@ def main() -> int:
         print(f"the 10 bunny scans are skipped: {SHARED / 'stanford_bunny'} is absent")
         sets = []
     sets += [f"views{n}" for n in a.views]
-    from scanreg.geometry import apply_T, bbox_diagonal, points_of
+    from scanreg.geometry import apply_T, points_of, principal_box_diagonal
     from scanreg.io import read_geometry
 
     rows = ["| set | seed | method | scans within 0.5° and 0.25 % | placed | worst rotation [°] | worst shift [% diag] "
@@ -182,9 +182,10 @@ def main() -> int:
                 folder = Path(tmp) / "scans"
                 paths, truth, centres = moved_set(folder, seed) if name == "bunny" else \
                     rendered_set(folder, seed, int(name[len("views"):]))
-                # the model's diagonal: every scan at its true pose
-                diagonal = bbox_diagonal(np.vstack([apply_T(T, points_of(read_geometry(p)))
-                                                    for p, T in zip(paths, truth)]))
+                # the model's diagonal: every scan at its true pose, the box along its principal axes (as a
+                # scan set's model_diagonal)
+                diagonal = principal_box_diagonal(np.vstack([apply_T(T, points_of(read_geometry(p)))
+                                                             for p, T in zip(paths, truth)]))
                 for method in ("open3d", "scanreg") if seed % 2 else ("scanreg", "open3d"):  # interleaved
                     poses, wall, own = run_open3d(paths) if method == "open3d" else run_scanreg(folder, Path(tmp))
                     s = score(poses, truth, centres, diagonal)

@@ -19,6 +19,7 @@ Library callers use :func:`scanreg.app.main.main` and the Python API, which need
 from __future__ import annotations
 
 import json
+import re
 import sys
 import types
 
@@ -186,9 +187,11 @@ def quick_help(overrides: list[str]) -> str | None:
 
 # --------------------------------------------------------------------------- 5. Hydra's probe of the run mode
 
-MODE_SETTERS = ("experiment=", "experiment@", "hydra.", "hydra/", "hydra@")
-"""Overrides (with or without ``+``/``++``) that can set ``hydra.mode``: in scanreg's configs only the experiment
-files set it (``tests/test_startup.py`` checks that every other file leaves it alone)."""
+MODE_SETTERS = ("experiment", "hydra")
+"""The config keys and groups (with or without ``+``/``++``, a package ``@...`` or a sub-key ``.``/``/``) whose
+overrides can set ``hydra.mode``: ``hydra`` itself (``hydra.mode=...``, ``hydra={mode:MULTIRUN}``, ``hydra/...``)
+and the experiments, which in scanreg's configs are the only files that set it (``tests/test_startup.py`` checks
+that every other file leaves it alone)."""
 
 
 def skip_mode_probe(argv: list[str]) -> bool:
@@ -198,7 +201,8 @@ def skip_mode_probe(argv: list[str]) -> bool:
     ``--config-path``/``-cp``) and is no ``-m`` sweep, that answer is None: the probe is replaced by it, and the
     config is composed once. True if it was."""
     for a in argv:
-        if a.lstrip("+").startswith(MODE_SETTERS) or a.startswith(("-c", "--config", "-m", "--multirun")):
+        key = re.split(r"[=@./~]", a.lstrip("+~"), maxsplit=1)[0]
+        if key in MODE_SETTERS or a.startswith(("-c", "--config", "-m", "--multi")):
             return False
     from hydra._internal.hydra import Hydra
 

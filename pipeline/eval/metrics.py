@@ -270,7 +270,8 @@ def inverted_gt_warning(T: np.ndarray, T_gt: np.ndarray, m: dict, diagonal: floa
 
 
 def registration_recall(rotation_error_deg: float, translation_error: float, diagonal: float, p: EvalParams) -> float:
-    """1.0 when the pose is within 3DMatch's thresholds (Zeng et al. 2017; RRE/RTE form of Huang et al. 2021):
+    """1.0 when the pose is within 3DMatch's thresholds (Zeng et al. 2017; RRE/RTE form of Huang et al. 2021, whose
+    RTE is measured at the fragment's frame origin, ours at the source's centre, :func:`gt_metrics`):
     rotation error below ``recall_rotation_deg`` and translation error (input units) below
     ``recall_translation_abs``, or when that is null below ``recall_translation`` times ``diagonal``; else 0.0."""
     lim = p.recall_translation_abs if p.recall_translation_abs is not None else p.recall_translation * diagonal

@@ -73,8 +73,9 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 
 def transform_errors(T_est: np.ndarray, T_gt: np.ndarray, at: np.ndarray | None = None) -> tuple[float, float]:
     """(rotation error in degrees, translation error in input units) of ``T_est`` against ``T_gt``. The
-    translation error is how far the two move the origin apart, or with ``at`` that point (a scan far from the
-    origin: there a rotation error of 1e-8 rad moves the origin by 1e-8 times the distance)."""
+    translation error is how far the two move the origin apart, or with ``at`` that point (where the scan is, e.g.
+    its centre: then it does not depend on where its frame has its origin, and a scan far from the origin does
+    not see a rotation error of 1e-8 rad as 1e-8 times its distance)."""
     dR = T_est[:3, :3] @ T_gt[:3, :3].T
     if at is None or not np.any(at):
         return rotation_angle_deg(dR), float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]))

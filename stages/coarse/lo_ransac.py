@@ -93,10 +93,10 @@ class LoRansac(CoarseBase):
         (the matcher's ``k`` in place of its own; the configured keypoints keep it). null: the matcher's own
         ``k`` (the paper's mutual 3-NN). 5 suits pairs that overlap little: uniform keypoints are many and alike,
         and where the fallback is needed at 10-20 % overlap a true match is often not among the 3 nearest (the
-        bunny benchmark's 10-20 % bin 8 of 16 against 7 at its pose seed 0, 7 against 6 at seed 1, no case lost
-        at any overlap); but the fallback's matches about double and so does its RANSAC's time: the 3DMatch
-        pair, which always falls back, takes 2.2 s in the coarse stage against 1.3 s, at the same final pose
-        (``experiments/benchmarks/low_overlap.md``)."""
+        bunny benchmark's 10-20 % bin 8 of 16 against 7 at its pose seed 0, 7 against 6 at seed 1; with
+        ``matcher.k=5`` none of the other 35 cases of seed 0 was lost); but the fallback's matches about double
+        and so does its RANSAC's time: the 3DMatch pair, which always falls back, takes 2.2 s in the coarse stage
+        against 1.3 s, at the same final pose (``experiments/benchmarks/low_overlap.md``)."""
         voxel: Optional[float] = 4.0
         """Run the whole coarse stage (keypoints, descriptors, matching, RANSAC) on the clouds voxel-downsampled to
         this edge, in sampling spacings of the full clouds (one point per voxel, the one nearest the voxel's
@@ -256,7 +256,7 @@ class LoRansac(CoarseBase):
 
     def _matched_once(self, t: Described, s: Described, p: Params, matcher=None) -> CoarseResult:
         """:meth:`_matched` with the descriptors as they are."""
-        pairs = (matcher or self.matcher).match(t.descriptors, s.descriptors)
+        pairs = (self.matcher if matcher is None else matcher).match(t.descriptors, s.descriptors)
         metrics = {"coarse_keypoints_target": len(t.keypoints), "coarse_keypoints_source": len(s.keypoints),
                    "coarse_correspondences": len(pairs)}
         if len(pairs) < 3:
