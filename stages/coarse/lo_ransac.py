@@ -95,8 +95,8 @@ class LoRansac(CoarseBase):
         and where the fallback is needed at 10-20 % overlap a true match is often not among the 3 nearest (the
         bunny benchmark's 10-20 % bin 8 of 16 against 7 at its pose seed 0, 7 against 6 at seed 1; with
         ``matcher.k=5`` none of the other 35 cases of seed 0 was lost); but the fallback's matches about double
-        and so does its RANSAC's time: the 3DMatch pair, which always falls back, takes 2.2 s in the coarse stage
-        against 1.3 s, at the same final pose (``experiments/benchmarks/low_overlap.md``)."""
+        and so does its RANSAC's work, where users start too: the 3DMatch pair always falls back, and its coarse
+        stage then takes 1.7 times as long for the same final pose (``experiments/benchmarks/low_overlap.md``)."""
         voxel: Optional[float] = 4.0
         """Run the whole coarse stage (keypoints, descriptors, matching, RANSAC) on the clouds voxel-downsampled to
         this edge, in sampling spacings of the full clouds (one point per voxel, the one nearest the voxel's
