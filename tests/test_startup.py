@@ -378,7 +378,8 @@ def test_only_experiment_files_set_the_run_mode():
     assert setters and set(setters) == {"experiment"}
 
 
-SKIPPED = [["data.source=a.ply", "data.target=b.ply", "icp=horn", "seed=3"], [], ["hydrax=1"], ["experiments=1"]]
+SKIPPED = [["data.source=a.ply", "data.target=b.ply", "icp=horn", "seed=3"], [], ["hydrax=1"], ["experiments=1"],
+           ["hydra.run.dir=out", "seed=1"], ["++hydra.job.chdir=true"]]
 """Commands whose mode no config can set: the probe is skipped (and the real probe answers None for each)."""
 
 
@@ -386,7 +387,7 @@ SKIPPED = [["data.source=a.ply", "data.target=b.ply", "icp=horn", "seed=3"], [],
     *[(a, True) for a in SKIPPED],
     (["experiment=bunny_benchmark"], False), (["+experiment=x"], False), (["experiment@pkg=x"], False),
     (["hydra.mode=MULTIRUN"], False), (["hydra={mode:MULTIRUN}"], False), (["+hydra={mode:MULTIRUN}"], False),
-    (["hydra/launcher=basic"], False), (["hydra.run.dir=out"], False), (["++hydra.job.chdir=true"], False),
+    (["hydra/launcher=basic"], False), (["~hydra.mode"], False), (["hydra@pkg={mode:MULTIRUN}"], False),
     (["--config-dir", "c", "data=x"], False), (["--config-dir=c"], False), (["-cd", "c"], False),
     (["-cn", "other"], False), (["-m", "seed=0,1"], False), (["--multirun"], False), (["--multi"], False),
 ])

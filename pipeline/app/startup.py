@@ -187,22 +187,24 @@ def quick_help(overrides: list[str]) -> str | None:
 
 # --------------------------------------------------------------------------- 5. Hydra's probe of the run mode
 
-MODE_SETTERS = ("experiment", "hydra")
-"""The config keys and groups (with or without ``+``/``++``, a package ``@...`` or a sub-key ``.``/``/``) whose
-overrides can set ``hydra.mode``: ``hydra`` itself (``hydra.mode=...``, ``hydra={mode:MULTIRUN}``, ``hydra/...``)
-and the experiments, which in scanreg's configs are the only files that set it (``tests/test_startup.py`` checks
-that every other file leaves it alone)."""
+def _may_set_mode(override: str) -> bool:
+    """Whether a command-line override can set ``hydra.mode`` (with or without ``+``/``++``/``~``): the
+    ``experiment`` group (with any package ``@...``; in scanreg's configs the experiments are the only files that
+    set it, ``tests/test_startup.py`` checks every other file), ``hydra`` itself (``hydra={mode:MULTIRUN}``),
+    ``hydra.mode`` and any group under ``hydra/`` (whose file could). Other ``hydra.`` keys (``hydra.run.dir``,
+    ``hydra.job.chdir``) cannot."""
+    key = re.split(r"[=@]", override.lstrip("+~"), maxsplit=1)[0]
+    return key == "experiment" or key == "hydra" or key.startswith(("hydra.mode", "hydra/"))
 
 
 def skip_mode_probe(argv: list[str]) -> bool:
     """Before a run, Hydra composes the whole config in multirun mode only to read ``hydra.mode``
-    (``Hydra.get_mode``), and without a mode set there (None) runs as the command line says. When ``argv`` names
-    no experiment, no ``hydra`` key or group, no other config (``--config-dir``/``-cd``, ``--config-name``/``-cn``,
-    ``--config-path``/``-cp``) and is no ``-m`` sweep, that answer is None: the probe is replaced by it, and the
-    config is composed once. True if it was."""
+    (``Hydra.get_mode``), and without a mode set there (None) runs as the command line says. When ``argv`` has no
+    override that may set it (:func:`_may_set_mode`), names no other config (``--config-dir``/``-cd``,
+    ``--config-name``/``-cn``, ``--config-path``/``-cp``) and is no ``-m`` sweep, that answer is None: the probe
+    is replaced by it, and the config is composed once. True if it was."""
     for a in argv:
-        key = re.split(r"[=@./~]", a.lstrip("+~"), maxsplit=1)[0]
-        if key in MODE_SETTERS or a.startswith(("-c", "--config", "-m", "--multi")):
+        if _may_set_mode(a) or a.startswith(("-c", "--config", "-m", "--multi")):
             return False
     from hydra._internal.hydra import Hydra
 
