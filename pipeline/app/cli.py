@@ -15,7 +15,6 @@ def main() -> None:
     argv = sys.argv[1:]
     if startup.may_track_single_run(argv):
         startup.prestart_tracking_worker()
-    startup.skip_mode_probe(argv)
     from scanreg.app.main import main as app_main
 
     code: int | str | None = 0

@@ -10,8 +10,6 @@ run (``experiments/benchmarks/end_to_end.md`` measures them) and each has a test
    of the imported module graph (Open3D, SciPy, Hydra) only delays the prompt.
 4. :func:`quick_help`: ``scanreg --help`` without Hydra's help machinery, which formats every config group's
    options whether or not the template uses them.
-5. :func:`skip_mode_probe`: Hydra composes the whole config once only to read ``hydra.mode``, then again for
-   the run; for a command that names nothing that could set it, its answer is known without composing.
 
 Library callers use :func:`scanreg.app.main.main` and the Python API, which need none of these.
 """
@@ -19,7 +17,6 @@ Library callers use :func:`scanreg.app.main.main` and the Python API, which need
 from __future__ import annotations
 
 import json
-import re
 import sys
 import types
 
@@ -183,33 +180,3 @@ def quick_help(overrides: list[str]) -> str | None:
         return string.Template(str(compose(overrides, return_hydra_config=True).hydra.help.template)).substitute({})
     except Exception:  # noqa: BLE001  # Hydra's own path reports it, or the template uses Hydra's variables
         return None
-
-
-# --------------------------------------------------------------------------- 5. Hydra's probe of the run mode
-
-def _may_set_mode(override: str) -> bool:
-    """Whether a command-line override can set ``hydra.mode`` (with or without ``+``/``++``/``~``): the
-    ``experiment`` group (with any package ``@...``; in scanreg's configs the experiments are the only files that
-    set it, ``tests/test_startup.py`` checks every other file), ``hydra`` itself (``hydra={mode:MULTIRUN}``),
-    ``hydra.mode`` and any group under ``hydra/`` (whose file could). Other ``hydra.`` keys (``hydra.run.dir``,
-    ``hydra.job.chdir``) cannot."""
-    key = re.split(r"[=@]", override.lstrip("+~"), maxsplit=1)[0]
-    return key == "experiment" or key == "hydra" or key.startswith(("hydra.mode", "hydra/"))
-
-
-def skip_mode_probe(argv: list[str]) -> bool:
-    """Before a run, Hydra composes the whole config in multirun mode only to read ``hydra.mode``
-    (``Hydra.get_mode``), and without a mode set there (None) runs as the command line says. When ``argv`` has no
-    override that may set it (:func:`_may_set_mode`), names no other config (``--config-dir``/``-cd``,
-    ``--config-name``/``-cn``, ``--config-path``/``-cp``) and is no ``-m`` sweep, that answer is None: the probe
-    is replaced by it, and the config is composed once. True if it was."""
-    for a in argv:
-        if _may_set_mode(a) or a.startswith(("-c", "--config", "-m", "--multi")):
-            return False
-    from hydra._internal.hydra import Hydra
-
-    def get_mode(self, config_name, overrides):
-        return None
-
-    Hydra.get_mode = get_mode
-    return True
