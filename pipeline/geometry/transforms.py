@@ -57,9 +57,10 @@ def principal_box_diagonal(points: np.ndarray) -> float:
     :func:`~scanreg.geometry.bbox_diagonal`, the same however the points are rotated or moved (up to rounding;
     a shape without unique principal axes, such as a sphere or a cube, gets the box of whichever axes rounding
     picks). 0 for fewer than two points."""
+    points = np.asarray(points, float)
     if len(points) < 2:
         return 0.0
-    centre, axes = principal_axes(np.asarray(points, float))
+    centre, axes = principal_axes(points)
     along = (points - centre) @ axes
     return float(np.linalg.norm(along.max(axis=0) - along.min(axis=0)))
 

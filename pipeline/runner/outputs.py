@@ -162,11 +162,10 @@ def padded(text: str, width: int, right: bool = False) -> str:
 
 def clipped(text: str, width: int) -> str:
     """``text`` cut to at most ``width`` terminal columns, its last one an ellipsis when cut."""
+    from itertools import accumulate
+
     if text_columns(text) <= width:
         return text
-    out = ""
-    for c in text:
-        if text_columns(out + c) > width - 1:
-            break
-        out += c
-    return out + "…"
+    # the first character that would leave no column for the ellipsis
+    cut = next(k for k, used in enumerate(accumulate(map(text_columns, text))) if used > width - 1)
+    return text[:cut] + "…"

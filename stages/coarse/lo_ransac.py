@@ -195,7 +195,7 @@ class LoRansac(CoarseBase):
     def _run(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext) -> CoarseResult:
         """The configured keypoints, else (``fallback_voxel``) uniform ones."""
         try:
-            res = self._attempt(target, source, spacing, self.salience)
+            res = self._attempt(target, source, spacing, self.salience, self.matcher)
             res.metrics["coarse_fallback"] = 0
             return res
         except StageError as first:
@@ -220,9 +220,9 @@ class LoRansac(CoarseBase):
             return self.matcher
         return type(self.matcher)(replace(params, k=self.p.fallback_k))
 
-    def _attempt(self, target: Cloud, source: Cloud, spacing: float, salience, matcher=None) -> CoarseResult:
-        """Keypoints by ``salience``, descriptors, matches (by ``matcher``, default the configured one) and RANSAC;
-        a :class:`StageError` when any is too few."""
+    def _attempt(self, target: Cloud, source: Cloud, spacing: float, salience, matcher) -> CoarseResult:
+        """Keypoints by ``salience``, descriptors, matches by ``matcher`` and RANSAC; a :class:`StageError` when any
+        is too few."""
         kt, ks = salience.keypoints(target, spacing), salience.keypoints(source, spacing)
         if len(kt) < 3 or len(ks) < 3:
             raise StageError(f"coarse=lo_ransac: too few keypoints (target {len(kt)}, source {len(ks)}); "
@@ -230,9 +230,9 @@ class LoRansac(CoarseBase):
         dt, ds = self.descriptor.compute(target, kt, spacing), self.descriptor.compute(source, ks, spacing)
         return self._matched(Described(target, spacing, kt, dt), Described(source, spacing, ks, ds), self.p, matcher)
 
-    def _matched(self, t: Described, s: Described, p: Params, matcher=None) -> CoarseResult:
-        """Descriptor matches (by ``matcher``, default the configured one) and RANSAC between two described clouds
-        (one spacing), with the parameters ``p``;
+    def _matched(self, t: Described, s: Described, p: Params, matcher) -> CoarseResult:
+        """Descriptor matches by ``matcher`` and RANSAC between two described clouds (one spacing), with the
+        parameters ``p``;
         when a cloud had no normals and the descriptor says how its histograms read with the normals turned over
         (:meth:`~scanreg.stages.descriptor.FPFH.flipped`), both ways, the one with more inliers kept (ties: as
         oriented). Each cloud's estimated normals are oriented consistently on their own, so that one of the two
@@ -254,9 +254,9 @@ class LoRansac(CoarseBase):
             raise errors[0]
         return max(results, key=lambda r: r.metrics["coarse_inliers"])  # (the first of equals: as oriented)
 
-    def _matched_once(self, t: Described, s: Described, p: Params, matcher=None) -> CoarseResult:
+    def _matched_once(self, t: Described, s: Described, p: Params, matcher) -> CoarseResult:
         """:meth:`_matched` with the descriptors as they are."""
-        pairs = (self.matcher if matcher is None else matcher).match(t.descriptors, s.descriptors)
+        pairs = matcher.match(t.descriptors, s.descriptors)
         metrics = {"coarse_keypoints_target": len(t.keypoints), "coarse_keypoints_source": len(s.keypoints),
                    "coarse_correspondences": len(pairs)}
         if len(pairs) < 3:
@@ -316,7 +316,7 @@ class LoRansac(CoarseBase):
                 if target.descriptors is None or source.descriptors is None:
                     raise StageError(f"coarse=lo_ransac: too few keypoints (target {len(target.keypoints)}, source "
                                      f"{len(source.keypoints)})")
-                res = self._matched(target, source, p)
+                res = self._matched(target, source, p, self.matcher)
                 res.metrics["coarse_fallback"] = 0
                 return res
             except StageError:

@@ -359,9 +359,9 @@ def success_line(df) -> str:
     if "metrics.scans_within_tolerance" in df.columns:
         return ("Success (scan sets): every scan's rotation error < `multiview.success_rotation_deg` (0.5°) and "
                 "the shift of its centroid < `multiview.success_translation` (0.25 %) of the model's diagonal (its "
-                "box along its principal axes), the frames aligned at the first scan (scans without a true pose in `data.poses` are not "
-                "evaluated); a failed run counts as a failure. Errors are "
-                "against the ground truth, in degrees and as shares of the diagonal; times are medians in seconds.")
+                "box along its principal axes), the frames aligned at the first scan (scans without a true pose in "
+                "`data.poses` are not evaluated); a failed run counts as a failure. Errors are against the ground "
+                "truth, in degrees and as shares of the diagonal; times are medians in seconds.")
     if "metrics.rotation_error_deg" not in df.columns and "metrics.rms" in df.columns:
         return ("No ground truth (`data.gt`): no errors and no success; the table gives the fit instead, `rms` (the "
                 "RMS distance of the source points within `evaluate.inlier_distance` of the target, input units) and "
