@@ -232,6 +232,10 @@ def test_reconstruct_places_every_view_and_closes_the_model(tmp_path, views):
     poses = json.loads((tmp_path / "poses.json").read_text())
     assert poses["world"] == "scan000.ply" and np.allclose(poses["poses"]["scan003.ply"], rec.poses["scan003.ply"])
     assert np.array_equal(rec.poses["scan000.ply"], np.eye(4))
+    per_scan = json.loads((tmp_path / "poses.json").read_text())["per_scan"]
+    assert per_scan["translation_error_rel"]["scan000.ply"] == 0.0  # the world scan: no error by definition
+    # the views are a bunny in metres (its size says so): the run says what its lengths are in
+    assert m["input_unit_m"] == 1.0 and m["input_unit_guessed"] == 1.0
     for f in ("merged.ply", "reconstruction.ply", "reconstruction.png", "view3d.html", "result.json"):
         assert (tmp_path / f).is_file(), f
     # (the same poses bit for bit from a second run: test_a_coarser_scan_of_another_object_leaves_the_others_...)
@@ -541,6 +545,8 @@ def test_cli_stanford_bunny_scans_from_random_poses(tmp_path):
     # measured (seed 0): 0.353 degrees, 0.19 % of the diagonal (the same on every seed: bun.conf's own error)
     assert res["scans_placed"] == 10 and res["success"] == 1 and res["edges_false"] == 0
     assert res["scan_rotation_error_max_deg"] < 0.5 and res["scan_translation_error_max_rel"] < 0.0025
+    # the table says what its lengths are in (the pair's does too), as the scans' size suggests
+    assert "lengths in m, the input's unit (guessed from the model's size; set evaluate.units)" in r.stdout
 
 
 @pytest.mark.slow
@@ -664,7 +670,9 @@ def test_ground_truth_for_some_scans_evaluates_those(tmp_path, capsys):
     edges = [_edge(0, 1, invert_T(est[0]) @ est[1]), _edge(1, 2, invert_T(truth[1]) @ truth[2] @ turn)]
     m, per_scan = set_metrics(est, edges, 0, 1.0, [None, truth[1], truth[2]], 0.5, 0.01, 2.0, 0.01)
     rot = per_scan["rotation_error_deg"]
-    assert np.isnan(rot[0]) and rot[1] < 1e-6 and abs(rot[2] - 1.0) < 1e-6
+    assert np.isnan(rot[0]) and abs(rot[2] - 1.0) < 1e-6
+    # the scan the frames are aligned at is exactly right (not the rounding of G^-1 G, 1e-16 in the table)
+    assert rot[1] == 0.0 and per_scan["translation_error_rel"][1] == 0.0
     assert m["scan_rotation_error_max_deg"] == pytest.approx(1.0) and m["success"] == 0.0
     assert m["scans_within_tolerance"] == 0.5 and np.isnan(per_scan["within_tolerance"][0])
     assert m["edges_false"] == 0.0  # the 1-degree edge is within the false-edge limit; the other one is unjudged

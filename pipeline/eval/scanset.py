@@ -28,6 +28,9 @@ def pose_errors(poses: list[Optional[np.ndarray]], poses_gt: list[Optional[np.nd
     G0 = invert_T(poses_gt[ref])
     T0 = None if ref == anchor else invert_T(poses[ref])  # the estimated poses into the reference scan's frame
     for k in known:
+        if k == ref:  # the frames are aligned at it: no error by definition (not the rounding of G^-1 G)
+            rot[k] = trans[k] = 0.0
+            continue
         T, G = poses[k] if T0 is None else T0 @ poses[k], G0 @ poses_gt[k]
         rot[k] = transform_errors(T, G)[0]
         c = np.zeros(3) if centres is None else centres[k]

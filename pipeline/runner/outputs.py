@@ -83,11 +83,7 @@ def summary_lines(res: Result) -> list[str]:
     keys += ["pose_sigma_rot_deg", "pose_sigma_trans", "pose_condition", "pose_gt_centre_shift", "pose_bootstrap_rot_deg",
              "pose_bootstrap_trans"]
     keys += [k for k in m if k.startswith("dev_") and "_tooth_" not in k and "_part_" not in k]
-    lines.append("")
-    unit = input_unit_name(m.get("input_unit_m"))
-    if unit:
-        how = "guessed from the target's size; set evaluate.units" if m.get("input_unit_guessed") else "evaluate.units"
-        lines.append(f"lengths in {unit}, the input's unit ({how})")
+    lines += ["", *unit_line(m, "the target's size")]
     for k in keys:
         if k in m:
             lines.append(f"{k:<26} {_shown(m[k])}")
@@ -129,12 +125,22 @@ SET_KEYS = ("scans", "scans_placed", "edges_registered", "edges_skipped", "edges
             "surface_self_intersecting_faces", "surface_reference_rms")
 
 
+def unit_line(m: dict[str, float], guessed_from: str) -> list[str]:
+    """The line that says what unit the lengths of a run's table are in (none when the run did not say):
+    ``input_unit_m``, and whether it was guessed (from ``guessed_from``)."""
+    unit = input_unit_name(m.get("input_unit_m"))
+    if not unit:
+        return []
+    how = f"guessed from {guessed_from}; set evaluate.units" if m.get("input_unit_guessed") else "evaluate.units"
+    return [f"lengths in {unit}, the input's unit ({how})"]
+
+
 def set_summary_lines(res: Result) -> list[str]:
     """A scan set's table: step times, the set's numbers, and one row per scan (its errors with ground truth, its
     residual to the scans it overlaps)."""
     m, reg = res.metrics, res.scanset
     lines = ["step      time [s]"] + [f"{s:<9} {m[f'time_{s}_s']:>8.3f}" for s in SET_STEPS if f"time_{s}_s" in m]
-    lines += [""] + [f"{k:<32} {_shown(m[k])}" for k in SET_KEYS if k in m]
+    lines += ["", *unit_line(m, "the model's size")] + [f"{k:<32} {_shown(m[k])}" for k in SET_KEYS if k in m]
     cols = [c for c in ("rotation_error_deg", "translation_error_rel", "residual_rms", "residual_overlap")
             if f"scan_{c}" in res.histories]
     width = max(text_columns(n) for n in [*reg.names, "scan"])
