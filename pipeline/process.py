@@ -32,6 +32,14 @@ def forking() -> bool:
     return sys.platform.startswith("linux") and not os.environ.get("SCANREG_NO_FORK")
 
 
+def cores() -> int:
+    """The cores this process may run on (its CPU affinity; at least 1)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
 def run_isolated(fn, *args, **kwargs):
     """``fn(*args, **kwargs)`` in a child process forked for it; its (picklable) value is returned here. An
     exception in ``fn`` is raised here (the same exception when it pickles, else a ``RuntimeError`` naming its

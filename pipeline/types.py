@@ -52,6 +52,10 @@ class RunContext:
     """Full tracebacks and the stages' own chatter."""
     in_sweep: bool = False
     """The run is a job of a Hydra multirun sweep (``repair.cache: auto`` caches repaired meshes only then)."""
+    cores: Optional[int] = None
+    """The cores a stage may keep busy at once (None: every core of the machine). Steps that run several stages
+    at once give each its share, so that none starts helper processes the cores are already busy for; results
+    never depend on it."""
 
     def __post_init__(self):
         object.__setattr__(self, "seed", checked_seed(self.seed))

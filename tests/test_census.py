@@ -243,3 +243,20 @@ def test_agrees_with_the_audit_on_shared_data(rel):
         assert c["outer_borders"] >= 1  # a raw range scan: its outer border(s) kept open (one per large part)
     if rel.endswith("many_small_holes.ply"):  # an open scan: 31 holes in it, and its border
         assert (c["boundary_loops"], c["holes"], c["outer_borders"]) == (32, 31, 1)
+
+
+def test_a_census_without_the_broad_phase_is_the_full_ones_rest():
+    """Asked for without the broad phase after the full census of the same mesh (the repair's input test made in
+    place, then the backend's census), the census is taken from it: every class the same as measured afresh."""
+    from dataclasses import fields
+
+    from scanreg.mesh.census import mesh_census
+
+    mesh = read_mesh("pkg:pymeshfix/examples/StanfordBunny.ply")
+    full = mesh_census(mesh)
+    rest = mesh_census(mesh, broad_phase=False)
+    fresh = mesh_census(Mesh(mesh.vertices.copy(), mesh.faces.copy()), broad_phase=False)
+    assert len(full.intersection_candidates) and len(full.fold_vertices) and not rest.broad_phase
+    for f in fields(fresh):
+        a, b = getattr(rest, f.name), getattr(fresh, f.name)
+        assert np.array_equal(a, b) and np.asarray(a).dtype == np.asarray(b).dtype, f.name

@@ -174,6 +174,28 @@ def test_both_scans_are_repaired_at_once_with_the_results_of_one_after_the_other
             assert out[role].metrics == {"after_faces": len(g.faces)}
 
 
+class _Cores(_Repair):
+    """A stand-in repair that reports the cores its context gives it."""
+
+    def repair(self, mesh: Mesh, ctx) -> Repaired:
+        return Repaired(mesh, {"cores": ctx.cores})
+
+
+def test_scans_repaired_at_once_share_the_cores():
+    """Two scans repaired at once get half the cores each (on two cores one each: no test forked beside either
+    repair); one scan alone keeps the run's (None: the machine's)."""
+    from scanreg.process import cores
+    from scanreg.runner.steps import repair_scans
+
+    a = punched(sphere(), [530])
+    pair = {"source": Mesh(a.vertices, a.faces, "source"), "target": Mesh(a.vertices, a.faces, "target")}
+    for given, each in ((4, 2), (2, 1), (1, 1), (None, max(1, cores() // 2))):
+        out = repair_scans(pair, SimpleNamespace(repair=_Cores()), RunContext(seed=0, cores=given))
+        assert {r: x.metrics["cores"] for r, x in out.items()} == {"source": each, "target": each}
+    alone = repair_scans({"source": pair["source"]}, SimpleNamespace(repair=_Cores()), RunContext(seed=0))
+    assert alone["source"].metrics["cores"] is None
+
+
 @pytest.mark.parametrize("fail", ["source", "target"])
 def test_a_failed_repair_says_whose_it_was(fail):
     from scanreg.runner.steps import repair_scans

@@ -16,7 +16,7 @@ from scanreg.stages.registry import REPAIR, make_params
 from scanreg.stages.repair import AuditedRepair, GuardParams, repair_with_audit
 from scanreg.mesh.topology import border_loops, mesh_stats, open_scan_borders
 
-CTX = Context(seed=0, run_dir=None)
+CTX = Context(seed=0, run_dir=None, cores=2)  # a core free for the input's test beside the backend, on any machine
 BUNNY = "pkg:pymeshfix/examples/StanfordBunny.ply"
 SCANS = ["bun000", "bun045", "bun090", "bun180", "bun270", "bun315", "chin", "ear_back", "top2", "top3"]
 
@@ -324,6 +324,14 @@ def test_meshfix_tests_from_the_input_and_trusts_its_own_cleaning(monkeypatch):
     assert len(loop) == 1 and incremental  # ... made incrementally
     assert m["after_self_intersecting_faces"] == int(intersect.self_intersecting_faces(out.vertices,
                                                                                       out.faces).sum())
+    # with no core to spare (both scans of a pair repaired at once on two cores) the input's test is made in
+    # place, first, as without forking: the same metrics and faces
+    tests.clear()
+    res = repair_with_audit(stage("meshfix", scope="whole"), read_mesh(str(shared("stanford_bunny/bun000.ply"))),
+                            Context(seed=0, run_dir=None, cores=1))
+    assert tests[0][0] == len(scan.faces) and tests[0][1] is None
+    assert {k: v for k, v in res.metrics.items() if not k.endswith("time_s")} == \
+        {k: v for k, v in m_forked.items() if not k.endswith("time_s")} and np.array_equal(forked.faces, res.mesh.faces)
     tests.clear()
     bunny = read_mesh(BUNNY)
     # the same with MeshFix's own cleaning

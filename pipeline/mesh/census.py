@@ -22,7 +22,7 @@ no processes, threads or files.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -32,8 +32,8 @@ from scanreg.geometry import Mesh, col_max, col_min, rows_any
 from scanreg.mesh.intersect import candidate_pairs
 from scanreg.mesh.predicates import orient3d_filter
 from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, _cached, _cross_columns, _face_areas, _mesh_edges_sorted,
-                                   border_loops, boundary_edges, component_areas, dilate_faces, loop_labels,
-                                   min_angles_deg, non_manifold_vertex_mask, open_scan_borders)
+                                   border_loops, boundary_edges, component_areas, dilate_faces, known,
+                                   loop_labels, min_angles_deg, non_manifold_vertex_mask, open_scan_borders)
 
 MIN_COMPONENT_SHARE = 0.01
 """The repair's default ``min_component_share`` (:class:`scanreg.stages.repair.audit.GuardParams`): parts with
@@ -239,7 +239,14 @@ def mesh_census(mesh: Mesh, *, sliver_angle_deg: float = SLIVER_ANGLE_DEG,
             and f.flags.c_contiguous):
         return census(v, f, sliver_angle_deg=sliver_angle_deg, min_component_share=min_component_share,
                       open_border_ratio=open_border_ratio, broad_phase=broad_phase)
-    return _cached(mesh, ("census", sliver_angle_deg, min_component_share, open_border_ratio, broad_phase),
+    key = ("census", sliver_angle_deg, min_component_share, open_border_ratio)
+    if not broad_phase:
+        full = known(mesh, (*key, True))  # made already with the broad phase: the rest of it is this census
+        if full is not None:
+            return _cached(mesh, (*key, False), lambda: replace(
+                full, intersection_candidates=np.zeros((0, 2), np.int64), fold_vertices=np.zeros(0, np.int64),
+                broad_phase=False) if full.n_faces else full)
+    return _cached(mesh, (*key, broad_phase),
                    lambda: _mesh_census(mesh, sliver_angle_deg, min_component_share, open_border_ratio, broad_phase))
 
 

@@ -12,7 +12,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional
 
@@ -26,7 +26,7 @@ from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degenera
                                       relative_motion)
 from scanreg.geometry import (ClosestPoints, Geometry, Mesh, apply_T, bbox_centre, bbox_diagonal, estimate_spacing,
                               transform_geometry)
-from scanreg.process import blas_single_thread, start_isolated
+from scanreg.process import blas_single_thread, cores, start_isolated
 from scanreg.runner.build import Stages
 from scanreg.runner.outputs import write_keypoints
 from scanreg.types import Correspondences, PairResult, PreparedScan, Problem, Repaired, RunContext, ScanSet, to_abs
@@ -67,6 +67,8 @@ def repair_scans(geometries: dict[str, Geometry], stages: Stages, ctx: RunContex
     the others still finish; the first failure is raised, with ``role`` (whose) and ``repaired`` (the repairs
     that finished)."""
     roles = repairs_needed(geometries, stages)
+    if len(roles) > 1:  # the cores shared among the scans (a repair then forks no test beside itself on 2 cores)
+        ctx = replace(ctx, cores=max(1, (ctx.cores or cores()) // len(roles)))
     started = {role: start_isolated(_repaired_alone, stages.repair, geometries[role], ctx) for role in roles[1:]}
     out, failed = {}, None
     try:

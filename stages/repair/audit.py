@@ -39,7 +39,7 @@ from scanreg.mesh.slivers import collapse_folds, collapse_slivers
 from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, audit_mesh, border_loops, component_areas, forget,
                                    intersections, known, mesh_stats, non_manifold_vertices, open_scan_borders,
                                    remember, remember_later, self_intersecting_count)
-from scanreg.process import forking, start_isolated
+from scanreg.process import cores, forking, start_isolated
 from scanreg.types import Repaired, RunContext
 
 
@@ -322,12 +322,13 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
     t0 = time.perf_counter()
     planned = _planned(stage, mesh, where)
     # the input's exact self-intersection test (the audit's costliest part; with scope=defects decided on the
-    # census's pairs) runs beside the backend, in a child process; the first test that starts from it (the
-    # output's, or a backend's own loop) waits for it, as does the check that a mesh has nothing to repair.
-    # (Without forking it is made first, here.)
+    # census's pairs) runs beside the backend, in a child process, when a core is free for it; the first test
+    # that starts from it (the output's, or a backend's own loop) waits for it, as does the check that a mesh
+    # has nothing to repair. (Otherwise it is made first, here: with every core busy, e.g. both scans of a pair
+    # repaired at once on two, a test beside only competes for them and measures the census a second time.)
     beside = None
     if known(mesh, "intersections") is None:
-        if forking():
+        if forking() and (ctx.cores or cores()) >= 2:
             beside = start_isolated(_input_test_arrays, mesh, planned)
             remember_later(mesh, "intersections", lambda: Intersections(mesh.vertices, mesh.faces, *beside.result()))
         else:
