@@ -165,6 +165,26 @@ def test_principal_axes_of_a_turned_box_are_its_turned_edges():
     assert np.allclose(np.ptp(principal_frame(pts), axis=0), [6.0, 4.0, 2.0])
 
 
+def test_half_turns_of_a_turned_box_map_its_corners_onto_themselves():
+    """The three half-turns about a turned, moved box's principal axes (``icp.half_turns``): rotations by 180
+    degrees (determinant +1, trace -1) about axes through the centroid, each mapping the corners onto the corners
+    (another corner each), the three distinct."""
+    from scanreg.geometry import apply_T, half_turns, rotation_angle_deg
+
+    local = np.array([[x, y, z] for x in (-1, 1) for y in (-2, 2) for z in (-3, 3)], float)
+    R = Rotation.from_rotvec([0.3, -0.5, 0.8]).as_matrix()
+    pts = local @ R.T + [5.0, -2.0, 1.0]
+    Hs = half_turns(pts)
+    for H in Hs:
+        assert np.isclose(np.linalg.det(H[:3, :3]), 1.0) and np.isclose(np.trace(H[:3, :3]), -1.0)
+        assert np.isclose(rotation_angle_deg(H[:3, :3]), 180.0)
+        moved = apply_T(H, pts)
+        assert np.allclose(moved.mean(axis=0), pts.mean(axis=0))
+        match = np.linalg.norm(moved[:, None] - pts[None], axis=2).argmin(axis=1)
+        assert np.allclose(moved, pts[match]) and sorted(match) == list(range(8)) and (match != np.arange(8)).all()
+    assert not np.allclose(Hs[0], Hs[1]) and not np.allclose(Hs[1], Hs[2])
+
+
 def test_poisson_surface_is_one_closed_part_at_a_depth_any_pose_gives(bunny):
     from scanreg.api import build_stage
 

@@ -12,7 +12,7 @@ from scanreg.geometry.neighbours import (ClosestPoints, estimate_normals, estima
 from scanreg.geometry.surface import (area_weighted_draws, barycentric_sample, face_normals, points_on_faces,
                                       triangle_areas_normals, vertex_normals)
 from scanreg.geometry.transforms import (apply_T, horn_quaternion, invert_T, kabsch_batch, kabsch_svd, make_T,
-                                         principal_axes, principal_box_diagonal, random_pose,
+                                         half_turns, principal_axes, principal_box_diagonal, random_pose,
                                          rigid_points_normals, rotate_normals,
                                          rotation_angle_deg, rotation_from_cross_covariance, transform_errors,
                                          transform_geometry)
@@ -25,7 +25,7 @@ __all__ = [
     "estimate_spacing",
     "face_normals", "far_offset", "horn_quaternion", "in_cells_around", "invert_T", "kabsch_batch", "kabsch_svd",
     "locality_ordered", "make_T",
-    "morton_order", "neighbourhoods", "orient_normals", "points_of", "points_on_faces", "principal_axes",
+    "morton_order", "neighbourhoods", "orient_normals", "points_of", "points_on_faces", "principal_axes", "half_turns",
     "principal_box_diagonal", "random_pose",
     "random_subset", "rigid_points_normals", "rotate_normals", "rotation_angle_deg", "rotation_from_cross_covariance",
     "row_norms", "rows_all", "rows_any",

@@ -52,6 +52,21 @@ def principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, axes
 
 
+def half_turns(points: np.ndarray) -> list[np.ndarray]:
+    """The three half-turns (4x4, rotations by 180 degrees) about the points' principal axes through their centroid
+    (:func:`principal_axes`): the poses a nearly symmetric shape (a long bone, a box-like part) fits almost as
+    well as its own, whichever the axes' signs."""
+    centre, axes = principal_axes(np.asarray(points, float))
+    out = []
+    for k in range(3):
+        a = axes[:, k]
+        H = np.eye(4)
+        H[:3, :3] = 2.0 * np.outer(a, a) - np.eye(3)
+        H[:3, 3] = centre - H[:3, :3] @ centre
+        out.append(H)
+    return out
+
+
 def principal_box_diagonal(points: np.ndarray) -> float:
     """The diagonal of the points' bounding box along their principal axes (:func:`principal_axes`): unlike
     :func:`~scanreg.geometry.bbox_diagonal`, the same however the points are rotated or moved (up to rounding;

@@ -43,8 +43,8 @@ from typing import Optional
 import numpy as np
 
 from scanreg.errors import ConfigError, StageError
-from scanreg.geometry import (ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, horn_quaternion, morton_order,
-                              rotate_normals)
+from scanreg.geometry import (ClosestPoints, Cloud, Mesh, apply_T, bbox_diagonal, half_turns, horn_quaternion,
+                              morton_order, rotate_normals)
 from scanreg.process import blas_single_thread
 from scanreg.stages.pair import thinned_pair
 from scanreg.types import Correspondences, Distances, IcpResult, RunContext, to_abs
@@ -169,6 +169,15 @@ class IcpParams:
     basin_points: int = 5000
     """``wide``: the Besl-McKay loop runs on at most this many source points (every k-th along a Morton curve,
     so spread evenly); the variant's schedule then uses every point."""
+    half_turns: Optional[float] = 0.9
+    """When the pose found keeps at least this share of the source within ``accept_distance`` (unitless: the
+    source lies almost entirely on the target), its three half-turns about the source's principal axes through
+    its centroid are tried too: each that keeps at least half that share unrefined is refined by the variant's
+    schedule, and the end point with the lowest truncated least-squares cost (:meth:`IcpBase.accept`'s) is kept
+    when clearly (1 %) lower. A nearly symmetric shape (a long bone, a box-like part) fits its half-turned pose
+    almost as well as its own, and the coarse stage may find either (a bone moved onto itself: 180 degrees off
+    at fitness 0.998 and a quarter spacing RMS, where the truth fits exactly). Logs ``icp_half_turns_refined``
+    and ``icp_half_turn`` (1 when one was kept). null: not tried. (Not ``icp=open3d``, Open3D's own loop.)"""
     max_points: int = 200000
     """The stage works on at most this many points of each cloud: a larger cloud is thinned to a seeded uniform
     random subset of this many (:meth:`~scanreg.geometry.Cloud.thinned`) before anything else, its normals and
@@ -207,6 +216,8 @@ class IcpParams:
             raise ValueError(f"basin must be auto, local or wide, got '{self.basin}'")
         if self.basin_points < 3:
             raise ValueError(f"basin_points must be >= 3, got {self.basin_points}")
+        if self.half_turns is not None and not 0 < self.half_turns <= 1:
+            raise ValueError(f"half_turns must be in (0, 1] or null, got {self.half_turns}")
         if self.max_points != 0 and self.max_points < 100:
             raise ValueError(f"max_points must be 0 (every point) or >= 100, got {self.max_points}")
 
@@ -313,9 +324,41 @@ class IcpBase:
                 res = self.converge(target, moving, T_init, cp, tau, maxd, kscale)
                 if p.basin == "wide" or (p.basin == "auto" and not start_is_estimate):
                     res = self.widest(target, moving, T_init, cp, tau, maxd, kscale, spacing, res)
+                res = self.finish(res, cp, moving, T_init, maxd, start_limit, spacing, source)
+                if p.half_turns is not None:
+                    res = self.half_turned(res, target, moving, source, cp, tau, maxd, kscale, spacing, start_limit)
             except (np.linalg.LinAlgError, ValueError) as e:
                 raise StageError(f"icp={self.name}: the update failed ({e}); the pairs are degenerate") from e
-            return self.finish(res, cp, moving, T_init, maxd, start_limit, spacing, source)
+            return res
+
+    def half_turned(self, res: IcpResult, target: Cloud, moving: Cloud, source: Cloud, cp: ClosestPoints,
+                    tau: float, maxd: float | None, kscale: float | None, spacing: float,
+                    start_limit: float | None) -> IcpResult:
+        """``res`` (:meth:`finish`-ed), or the end point of one of its half-turns (``half_turns``) that explains
+        the source clearly better, finished from that half-turn."""
+        acc_d = self.accept_distance(maxd, spacing)
+        which = "end" if res.metrics["icp_accepted"] else "start"  # the acceptance test's numbers at the pose kept
+        here = {"icp_fitness": res.metrics[f"icp_accept_{which}_fitness"],
+                "icp_inlier_rms": res.metrics[f"icp_accept_{which}_rms"]}
+        res.metrics.update({"icp_half_turns_refined": 0.0, "icp_half_turn": 0.0})
+        if here["icp_fitness"] < self.p.half_turns:
+            return res
+        best, best_cost, refined = None, truncated_cost(here, acc_d), 0
+        for H in half_turns(moving.points):
+            T = res.T_target_source @ H
+            if self.final_metrics(cp(apply_T(T, moving.points), acc_d)[1], acc_d)["icp_fitness"] < \
+                    0.5 * here["icp_fitness"]:
+                continue  # far from fitting: not a symmetric pose
+            refined += 1
+            r = self.converge(target, moving, T, cp, tau, maxd, kscale)
+            cost = truncated_cost(self.final_metrics(cp(apply_T(r.T_target_source, moving.points), acc_d)[1], acc_d),
+                                  acc_d)
+            if cost < 0.99 * best_cost:
+                best, best_cost = (r, T), cost
+        if best is not None:
+            res = self.finish(best[0], cp, moving, best[1], maxd, start_limit, spacing, source)
+        res.metrics.update({"icp_half_turns_refined": float(refined), "icp_half_turn": float(best is not None)})
+        return res
 
     def converge(self, target: Cloud, moving: Cloud, T_init: np.ndarray, cp: ClosestPoints, tau: float,
                  maxd: float | None, kscale: float | None) -> IcpResult:
@@ -397,9 +440,7 @@ class IcpBase:
         it, ``icp_inlier_rms``: their RMS). Rejected when ICP's cost is clearly (1 %) higher. The cost weighs a
         point left outside the distance against how tightly the others fit: at low overlap a pose a few degrees
         off can keep a few more points within it, loosely, than the right one."""
-        costs = [(1.0 - m["icp_fitness"]) * distance ** 2 +
-                 (m["icp_fitness"] * m["icp_inlier_rms"] ** 2 if m["icp_fitness"] > 0 else 0.0) for m in (start, end)]
-        return not costs[1] > 1.01 * costs[0]
+        return not truncated_cost(end, distance) > 1.01 * truncated_cost(start, distance)
 
     def step(self, moved, q, qn, ok, w) -> np.ndarray:  # pragma: no cover - per variant
         raise NotImplementedError
@@ -437,6 +478,14 @@ class IcpBase:
     def update(self, T, moved, q, qn, ok, w, limit: PairLimit) -> np.ndarray:
         """The next iterate from the current one and its pairs (``w``: IRLS weights of the kept pairs)."""
         return self.step(moved, q, qn, ok, w) @ T
+
+
+def truncated_cost(m: dict, distance: float) -> float:
+    """The truncated least-squares cost of a pose at ``distance`` (input units) from its ``icp_fitness`` f (the
+    share of source points within it) and ``icp_inlier_rms`` (their RMS): the mean over the source points of
+    min(d, distance)^2 = f rms^2 + (1 - f) distance^2."""
+    return (1.0 - m["icp_fitness"]) * distance ** 2 + (m["icp_fitness"] * m["icp_inlier_rms"] ** 2
+                                                       if m["icp_fitness"] > 0 else 0.0)
 
 
 def least_norm_solve(H: np.ndarray, g: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
