@@ -7,7 +7,7 @@ from typing import Optional
 
 import numpy as np
 
-from scanreg.errors import ConfigError
+from scanreg.errors import ConfigError, InputError
 from scanreg.geometry import (Cloud, Geometry, Mesh, barycentric_sample, estimate_spacing, to_o3d_mesh,
                               triangle_areas_normals, voxel_representatives)
 from scanreg.stages.registry import SAMPLER
@@ -29,9 +29,19 @@ class SamplerBase:
     optionally voxel-downsampled."""
 
     p: CloudParams
+    samples_faces = True
+    """Whether meshes are sampled on their triangles (then a mesh without a triangle of any area is refused)."""
 
     def __init__(self, params):
         self.p = params
+
+    def check(self, geometry: Geometry, label: str) -> None:
+        """Raise :class:`InputError` with one line, before any work, when this sampler could sample nothing of
+        ``geometry`` (named ``label``): a mesh whose every triangle has zero area, for a sampler of triangles."""
+        if isinstance(geometry, Mesh) and self.samples_faces and len(geometry.faces) and \
+                not (triangle_areas_normals(geometry)[0] > 0).any():
+            raise InputError(f"{label}: no triangle has an area above 0 (every face is degenerate): nothing to "
+                             "sample; repair=none sampler=vertices registers its vertices as points")
 
     def sample(self, geometry: Geometry, ctx: RunContext) -> Cloud:
         return self.sample_mesh(geometry, ctx) if isinstance(geometry, Mesh) else self.thin_cloud(geometry, ctx)
@@ -160,6 +170,8 @@ class PoissonDisk(SamplerBase):
 @SAMPLER.register("vertices")
 class Vertices(SamplerBase):
     """The mesh's own vertices, with area-weighted vertex normals (unreferenced vertices dropped)."""
+
+    samples_faces = False
 
     @dataclass
     class Params(CloudParams):

@@ -118,6 +118,7 @@ BAD_CASES = {
     "bad_index": (["data.source=idx.ply"], "source idx.ply: 1 face(s) index missing vertices"),
     "too_few_points": (["data.source=two.npy"], "source two.npy: 2 point(s); at least 10"),
     "degenerate": (["data.source=flat.ply", "repair=none"], "source flat.ply: is collinear: rigid registration is not determined"),
+    "zero_area": (["data.source=zero.ply"], "source zero.ply: no triangle has an area above 0 (every face is degenerate)"),
     "unknown_group_choice": (["icp=bogus"], "unknown icp 'bogus'; valid icp choices: anderson, gicp, horn, open3d, point_to_plane"),
     "unknown_stage_name": (["coarse.name=bogus"], "unknown coarse 'bogus'; valid coarse names: landmarks, lo_ransac, none, open3d_fgr, open3d_fpfh_ransac"),
     "wrong_type": (["icp.max_iterations=many"], "icp=point_to_plane: parameter 'max_iterations' expects int, got 'many'"),
@@ -144,6 +145,8 @@ def test_bad_input_one_line_error_and_failed_run(tmp_path, mlflow_uri, case):
     _write(tmp_path, "idx.ply", PLY_HEAD + b"0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n")
     _write(tmp_path, "flat.ply", PLY_HEAD + b"0 0 0\n1 0 0\n2 0 0\n3 0 1 2\n")
     _write(tmp_path, "two.npy", np.random.default_rng(0).normal(size=(2, 3)))
+    _write(tmp_path, "zero.ply", PLY_HEAD.replace(b"vertex 3", b"vertex 4").replace(b"face 1", b"face 2")
+           + b"0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 0 1\n3 2 3 3\n")  # a tetrahedron's corners, no face of any area
     args, message = BAD_CASES[case]
     base = ["data.source=pkg:pymeshfix/examples/StanfordBunny.ply", "data.target=pkg:pymeshfix/examples/StanfordBunny.ply"]
     keys = {a.split("=")[0] for a in args}
@@ -154,6 +157,7 @@ def test_bad_input_one_line_error_and_failed_run(tmp_path, mlflow_uri, case):
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert lines and lines[-1].startswith("error: ") and message in lines[-1], r.stderr
     assert sum(ln.startswith("error:") for ln in lines) == 1
+    assert "repair (" not in r.stdout  # found before any work: no scan was repaired (the target's table came first)
     import mlflow
 
     exp = mlflow.MlflowClient(mlflow_uri).get_experiment_by_name(f"bad_{case}")

@@ -2,6 +2,7 @@
 that says what to change."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -265,6 +266,16 @@ def test_an_output_folder_that_is_a_file_is_one_line(tmp_path):
     err = [line for line in r.stderr.splitlines() if line.strip()]
     assert r.returncode == 1 and len(err) == 1 and err[0].startswith("error: output folder: cannot write "), r.stderr
 
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs /proc (Linux)")
+def test_an_output_folder_that_cannot_be_made_is_one_line(tmp_path):
+    """hydra.run.dir where no folder can be made (/proc: ENOENT, not a permission error): the same 'output
+    folder' line (a user's trial: 'sweep failed: FileNotFoundError', exit 3, for a single run)."""
+    bunny = "pkg:pymeshfix/examples/StanfordBunny.ply"
+    r = run_cli([bunny, bunny, "tracking=none", "hydra.run.dir=/proc/scanreg_nowhere/run"], tmp_path)
+    err = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 1 and len(err) == 1 and err[0].startswith("error: output folder: cannot write /proc/"), \
+        r.stderr
 
 
 @pytest.mark.parametrize("half_turns", [None, 0.9])

@@ -319,7 +319,7 @@ def main() -> None:
         _err(reason)
         raise SystemExit(EXIT_USAGE)
     except Exception as e:  # noqa: BLE001  # e.g. a launcher that cannot start; no run is left RUNNING
-        unwritable = _unwritable_output(e)
+        unwritable = _unwritable_output(e, argv)
         if unwritable:  # Hydra could not make the run's folder or its log file there: the user's to fix
             _end_sweep_quietly(end_interrupted_sweep, unwritable)
             _err(unwritable)
@@ -334,17 +334,22 @@ def main() -> None:
         raise SystemExit(EXIT_FAILED)
 
 
-def _unwritable_output(e: BaseException) -> str | None:
+def _unwritable_output(e: BaseException, argv: list[str] = ()) -> str | None:
     """The error line for an exception that says an output folder or file cannot be written (a permission, a
-    read-only file system, a file where a folder should be; anywhere in its chain of causes: Hydra wraps its log
-    file's in a ValueError), else None."""
+    read-only file system, a file where a folder should be, or a folder the command names in ``argv``
+    (``hydra.run.dir``, ``hydra.sweep.dir``) that cannot be made, e.g. under /proc; anywhere in its chain of
+    causes: Hydra wraps its log file's in a ValueError), else None."""
     import errno
 
     cannot = (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EEXIST)
+    named = {a.split("=", 1)[1].strip("'\"") for a in argv
+             if a.split("=", 1)[0].lstrip("+") in ("hydra.run.dir", "hydra.sweep.dir") and "=" in a}
     seen = set()
     while e is not None and id(e) not in seen:
         seen.add(id(e))
-        if isinstance(e, OSError) and e.errno in cannot and e.filename:
+        made = isinstance(e, OSError) and e.errno == errno.ENOENT and e.filename is not None and any(
+            Path(n) == Path(e.filename) or Path(e.filename) in Path(n).parents for n in named)
+        if isinstance(e, OSError) and (e.errno in cannot or made) and e.filename:
             return (f"output folder: cannot write {e.filename} ({e.strerror}); run from a writable folder or set "
                     "hydra.run.dir=FOLDER (hydra.sweep.dir=FOLDER for -m) to one")
         e = e.__cause__ or e.__context__

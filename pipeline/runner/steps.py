@@ -46,11 +46,16 @@ def load_problem(stages: Stages, ctx: RunContext) -> Problem | ScanSet:
     """The data provider's problem (a pair, or a scan set); too few points, coincident, collinear or planar
     inputs stop here."""
     problem = stages.data.load(ctx)
+    sampleable = getattr(stages.sampler, "check", None)  # (the Sampler protocol asks only for sample)
+    named = list(zip(problem.scans, problem.names)) if isinstance(problem, ScanSet) else \
+        [(g, g.source or role) for role, g in (("source", problem.source), ("target", problem.target))]
     if isinstance(problem, ScanSet):
-        for g, name in zip(problem.scans, problem.names):
+        for g, name in named:
             check_geometry(g, name, MIN_POINTS)
     else:
         check_inputs(problem, MIN_POINTS)
+    for g, name in named if sampleable is not None else ():
+        sampleable(g, name)  # a mesh the sampler could take no point of, before the repair
     return problem
 
 
