@@ -142,6 +142,13 @@ def test_the_summary_explains_success_beside_recall_and_prints_counts_in_full():
     assert "the strict test" in lines[k + 1] and "3DMatch's looser one" in lines[k + 1]
     res.metrics["success"] = 1.0
     assert not any("the strict test" in ln for ln in summary_lines(res))
+    # the dental pair: rms 0.305 mm beside p2s_rms 0.014 mm read as 0.3 mm off; a line says what each measures
+    res.metrics.update({"rms": 0.305, "p2s_rms": 0.014})
+    lines = summary_lines(res)
+    k = next(i for i, ln in enumerate(lines) if ln.startswith("p2s_rms"))
+    assert "closest target points" in lines[k + 1] and "target's surface" in lines[k + 1]
+    res.metrics["rms"] = 0.02  # comparable: no line
+    assert not any("closest target points" in ln for ln in summary_lines(res))
 
 
 def test_a_two_scan_set_in_two_units_names_both():

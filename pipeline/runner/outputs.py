@@ -87,6 +87,9 @@ def summary_lines(res: Result) -> list[str]:
     for k in keys:
         if k in m:
             lines.append(f"{k:<26} {_shown(m[k])}")
+        if k == "p2s_rms" and k in m and m.get("rms", 0) > 2 * m[k]:
+            lines.append("  (rms: to the closest target points, so it holds their spacing; p2s_*: to the target's "
+                         "surface)")
         if k == "registration_recall" and m.get("success") == 0 and m.get(k) == 1:
             lines.append("  (success: the strict test, evaluate.success_rotation_deg and success_translation; "
                          "registration_recall: 3DMatch's looser one, evaluate.recall_*)")
