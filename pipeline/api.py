@@ -155,7 +155,26 @@ def register(source: Any, target: Any, *, gt: Any = None, landmarks: Any = None,
             user.append("tracking=none")
         # data=files unless the caller chose otherwise; the inputs go last so that they win
         cfg = compose(["data=files", *user, *ovs], config_dirs=config_dirs)
-        return run_config(cfg, run_dir, tracking, user)
+        with _arrays_named(folder, source=source, target=target):
+            return run_config(cfg, run_dir, tracking, user)
+
+
+@contextmanager
+def _arrays_named(folder: Path, **given: Any):
+    """An error about an input the caller gave in memory names it as such ("the source array"), not by the
+    file it was written to for the run (which goes with the failed run's folder)."""
+    try:
+        yield
+    except ScanregError as e:
+        text = str(e)
+        for role, obj in given.items():
+            if not isinstance(obj, (str, Path)):
+                for path in folder.glob(f"{role}.*"):
+                    text = text.replace(f"{role} {path}", f"{role} (the {type(obj).__name__} given)")
+                    text = text.replace(str(path), f"the {role} ({type(obj).__name__})")
+        if text != str(e):
+            e.args = (text, *e.args[1:])
+        raise
 
 
 def reconstruct(scans: Any, *, poses: Any = None, overrides: Sequence[str] = (), tracking: bool = False,

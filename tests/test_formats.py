@@ -251,6 +251,17 @@ def test_columns_detected_from_values():
         assert " ".join(detect_columns(arr, "t")) == expect
 
 
+def test_a_transform_file_given_as_a_cloud_is_named_so(tmp_path):
+    """A 4x4 rigid transform (the ground truth beside the scans) given as the source: said to be a transform, with
+    where one goes (it was '4 columns; ... set data.columns', whose advice led nowhere)."""
+    from scanreg.geometry import random_pose
+    from scanreg.io import read_input
+
+    np.savetxt(tmp_path / "cow_T.txt", random_pose(np.random.default_rng(0), 90.0, 1.0))
+    with pytest.raises(InputError, match=r"cow_T.txt: a 4x4 matrix, a rigid transform, not a point cloud .*data.gt"):
+        read_input(str(tmp_path / "cow_T.txt"), "source")
+
+
 def test_columns_guessed_from_values_are_said(tmp_path, capsys):
     """Colours detected from the values (which an intensity column can mimic) come with a note naming the
     columns; all-zero columns 4-6 are neither normals nor black colours: ignored, with a note."""

@@ -147,3 +147,6 @@ def test_the_api_lists_its_names_and_removes_the_folder_of_a_failed_call(tmp_pat
     with pytest.raises(InputError):
         scanreg.register(bad, bad, run_dir=tmp_path / "mine")
     assert (tmp_path / "mine").is_dir()
+    # an array is named as the array given, not by the file written for the run (deleted with the folder)
+    with pytest.raises(InputError, match=r"^source \(the ndarray given\): 5 point\(s\); at least 10"):
+        scanreg.register(np.zeros((5, 3)), np.random.default_rng(0).normal(size=(500, 3)))

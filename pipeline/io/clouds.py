@@ -71,6 +71,9 @@ def detect_columns(arr: np.ndarray, where: str) -> list[str]:
         raise InputError(f"{where}: {n} column(s); a point needs at least x y z")
     if n == 3:
         return ["x", "y", "z"]
+    if arr.shape == (4, 4) and np.array_equal(arr[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InputError(f"{where}: a 4x4 matrix, a rigid transform, not a point cloud (a known transform is "
+                         "given as data.gt=FILE, or data.poses for a scan set)")
     example = " ".join(["x", "y", "z"] + ["-"] * (n - 3)) if n < 6 else "x y z nx ny nz" + " -" * (n - 6)
     hint = f" (set data.columns, e.g. data.columns='{example}' with - for a column to ignore)"  # (n names)
     rest = arr[:, 3:]
