@@ -31,7 +31,7 @@ def _bunny_pair(tmp_path, source_factor: float):
 
 def test_size_mismatch_names_both_extents_and_the_unit():
     a = Cloud(np.random.default_rng(0).random((100, 3)) * 150.0, source="scan_mm.ply")
-    b = Cloud(np.random.default_rng(1).random((100, 3)) * 0.15, source="ct_m.ply")
+    b = Cloud(a.points * 0.001, source="ct_m.ply")  # (the same shape in m)
     with pytest.raises(Exception) as e:
         check_pair(a, b, 10.0)
     msg = str(e.value)
@@ -43,6 +43,16 @@ def test_size_mismatch_names_both_extents_and_the_unit():
         check_pair(a, Cloud(a.points * 1000, source="t"), 10.0)
     with pytest.raises(Exception, match=r"mm vs inches.*data.source_scale=0.03937"):
         check_pair(Cloud(a.points * 25.4), a, 10.0)
+    # the sizes do not depend on the pose a file comes in (a user's trial: a turned 98 mm screwdriver was "108.9
+    # across" by its axis-aligned box): a thin rod turned 45 degrees is as long as lying along an axis
+    rod = np.random.default_rng(2).random((500, 3)) * [100.0, 1.0, 1.0]
+    turned = rod @ np.array([[np.sqrt(0.5), -np.sqrt(0.5), 0], [np.sqrt(0.5), np.sqrt(0.5), 0], [0, 0, 1]]).T
+    said = []
+    for points in (rod, turned):
+        with pytest.raises(Exception) as e:
+            check_pair(Cloud(points), Cloud(rod * 0.001), 10.0)
+        said.append(str(e.value).split(" across")[0])
+    assert said[0] == said[1]
     # a source scale set already (the wrong one): the suggestion is the whole factor, not a further one
     with pytest.raises(Exception, match=r"set data.source_scale=0.001 to"):
         check_pair(Cloud(a.points * 0.01), b, 10.0, source_scale=0.01)

@@ -10,7 +10,8 @@ import numpy as np
 
 from scanreg.errors import ConfigError, InputError, warn
 from scanreg.eval.checks import likely_units
-from scanreg.geometry import Cloud, Geometry, Mesh, apply_T, bbox_diagonal, invert_T, points_of, transform_geometry
+from scanreg.geometry import (Cloud, Geometry, Mesh, apply_T, bbox_diagonal, invert_T, points_of,
+                              principal_box_diagonal, transform_geometry)
 from scanreg.io import expand_path, read_input, resolve_path, read_landmarks, read_transform
 from scanreg.stages.data.perturb import PoseParams
 from scanreg.stages.data.base import Provider
@@ -38,7 +39,8 @@ def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None, sourc
     as read times ``source_scale``, which the suggested value includes."""
     if min(len(points_of(src)), len(points_of(tgt))) < 10:
         return  # too few points: scanreg.eval.checks says so
-    ds, dt = bbox_diagonal(points_of(src)), bbox_diagonal(points_of(tgt))
+    # sizes along the principal axes: the same verdict and numbers in any pose of either input
+    ds, dt = principal_box_diagonal(points_of(src)), principal_box_diagonal(points_of(tgt))
     if max_size_ratio is None or not (ds > 0 and dt > 0):
         return
     r = ds / dt
@@ -50,7 +52,7 @@ def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None, sourc
     # and aligned_source.ply then overlay the target file as it is)
     fix = f"data.source_scale={source_scale * (1 / factor if big == 'source' else factor):g}"
     raise InputError(
-        f"{src.source or 'source'} is {ds:.4g} across (bounding-box diagonal) and {tgt.source or 'target'} {dt:.4g}: "
+        f"{src.source or 'source'} is {ds:.4g} across (the diagonal of its box along its principal axes) and {tgt.source or 'target'} {dt:.4g}: "
         f"{f:.3g}x apart, likely {unit}; set {fix} to bring the source into the target's units (or "
         "data.max_size_ratio=null to register them as they are)")
 
@@ -91,8 +93,8 @@ class Files(Provider):
         target_scale: float = 1.0
         """Multiply the target's coordinates (and its landmarks) by this on reading (see ``source_scale``)."""
         max_size_ratio: Optional[float] = MAX_SIZE_RATIO
-        """Stop, before any repair or registration, when the bounding-box diagonals of source and target (after
-        scaling) differ by more than this factor: such inputs are almost always in different units, and the
+        """Stop, before any repair or registration, when the sizes of source and target (after scaling; the
+        diagonals of their boxes along their principal axes, the same in any pose) differ by more than this factor: such inputs are almost always in different units, and the
         message names the likely unit factor. null: no check (a small part registered into a large scene)."""
         columns: Optional[str] = None
         """What the columns of a text (.xyz .txt .pts .csv) or .npy cloud are, e.g. 'x y z nx ny nz' or

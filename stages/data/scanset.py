@@ -13,7 +13,7 @@ import numpy as np
 
 from scanreg.errors import ConfigError, InputError, note, warn
 from scanreg.eval.checks import likely_units
-from scanreg.geometry import bbox_diagonal, invert_T, points_of, transform_geometry
+from scanreg.geometry import bbox_diagonal, invert_T, points_of, principal_box_diagonal, transform_geometry
 from scanreg.io import CLOUD_EXTS, MESH_EXTS, expand_path, read_geometry, read_input, read_stanford_conf, read_transform
 from scanreg.stages.data.base import Provider
 from scanreg.stages.data.files import MAX_SIZE_RATIO
@@ -58,7 +58,8 @@ class ScanSetProvider(Provider):
         columns: Optional[str] = None
         """The columns of text and .npy clouds (as ``data=files``' ``columns``)."""
         max_size_ratio: Optional[float] = MAX_SIZE_RATIO
-        """Stop, before any registration, when a scan's bounding-box diagonal differs from the median of the
+        """Stop, before any registration, when a scan's size (the diagonal of its box along its principal axes, the
+        same in any pose) differs from the median of the
         set's by more than this factor: such a scan is almost always in other units (the message names the
         likely factor); one scan in mm among scans in m left 4 of 5 scans unplaced after two minutes. null: no
         check (scans of very different extents, e.g. a detail scan among overviews)."""
@@ -106,19 +107,20 @@ class ScanSetProvider(Provider):
 
 
 def check_sizes(scans: list, max_size_ratio: float | None) -> None:
-    """Before any registration: every scan's extent (bounding-box diagonal) within ``max_size_ratio`` of the
+    """Before any registration: every scan's extent (the diagonal of its box along its principal axes, the same in
+    any pose) within ``max_size_ratio`` of the
     median scan's, else one line naming the scan, the sizes and the likely unit factor (the first scan the
     furthest off)."""
     if max_size_ratio is None or len(scans) < 2:
         return
-    d = np.array([bbox_diagonal(points_of(g)) if len(points_of(g)) else 0.0 for g in scans])
+    d = np.array([principal_box_diagonal(points_of(g)) for g in scans])  # (any pose: the same sizes)
     if (d > 0).sum() == 2:  # two scans: which one is off cannot be told, so both are named
         a, b = np.flatnonzero(d > 0)
         f = max(d[a], d[b]) / min(d[a], d[b])
         if f > max_size_ratio:
             unit, factor = likely_units(float(f))
             raise InputError(f"scans {scans[a].source} and {scans[b].source} are {d[a]:.4g} and {d[b]:.4g} across "
-                             f"(bounding-box diagonals): {f:.3g}x apart, likely {unit}; multiply the larger one's "
+                             f"(diagonals of their boxes along their principal axes): {f:.3g}x apart, likely {unit}; multiply the larger one's "
                              f"coordinates by {1 / factor:g} or the smaller one's by {factor:g} (or set "
                              "data.max_size_ratio=null to register the scans as they are)")
         return
@@ -133,7 +135,7 @@ def check_sizes(scans: list, max_size_ratio: float | None) -> None:
     unit, factor = likely_units(float(off[k]))
     scale = 1 / factor if ratio[k] > 1 else factor
     raise InputError(
-        f"scan {scans[k].source} is {d[k]:.4g} across (bounding-box diagonal) and the set's median scan {med:.4g}: "
+        f"scan {scans[k].source} is {d[k]:.4g} across (the diagonal of its box along its principal axes) and the set's median scan {med:.4g}: "
         f"{off[k]:.3g}x apart, likely {unit}; multiply its coordinates by {scale:g} (or set "
         f"data.max_size_ratio=null to register the scans as they are)")
 
