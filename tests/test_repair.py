@@ -72,6 +72,8 @@ def test_guard_stops_repairs_that_destroy_open_scans(backend, mesh):
         repair_with_audit(stage(backend, open_border="cap"), m, CTX)
     assert "\n" not in str(e.value) and "repair.open_border=open" in str(e.value)
     assert str(e.value).startswith(f"repair={backend}: {mesh}: ")
+    other = {"meshfix": "meshlab", "meshlab": "meshfix"}[backend]
+    assert f"try the other backend (repair={other})" in str(e.value)
     assert e.value.metrics["removed_area_share"] > 0.3 and e.value.metrics["guard_ok"] == 0
     assert e.value.metrics["open_border_open"] == 0
     # check_only audits the same repair but hands the unchanged mesh on

@@ -510,7 +510,9 @@ def guard_problems(p: GuardParams, m: dict[str, float], mode: str, mesh: Mesh, w
     if mode == "cap" and len(border_loops(mesh)[0]):
         hints.append("if this is an open scan whose outer border was capped, keep it open with "
                      "repair.open_border=open (or close it as a thin shell with repair.open_border=shell)")
-    hints.append("inspect with repair.check_only=true, or skip the repair with repair=none")
+    other = {"repair=meshfix": "repair=meshlab", "repair=meshlab": "repair=meshfix"}.get(where.split(":")[0])
+    hints.append("inspect with repair.check_only=true, " + (f"try the other backend ({other}), " if other else "")
+                 + "or skip the repair with repair=none")
     return f"{where}: the repair {' and '.join(problems)}; it would destroy part of the model. " + "; ".join(hints)
 
 
