@@ -171,7 +171,7 @@ def _arrays_named(folder: Path, **given: Any):
             if not isinstance(obj, (str, Path)):
                 for path in folder.glob(f"{role}.*"):
                     text = text.replace(f"{role} {path}", f"{role} (the {type(obj).__name__} given)")
-                    text = text.replace(str(path), f"the {role} ({type(obj).__name__})")
+                    text = text.replace(str(path), f"the {role} (the {type(obj).__name__} given)")
         if text != str(e):
             e.args = (text, *e.args[1:])
         raise

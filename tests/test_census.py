@@ -257,6 +257,7 @@ def test_a_census_without_the_broad_phase_is_the_full_ones_rest():
     rest = mesh_census(mesh, broad_phase=False)
     fresh = mesh_census(Mesh(mesh.vertices.copy(), mesh.faces.copy()), broad_phase=False)
     assert len(full.intersection_candidates) and len(full.fold_vertices) and not rest.broad_phase
+    assert rest.component is full.component  # taken from it, not measured again
     for f in fields(fresh):
         a, b = getattr(rest, f.name), getattr(fresh, f.name)
         assert np.array_equal(a, b) and np.asarray(a).dtype == np.asarray(b).dtype, f.name

@@ -347,8 +347,9 @@ def _unwritable_output(e: BaseException, argv: list[str] = ()) -> str | None:
     seen = set()
     while e is not None and id(e) not in seen:
         seen.add(id(e))
-        made = isinstance(e, OSError) and e.errno == errno.ENOENT and e.filename is not None and any(
-            Path(n) == Path(e.filename) or Path(e.filename) in Path(n).parents for n in named)
+        at = Path(os.path.abspath(e.filename)) if isinstance(e, OSError) and e.filename else None
+        made = at is not None and e.errno == errno.ENOENT and any(
+            Path(n) == at or at in Path(n).parents for n in map(os.path.abspath, named))
         if isinstance(e, OSError) and (e.errno in cannot or made) and e.filename:
             return (f"output folder: cannot write {e.filename} ({e.strerror}); run from a writable folder or set "
                     "hydra.run.dir=FOLDER (hydra.sweep.dir=FOLDER for -m) to one")

@@ -25,7 +25,7 @@ from scanreg.eval.metrics import (METRES_PER_UNIT, EvalParams, alignment_metrics
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pairs_covariance,
                                       relative_motion)
 from scanreg.geometry import (ClosestPoints, Geometry, Mesh, apply_T, bbox_centre, bbox_diagonal, estimate_spacing,
-                              transform_geometry)
+                              principal_box_diagonal, transform_geometry)
 from scanreg.process import blas_single_thread, cores, start_isolated
 from scanreg.runner.build import Stages
 from scanreg.runner.outputs import write_keypoints
@@ -158,7 +158,8 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     the target's surface, with ground truth the errors and the field's metrics, the landmarks' residuals, the
     pose covariance; and, into ``ctx.run_dir``, the keypoints and matches, the deviation map and the 3D view as
     ``evaluate`` asks."""
-    ev: EvalParams = stages.evaluate.shown(pair.diagonal)  # (the deviations' display unit follows the input's)
+    size = principal_box_diagonal(target.cloud.points)  # the target's size in any pose, for the unit's guess
+    ev: EvalParams = stages.evaluate.shown(size)  # (the deviations' display unit follows the input's)
     T, T0, T_gt = pair.T_target_source, pair.coarse.T_target_source, problem.T_gt
     src, tgt, spacing = source.cloud, target.cloud, pair.spacing
     out = Evaluation()
@@ -171,7 +172,7 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     on_points = on_target(aligned)
     m.update(alignment_metrics(on_points[1], ev, spacing))
     for line in (sparse_pair_warning(source.spacing, target.spacing, src.n_points, tgt.n_points,
-                                     ev.spacing_ratio_warn, bbox_diagonal(src.points), pair.diagonal),
+                                     ev.spacing_ratio_warn, principal_box_diagonal(src.points), size),
                  low_fitness_warning(m["fitness"], ev.fitness_warn)):
         if line:
             warn(line)
@@ -224,7 +225,7 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
 
         view_files.append(write_view(ctx.run_dir / "view3d.html", target.surface, source.surface, T, aligned,
                                      on_surface, dev_view, ev, seed=ctx.seed,
-                                     units_note=units_note(stages.evaluate, pair.diagonal),
+                                     units_note=units_note(stages.evaluate, size),
                                      max_distance=to_abs(ev.inlier_distance, ev.distances, spacing)))
     out.artifacts = view_files + keypoint_files
     return out

@@ -172,8 +172,8 @@ class IcpParams:
     half_turns: Optional[float] = 0.9
     """When the pose found keeps at least this share of the source within ``accept_distance`` (unitless: the
     source lies almost entirely on the target), its three half-turns about the source's principal axes through
-    its centroid are tried too: each that keeps at least half that share unrefined is refined by the variant's
-    schedule, and the end point with the lowest truncated least-squares cost (:meth:`IcpBase.accept`'s) is kept
+    its centroid are tried too: each that keeps at least half as large a share unrefined (screened on 1,000 of
+    the points, against the target's points) is refined by the variant's schedule, and the end point with the lowest truncated least-squares cost (:meth:`IcpBase.accept`'s) is kept
     when clearly (1 %) lower. A nearly symmetric shape (a long bone, a box-like part) fits its half-turned pose
     almost as well as its own, and the coarse stage may find either (a bone moved onto itself: 180 degrees off
     at fitness 0.998 and a quarter spacing RMS, where the truth fits exactly). Logs ``icp_half_turns_refined``
@@ -324,18 +324,20 @@ class IcpBase:
                 res = self.converge(target, moving, T_init, cp, tau, maxd, kscale)
                 if p.basin == "wide" or (p.basin == "auto" and not start_is_estimate):
                     res = self.widest(target, moving, T_init, cp, tau, maxd, kscale, spacing, res)
-                res = self.finish(res, cp, moving, T_init, maxd, start_limit, spacing, source)
-                if p.half_turns is not None:
-                    res = self.half_turned(res, target, moving, source, cp, tau, maxd, kscale, spacing, start_limit)
             except (np.linalg.LinAlgError, ValueError) as e:
                 raise StageError(f"icp={self.name}: the update failed ({e}); the pairs are degenerate") from e
+            res = self.finish(res, cp, moving, T_init, maxd, start_limit, spacing, source)
+            if p.half_turns is not None:
+                res = self.half_turned(res, target, moving, source, cp, tau, maxd, kscale, spacing, start_limit)
             return res
 
     def half_turned(self, res: IcpResult, target: Cloud, moving: Cloud, source: Cloud, cp: ClosestPoints,
                     tau: float, maxd: float | None, kscale: float | None, spacing: float,
                     start_limit: float | None) -> IcpResult:
         """``res`` (:meth:`finish`-ed), or the end point of one of its half-turns (``half_turns``) that explains
-        the source clearly better, finished from that half-turn."""
+        the source clearly better, finished from that half-turn (its iterations, RMS history and acceptance test
+        are then the half-turn's refinement's, from the half-turned pose). A half-turn whose refinement fails
+        (too few pairs) is passed over."""
         acc_d = self.accept_distance(maxd, spacing)
         which = "end" if res.metrics["icp_accepted"] else "start"  # the acceptance test's numbers at the pose kept
         here = {"icp_fitness": res.metrics[f"icp_accept_{which}_fitness"],
@@ -343,20 +345,28 @@ class IcpBase:
         res.metrics.update({"icp_half_turns_refined": 0.0, "icp_half_turn": 0.0})
         if here["icp_fitness"] < self.p.half_turns:
             return res
+        # screened on a spread subset, by the target's points (a closest point on a mesh target is slow to find far
+        # from its surface)
+        few = moving.points[::max(1, -(-len(moving.points) // HALF_TURN_SCREEN_POINTS))]
+        near = cp if cp.mesh is None else ClosestPoints(target)
         best, best_cost, refined = None, truncated_cost(here, acc_d), 0
         for H in half_turns(moving.points):
             T = res.T_target_source @ H
-            if self.final_metrics(cp(apply_T(T, moving.points), acc_d)[1], acc_d)["icp_fitness"] < \
-                    0.5 * here["icp_fitness"]:
+            if self.final_metrics(near(apply_T(T, few), acc_d)[1], acc_d)["icp_fitness"] < 0.5 * here["icp_fitness"]:
                 continue  # far from fitting: not a symmetric pose
             refined += 1
-            r = self.converge(target, moving, T, cp, tau, maxd, kscale)
+            try:
+                r = self.converge(target, moving, T, cp, tau, maxd, kscale)
+            except (StageError, np.linalg.LinAlgError, ValueError):
+                continue
             cost = truncated_cost(self.final_metrics(cp(apply_T(r.T_target_source, moving.points), acc_d)[1], acc_d),
                                   acc_d)
             if cost < 0.99 * best_cost:
                 best, best_cost = (r, T), cost
         if best is not None:
+            found = res.metrics
             res = self.finish(best[0], cp, moving, best[1], maxd, start_limit, spacing, source)
+            res.metrics = {**found, **res.metrics}  # (what only the first search reports, e.g. icp_basin_wide)
         res.metrics.update({"icp_half_turns_refined": float(refined), "icp_half_turn": float(best is not None)})
         return res
 
@@ -478,6 +488,11 @@ class IcpBase:
     def update(self, T, moved, q, qn, ok, w, limit: PairLimit) -> np.ndarray:
         """The next iterate from the current one and its pairs (``w``: IRLS weights of the kept pairs)."""
         return self.step(moved, q, qn, ok, w) @ T
+
+
+HALF_TURN_SCREEN_POINTS = 1000
+"""The half-turns (``half_turns``) are screened on at most this many source points, spread along the Morton
+curve."""
 
 
 def truncated_cost(m: dict, distance: float) -> float:
