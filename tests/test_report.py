@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 
 from scanreg.app.report.params import ReportParams
-from scanreg.app.report.tables import canonical, group_labels, summarize
+from scanreg.app.report.tables import canonical, default_grouping, group_labels, summarize
 from scanreg.app.report.write import write_report
 
 
@@ -465,3 +465,31 @@ def test_paired_section_pairs_runs_by_case(tmp_path):
     gap.loc[gap.index[:2], "params.data.pair"] = np.nan
     t4 = paired_table(gap, gap["params.method.name"], ["method.name"], ["rotation_error_deg"])
     assert t4 is not None and t4.iloc[0]["cases"] == 6  # two of a's runs without a pair: not paired with b's
+
+
+def test_an_interrupted_sweeps_unstarted_runs_are_said_not_grouped(tmp_path):
+    """A sweep ended with Ctrl-C leaves a KILLED run that logged no config: every parameter then seemed to vary,
+    and the report failed ('runs of group(s) ... have no row in the table'). It is left out of the tables and
+    said under the failed runs; the finished runs are reported."""
+    import mlflow
+
+    from scanreg.app.report.runs import load_runs
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = mlflow.MlflowClient(uri)
+    exp = client.create_experiment("scanreg")
+    parent = client.create_run(exp, tags={"scanreg.sweep": "parent"})
+    for name, seed in (("horn", "0"), ("horn", "1"), ("gicp", "0"), ("gicp", "1")):
+        child = client.create_run(exp, tags={"mlflow.parentRunId": parent.info.run_id, "group.icp": name})
+        for k, v in (("icp.name", name), ("seed", seed), ("sampler.n_points", "5000")):
+            client.log_param(child.info.run_id, k, v)
+        client.log_metric(child.info.run_id, "rotation_error_deg", 0.1)
+        client.set_terminated(child.info.run_id, "FINISHED")
+    killed = client.create_run(exp, tags={"mlflow.parentRunId": parent.info.run_id})
+    client.set_terminated(killed.info.run_id, "KILLED")
+    df = load_runs("scanreg", uri, parent="latest")
+    assert len(df) == 4 and df.attrs["unlogged"] == 1
+    assert default_grouping(df)[0] == ["group.icp"]
+    write_report(df, ReportParams(), tmp_path / "out", plots=True)
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert "- 1 run(s) ended before logging their config (an interrupted sweep's jobs): in no table" in text

@@ -52,7 +52,13 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
         df = df[df["tags.scanreg.part"].isna()]
     if df.empty:
         raise SystemExit(f"error: no runs found in experiment '{experiment}'" + (f" under parent {parent}" if parent else ""))
+    # runs ended (an interrupted sweep's KILLED jobs) before they logged their config: no group to put them in
+    params = [c for c in df.columns if c.startswith("params.")]
+    bare = df[params].isna().all(axis=1) & (df["status"] != "FINISHED") if params else df["status"].isna()
+    unlogged = int(bare.sum()) if not bare.all() else 0
+    df = df[~bare] if unlogged else df
     df = df.sort_values("start_time").reset_index(drop=True)
+    df.attrs.update(unlogged=unlogged)
     df.attrs.update(parent=parent, uri=tr.uri, experiment=experiment,
                     parent_tags={k[5:]: v for k, v in parent_row.items() if k.startswith("tags.")}
                     if parent_row is not None else {})

@@ -171,8 +171,12 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         lines += scanset_section(df, group_by, out)
     if figs:
         lines += ["## Plots", ""] + [f"![{f.stem}]({f.name})" for f in figs] + [""]
-    if n_fail:
+    unlogged = df.attrs.get("unlogged", 0)
+    if n_fail or unlogged:
         lines += ["## Failed runs", ""] + failed_lines(df, group_by) + [""]
+    if unlogged:  # (an interrupted sweep's jobs that had not started: in no group, so in no table)
+        lines[-1:-1] = [f"- {unlogged} run(s) ended before logging their config (an interrupted sweep's jobs): in "
+                        "no table"]
     (out / "report.md").write_text("\n".join(lines))
     return {"table": table, "per": per_t, "group_by": group_by, "warning": warn,
             "paths": [out / "report.md", out / "report.csv", out / "runs.csv", *figs]}
