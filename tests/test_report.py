@@ -493,3 +493,18 @@ def test_an_interrupted_sweeps_unstarted_runs_are_said_not_grouped(tmp_path):
     write_report(df, ReportParams(), tmp_path / "out", plots=True)
     text = (tmp_path / "out" / "report.md").read_text()
     assert "- 1 run(s) ended before logging their config (an interrupted sweep's jobs): in no table" in text
+
+
+def test_a_report_into_a_folder_removes_what_the_previous_report_wrote(tmp_path):
+    """Every ad-hoc sweep reports into outputs/reports/scanreg/: a new report left the previous one's per-case
+    tables and plots beside its own (a researcher's trial). The files a report wrote are listed in the folder,
+    and the next report removes them first; other files stay."""
+    df = mlflow_like_runs("icp.name", ["horn", "gicp"])
+    df["params.data.pair"] = ["a:b", "c:d"] * (len(df) // 2)
+    write_report(df, ReportParams(per="data.pair"), tmp_path, plots=False)
+    assert (tmp_path / "per.csv").is_file()
+    (tmp_path / "mine.txt").write_text("kept")
+    write_report(df.drop(columns="params.data.pair"), ReportParams(), tmp_path, plots=False)  # (no cases)
+    assert not (tmp_path / "per.csv").exists() and (tmp_path / "report.md").is_file()
+    assert (tmp_path / "mine.txt").read_text() == "kept"
+    assert "report.md" in (tmp_path / ".scanreg-report-files").read_text().split()

@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import re
 import sys
-from datetime import datetime, timezone
+import time
 from dataclasses import replace
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +83,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     """Write report.md, report.csv (and per.csv, compare.csv) and PNG plots into ``out``."""
     _check_metrics(df, {"metrics": p.metrics, "bin_metrics": p.bin_metrics, "curves": p.curves})
     out.mkdir(parents=True, exist_ok=True)
+    since = _clear_previous(out)
     if not p.group_by:  # the methods, the cases apart (default_grouping)
         group_by, per = default_grouping(df, p.per)
         p = replace(p, group_by=group_by, per=per)
@@ -178,8 +180,30 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         lines[-1:-1] = [f"- {unlogged} run(s) ended before logging their config (an interrupted sweep's jobs): in "
                         "no table"]
     (out / "report.md").write_text("\n".join(lines))
+    _list_written(out, since)
     return {"table": table, "per": per_t, "group_by": group_by, "warning": warn,
             "paths": [out / "report.md", out / "report.csv", out / "runs.csv", *figs]}
+
+
+WRITTEN = ".scanreg-report-files"
+"""The list of the files a report wrote into its folder, kept there: the next report into the folder removes
+them first (a report of another sweep left its per-case tables and plots beside the new ones)."""
+
+
+def _clear_previous(out: Path) -> float:
+    """Remove the files the previous report into ``out`` wrote (:data:`WRITTEN`); the time this report starts."""
+    listed = out / WRITTEN
+    if listed.is_file():
+        for name in listed.read_text().splitlines():
+            if name and "/" not in name and name != WRITTEN:
+                (out / name).unlink(missing_ok=True)
+    return time.time()
+
+
+def _list_written(out: Path, since: float) -> None:
+    """Keep the list of the files written into ``out`` since ``since`` (:data:`WRITTEN`)."""
+    names = sorted(f.name for f in out.iterdir() if f.is_file() and f.name != WRITTEN and f.stat().st_mtime >= since - 1)
+    (out / WRITTEN).write_text("\n".join(names) + "\n")
 
 
 def run_columns(df: pd.DataFrame) -> pd.DataFrame:
