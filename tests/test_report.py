@@ -508,3 +508,19 @@ def test_a_report_into_a_folder_removes_what_the_previous_report_wrote(tmp_path)
     assert not (tmp_path / "per.csv").exists() and (tmp_path / "report.md").is_file()
     assert (tmp_path / "mine.txt").read_text() == "kept"
     assert "report.md" in (tmp_path / ".scanreg-report-files").read_text().split()
+
+
+def test_the_share_of_runs_whose_coarse_stage_fell_back_is_shown_when_any_did():
+    """A sweep over salience measures at few points: ISS and cn_l3 both fell back to uniform keypoints and gave the
+    same transform, and the report did not say so (a researcher's trial). The share per group is shown when any
+    run fell back, and only then."""
+    from scanreg.app.report.tables import console_table, display_table
+
+    df = mlflow_like_runs("salience.name", ["iss", "uniform"])
+    df["metrics.coarse_fallback"] = [1.0, 1.0, 0.0, 0.0, 0.0, 0.0]
+    table = summarize(df, ["salience.name"])
+    assert list(table["coarse_fallback_share"]) == pytest.approx([2 / 3, 0.0])
+    assert "coarse_fallback (share of runs)" in display_table(table, ["salience.name"], [])
+    assert "fallback" in console_table(table, ["salience.name"], width=200).splitlines()[0]
+    df["metrics.coarse_fallback"] = 0.0
+    assert "coarse_fallback_share" not in summarize(df, ["salience.name"])

@@ -177,6 +177,11 @@ def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = (), how:
                 row[f"{m}_{agg}"] = float(s.median() if agg == "median" else s.quantile(0.9))
                 if agg == "median":
                     row[f"{m}_lo"], row[f"{m}_hi"] = interval(s.values, how)
+        if "metrics.coarse_fallback" in work and (work["metrics.coarse_fallback"] > 0).any():
+            # the coarse stage replaced the configured keypoints by uniform ones: a comparison of detectors
+            # (salience) compares nothing where it did, so the share is shown beside every group
+            fell = ok["metrics.coarse_fallback"].dropna() if "metrics.coarse_fallback" in ok else pd.Series([])
+            row["coarse_fallback_share"] = float(fell.mean()) if len(fell) else float("nan")
         row["_label"] = " / ".join(canonical(v) for v in key) if group_by else "all"
         rows.append(row)
     return pd.DataFrame(rows)
@@ -248,6 +253,8 @@ def display_table(table: pd.DataFrame, group_by: list[str], metrics: list[str]) 
     if "success_rate" in table:
         out["success [Wilson 95 %]"] = [fmt_success(r.get("successes"), r.get("judged", r["runs"]), r.get("success_lo"),
                                                     r.get("success_hi")) for _, r in table.iterrows()]
+    if "coarse_fallback_share" in table:
+        out["coarse_fallback (share of runs)"] = [fmt_value(v) for v in table["coarse_fallback_share"]]
     fit = [] if has_errors(table) else TABLE_FIT
     shown = TABLE_MEDIANS + TABLE_SET + fit
     for m in [*shown, *[m for m in metrics if m not in shown], *TABLE_TIMES]:
@@ -411,10 +418,11 @@ CONSOLE_ERRORS = [("rotation_error_deg_median", "rot_deg"), ("translation_error_
                   ("scan_rotation_error_max_deg_median", "worst_rot_deg"),
                   ("scan_translation_error_max_rel_median", "worst_transl_rel")]
 CONSOLE_FIT = [("rms_median", "rms"), ("fitness_median", "fitness")]
-CONSOLE_SET = [("scans_placed_median", "placed")]
+CONSOLE_SET = [("scans_placed_median", "placed"), ("coarse_fallback_share", "fallback")]
 CONSOLE_TIMES = [("time_coarse_s_median", "coarse_s"), ("time_total_s_median", "total_s")]
 """The console's short table: (report.csv column, heading); the errors, or without ground truth the fit (a scan
-set's placed scans beside either)."""
+set's placed scans, and the share of runs whose coarse stage fell back to uniform keypoints when any did, beside
+either)."""
 
 
 def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100) -> str:
