@@ -252,9 +252,10 @@ def direct_icp_history(target, source, n, maxd=None):
 
 
 def run_horn(target, source, **kw):
-    """The paper's Besl-McKay loop: a fixed pair limit (no adaptive schedule), least squares, no acceptance test."""
+    """The paper's Besl-McKay loop: a fixed pair limit (no adaptive schedule), least squares, no acceptance test,
+    no half-turns."""
     st = build(ICP, "horn", **{"max_correspondence_distance": None, "distances": "absolute", "schedule": "fixed",
-                               "kernel": "none", "accept": False, **kw})
+                               "kernel": "none", "accept": False, "half_turns": None, **kw})
     return st.refine(target, source, np.eye(4), 1.0, RunContext(seed=0))
 
 

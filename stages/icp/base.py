@@ -174,7 +174,7 @@ class IcpParams:
     source lies almost entirely on the target), its three half-turns about the source's principal axes through
     its centroid are tried too: each that keeps at least half as large a share unrefined (screened on 1,000 of
     the points, against the target's points) is refined by the variant's schedule, and the end point with the lowest truncated least-squares cost (:meth:`IcpBase.accept`'s) is kept
-    when clearly (1 %) lower. A nearly symmetric shape (a long bone, a box-like part) fits its half-turned pose
+    when at most half the pose's (a truly symmetric shape fits both alike). A nearly symmetric shape (a long bone, a box-like part) fits its half-turned pose
     almost as well as its own, and the coarse stage may find either (a bone moved onto itself: 180 degrees off
     at fitness 0.998 and a quarter spacing RMS, where the truth fits exactly). Logs ``icp_half_turns_refined``
     and ``icp_half_turn`` (1 when one was kept). null: not tried. (Not ``icp=open3d``, Open3D's own loop.)"""
@@ -361,7 +361,7 @@ class IcpBase:
                 continue
             cost = truncated_cost(self.final_metrics(cp(apply_T(r.T_target_source, moving.points), acc_d)[1], acc_d),
                                   acc_d)
-            if cost < 0.99 * best_cost:
+            if cost < HALF_TURN_GAIN * best_cost:
                 best, best_cost = (r, T), cost
         if best is not None:
             found = res.metrics
@@ -493,6 +493,10 @@ class IcpBase:
 HALF_TURN_SCREEN_POINTS = 1000
 """The half-turns (``half_turns``) are screened on at most this many source points, spread along the Morton
 curve."""
+HALF_TURN_GAIN = 0.5
+"""A refined half-turn replaces the pose found only when its truncated least-squares cost is at most this share of
+the pose's: a truly symmetric shape fits both alike, and a refinement that merely went on longer (a loose
+``tau``) must not turn the result over."""
 
 
 def truncated_cost(m: dict, distance: float) -> float:

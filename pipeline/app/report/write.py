@@ -173,12 +173,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         lines += scanset_section(df, group_by, out)
     if figs:
         lines += ["## Plots", ""] + [f"![{f.stem}]({f.name})" for f in figs] + [""]
-    unlogged = df.attrs.get("unlogged", 0)
-    if n_fail or unlogged:
-        lines += ["## Failed runs", ""] + failed_lines(df, group_by) + [""]
-    if unlogged:  # (an interrupted sweep's jobs that had not started: in no group, so in no table)
-        lines[-1:-1] = [f"- {unlogged} run(s) ended before logging their config (an interrupted sweep's jobs): in "
-                        "no table"]
+    lines += failed_section(df, group_by, n_fail)
     (out / "report.md").write_text("\n".join(lines))
     _list_written(out, since)
     return {"table": table, "per": per_t, "group_by": group_by, "warning": warn,
@@ -216,6 +211,20 @@ def run_columns(df: pd.DataFrame) -> pd.DataFrame:
     out = df[keep].copy()
     out.columns = [c.removeprefix("tags.").removeprefix("params.").removeprefix("metrics.") for c in keep]
     return out.loc[:, ~out.columns.duplicated()]
+
+
+def failed_section(df: pd.DataFrame, group_by: list[str], n_fail: int) -> list[str]:
+    """The report's 'Failed runs' section (none when every run finished): each reason (:func:`failed_lines`),
+    and the runs that ended before logging their config (an interrupted sweep's jobs that had not started: in
+    no group, so in no table; :func:`~scanreg.app.report.runs.load_runs` counts them)."""
+    unlogged = df.attrs.get("unlogged", 0)
+    if not (n_fail or unlogged):
+        return []
+    lines = ["## Failed runs", ""] + failed_lines(df, group_by)
+    if unlogged:
+        lines.append(f"- {unlogged} run(s) ended before logging their config (an interrupted sweep's jobs): in no "
+                     "table")
+    return lines + [""]
 
 
 def failed_lines(df: pd.DataFrame, group_by: list[str]) -> list[str]:
