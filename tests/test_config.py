@@ -354,3 +354,15 @@ def test_a_seed_given_as_digits_is_a_seed():
     for bad in (-1, "x", "-2", 1.5, True):
         with pytest.raises(ConfigError, match="seed must be an integer >= 0"):
             checked_seed(bad)
+
+
+def test_a_config_folder_that_is_not_there_is_named():
+    """scanreg.compose(config_dirs=[missing]) passed over the folder and said 'unknown experiment' (a researcher's
+    trial); the CLI names it (Hydra's --config-dir check), and so does the API now."""
+    import pytest
+
+    import scanreg
+    from scanreg.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"config_dirs: additional config directory '~/no-such-conf-dir' not found"):
+        scanreg.compose(["experiment=my_icp"], config_dirs=["~/no-such-conf-dir"])

@@ -65,6 +65,7 @@ def test_tiny_experiment_report_matches_result_json(tmp_path, mlflow_uri):
                 tmp_path, mlflow_uri)
     assert r.returncode == 0, r.stderr
     assert "sweep [" in r.stdout and "2/2 jobs" in r.stdout  # the progress bar
+    assert "done: success, rot " in r.stdout  # each job's outcome: whether a success (a 162-degree result was 'ok')
     table = pd.read_csv(tmp_path / "rep" / "report.csv")
     assert list(table["sampler.n_points"]) == [2000, 3000] and list(table["runs"]) == [1, 1]
     for job, (_, row) in enumerate(table.iterrows()):

@@ -29,6 +29,9 @@ def compose(overrides=(), config_name: str = "config", config_dirs=(), return_hy
     (with its ``hydra`` node when ``return_hydra_config``); a bad override raises one :class:`ConfigError` line."""
     from hydra import compose as hydra_compose, initialize_config_module
 
+    for d in map(str, config_dirs):  # (Hydra's search path passes over a folder that is not there)
+        if not d.startswith("pkg://") and not Path(d.removeprefix("file://")).expanduser().is_dir():
+            raise ConfigError(f"config_dirs: additional config directory '{d}' not found")
     register_schemas()
     try:
         with initialize_config_module(CONF_PACKAGE, version_base="1.3"):

@@ -213,9 +213,11 @@ def _failed(e: BaseException, cfg: DictConfig, tracker, record, run_dir: Path, m
 
 
 def job_line(m: dict) -> str:
-    """A sweep job's result in a few words: a scan set's scans placed and its worst scan's errors, a pair's errors
-    (with ground truth) or RMS; and the time."""
+    """A sweep job's result in a few words: with ground truth whether it is a success, a scan set's scans placed
+    and its worst scan's errors, a pair's errors (with ground truth) or RMS; and the time."""
     parts = []
+    if m.get("success") in (0.0, 1.0):  # (the job ran either way: "ok" said nothing of a 162-degree result)
+        parts.append("success" if m["success"] == 1.0 else "NO success")
     if "scans_placed" in m and "n_scans" in m:
         parts.append(f"{int(m['scans_placed'])}/{int(m['n_scans'])} scans placed")
     if "scan_rotation_error_max_deg" in m:

@@ -409,7 +409,7 @@ def report_progress(status: str, what: str = "") -> None:
         job = f"#{HydraConfig.get().job.num} "
     except Exception:  # noqa: BLE001  # not inside a Hydra job
         job = ""
-    outcome = f"{job}{'ok' if status == 'FINISHED' else status}" + (f": {what}" if what else "")
+    outcome = f"{job}{'done' if status == 'FINISHED' else status}" + (f": {what}" if what else "")
     if total:
         width = 10
         fill = int(round(width * min(done, total) / total))
