@@ -524,3 +524,16 @@ def test_the_share_of_runs_whose_coarse_stage_fell_back_is_shown_when_any_did():
     assert "fallback" in console_table(table, ["salience.name"], width=200).splitlines()[0]
     df["metrics.coarse_fallback"] = 0.0
     assert "coarse_fallback_share" not in summarize(df, ["salience.name"])
+
+
+def test_per_case_tables_order_the_groups_by_value():
+    """A density sweep's per-case tables and heat map sorted the groups as text ('1000000 | 200000 | 2000000 |
+    500000', a researcher's trial); they come in the summary's order, by value."""
+    from scanreg.app.report.tables import per_errors, per_table
+
+    df = mlflow_like_runs("sampler.n_points", ["2000000", "200000", "1000000", "500000"])
+    df["params.data.pair"] = "a:b"
+    order = ["200000", "500000", "1000000", "2000000"]
+    assert list(per_table(df, ["sampler.n_points"], "data.pair").columns) == order
+    assert list(per_errors(df, ["sampler.n_points"], "data.pair").columns) == order
+    assert list(summarize(df, ["sampler.n_points"])["_label"]) == order

@@ -139,6 +139,7 @@ def make_plots(df: pd.DataFrame, table: pd.DataFrame, group_by: list[str], out: 
         ax.set_xticks(range(per_t.shape[1]), list(per_t.columns), rotation=45 if per_t.shape[1] > 3 else 0,
                       ha="right" if per_t.shape[1] > 3 else "center", fontsize=7)
         ax.set_ylabel(per_t.index.name)
+        ax.set_xlabel(keys)  # (the swept key, as every plot names it)
         fig.colorbar(im, ax=ax, label="success [%]")
         paths.append(save_figure(fig, out / f"success_per_{_slug(per_t.index.name)}.png"))
     return paths

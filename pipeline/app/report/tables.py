@@ -194,8 +194,20 @@ def per_table(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame:
     work["_grp"] = group_labels(work, group_by)
     work["_ok"] = run_success(work)
     t = work.pivot_table(index="_per", columns="_grp", values="_ok", aggfunc="mean")
+    t = t[[g for g in group_order(work, group_by) if g in t.columns]]
     t.index.name, t.columns.name = per, None
     return t
+
+
+def group_order(df: pd.DataFrame, group_by: list[str]) -> list[str]:
+    """The groups' labels (:func:`group_labels`) in the summary's order: by each key's typed value, so that
+    densities 200000 and 1000000 come in that order (as text, 1000000 came first)."""
+    if not group_by:
+        return ["all"]
+    typed = pd.DataFrame({f"_k{i}": _typed(df[column_for(k, df)]) for i, k in enumerate(group_by)}, index=df.index)
+    typed["_label"] = group_labels(df, group_by)
+    ordered = typed.sort_values([f"_k{i}" for i in range(len(group_by))], kind="stable")["_label"]
+    return list(dict.fromkeys(ordered))
 
 
 def per_errors(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame | None:
@@ -209,6 +221,7 @@ def per_errors(df: pd.DataFrame, group_by: list[str], per: str) -> pd.DataFrame 
     t = work.pivot_table(index="_per", columns="_grp", values="metrics.rotation_error_deg", aggfunc="median")
     if t.empty:  # no run finished with an error to show
         return None
+    t = t[[g for g in group_order(work, group_by) if g in t.columns]]
     t.index.name, t.columns.name = per, None
     return t
 
