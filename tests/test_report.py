@@ -487,12 +487,20 @@ def test_an_interrupted_sweeps_unstarted_runs_are_said_not_grouped(tmp_path):
         client.set_terminated(child.info.run_id, "FINISHED")
     killed = client.create_run(exp, tags={"mlflow.parentRunId": parent.info.run_id})
     client.set_terminated(killed.info.run_id, "KILLED")
+    # a job stopped while its config was being logged (part of it logged, the run left RUNNING)
+    cut = client.create_run(exp, tags={"mlflow.parentRunId": parent.info.run_id, "group.icp": "gicp"})
+    client.log_param(cut.info.run_id, "icp.name", "gicp")
+    # a run that failed with its whole config is a failure of its group, as ever
+    failed = client.create_run(exp, tags={"mlflow.parentRunId": parent.info.run_id, "group.icp": "horn"})
+    for k, v in (("icp.name", "horn"), ("seed", "2"), ("sampler.n_points", "5000")):
+        client.log_param(failed.info.run_id, k, v)
+    client.set_terminated(failed.info.run_id, "FAILED")
     df = load_runs("scanreg", uri, parent="latest")
-    assert len(df) == 4 and df.attrs["unlogged"] == 1
+    assert len(df) == 5 and df.attrs["unlogged"] == 2 and list(df["status"]).count("FAILED") == 1
     assert default_grouping(df)[0] == ["group.icp"]
     write_report(df, ReportParams(), tmp_path / "out", plots=True)
     text = (tmp_path / "out" / "report.md").read_text()
-    assert "- 1 run(s) ended before logging their config (an interrupted sweep's jobs): in no table" in text
+    assert "- 2 run(s) ended before logging their config (an interrupted sweep's jobs): in no table" in text
 
 
 def test_a_report_into_a_folder_removes_what_the_previous_report_wrote(tmp_path):

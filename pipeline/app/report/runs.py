@@ -52,9 +52,13 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
         df = df[df["tags.scanreg.part"].isna()]
     if df.empty:
         raise SystemExit(f"error: no runs found in experiment '{experiment}'" + (f" under parent {parent}" if parent else ""))
-    # runs ended (an interrupted sweep's KILLED jobs) before they logged their config: no group to put them in
+    # runs an interrupt ended (KILLED, or left RUNNING: a job stopped while it was being logged) before they had
+    # logged their whole config: no group to put them in, and their missing keys would seem to vary
     params = [c for c in df.columns if c.startswith("params.")]
-    bare = df[params].isna().all(axis=1) & (df["status"] != "FINISHED") if params else df["status"].isna()
+    n = df[params].notna().sum(axis=1) if params else pd.Series(0, index=df.index)
+    finished = df["status"] == "FINISHED"
+    whole = int(n[finished].min()) if finished.any() else int(n.max())
+    bare = (df["status"] != "FINISHED") & ((n == 0) | (df["status"].isin(["KILLED", "RUNNING"]) & (n < whole)))
     unlogged = int(bare.sum()) if not bare.all() else 0
     df = df[~bare] if unlogged else df
     df = df.sort_values("start_time").reset_index(drop=True)
