@@ -1,6 +1,7 @@
 """Scale-out and reliability: parallel sweeps into one store, interrupts, determinism, malformed inputs."""
 
 import hashlib
+import json
 import os
 import signal
 import subprocess
@@ -121,6 +122,39 @@ def test_sigint_leaves_no_run_running(tmp_path, mlflow_uri):
     assert ended["tags.error"].notna().all() and (ended["tags.error"] != "").all(), ended  # with their reason
     assert "interrupted" in parent["tags.error"]
     assert len(children) < 8  # it did stop
+    assert not list(sweep.glob("*/mlflow_pending.json"))  # every finished job logged, by itself or after it
+
+
+def test_a_finished_job_cut_short_while_being_logged_is_logged_from_its_folder(tmp_path, monkeypatch):
+    """Ctrl-C while a parallel sweep's job was logging its finished run: the launcher ends its workers at once, and
+    the run was lost (a researcher's trial: the job's result.json there, MLflow holding only a RUNNING run with
+    part of its parameters). The job keeps what it logs in its folder until logged; the launching process logs
+    it after the interrupt, in place of the cut run."""
+    import mlflow
+
+    from scanreg.app.tracking import (PENDING_RECORD, SWEEP_ENV, MlflowTracking, RunRecord, _sweep_outcome,
+                                      end_interrupted_sweep)
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    tr = MlflowTracking(MlflowTracking.Params(uri=uri, experiment="cut"))
+    client, eid = tr.prepare()
+    parent = client.create_run(eid, tags={"scanreg.sweep": "parent"})
+    sweep = tmp_path / "sweep"
+    job = sweep / "0"
+    job.mkdir(parents=True)
+    info = {"uri": tr.uri, "experiment": "cut", "experiment_id": eid, "parent_run_id": parent.info.run_id,
+            "sweep_dir": str(sweep)}
+    monkeypatch.setenv(SWEEP_ENV, json.dumps(info))
+    params = {f"p{k}": str(k) for k in range(150)}
+    record = RunRecord("seed=0", params, {"scanreg.run_dir": str(job)}).ended("FINISHED", None, {"rms": 0.5})
+    (job / PENDING_RECORD).write_text(json.dumps(tr.request(record)))
+    cut = client.create_run(eid, tags={"mlflow.parentRunId": parent.info.run_id, "scanreg.run_dir": str(job)})
+    client.log_param(cut.info.run_id, "p0", "0")  # (the interrupt stopped it here)
+    end_interrupted_sweep()
+    assert _sweep_outcome["recovered"] == 1 and not (job / PENDING_RECORD).exists()
+    kids = mlflow.MlflowClient(uri).search_runs([eid], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'")
+    assert [r.info.status for r in kids] == ["FINISHED"] and kids[0].data.metrics["rms"] == 0.5
+    assert len(kids[0].data.params) == 150  # the whole config, once
 
 
 # ------------------------------------------------------------------------------------------ bad input

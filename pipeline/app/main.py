@@ -8,6 +8,7 @@ its reason, and a sweep goes on with its other jobs.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 import time
@@ -64,7 +65,7 @@ def check_config(cfg: DictConfig):
 def run_job(cfg: DictConfig) -> dict | float | None:
     """One job: check, run, log, report. Returns the job's result (its ``objective`` metric for a tuning
     sweeper); a single run's failure is a ``SystemExit`` with its code."""
-    from scanreg.app.tracking import NoTracking, RunRecord, flatten, report_progress
+    from scanreg.app.tracking import PENDING_RECORD, NoTracking, RunRecord, flatten, report_progress
     from scanreg.runner import run_stages, summary_lines
     from scanreg.types import RunContext
 
@@ -114,8 +115,13 @@ def run_job(cfg: DictConfig) -> dict | float | None:
         return _failed(e, cfg, tracker, record, run_dir, multirun)
     children = [RunRecord(run_name=name, params={}, tags={"scanreg.part": "pair"}, start_time=record.start_time)
                 .ended("FINISHED", None, metrics) for name, metrics in res.children]
-    run_id = _log(tracker, record.ended("FINISHED", None, res.metrics, res.histories,
-                                        [run_dir / "config.yaml", *res.artifacts]), multirun, children)
+    finished = record.ended("FINISHED", None, res.metrics, res.histories, [run_dir / "config.yaml", *res.artifacts])
+    request = getattr(tracker, "request", None) if multirun else None
+    pending = run_dir / PENDING_RECORD
+    if request is not None:  # kept until logged: an interrupt that stops this job meanwhile loses nothing
+        pending.write_text(json.dumps(request(finished, children)))
+    run_id = _log(tracker, finished, multirun, children)
+    pending.unlink(missing_ok=True)
     where = f"results: {run_dir}" + (f"  (MLflow run {run_id})" if run_id else "")
     lines = summary_lines(res)
     (run_dir / "summary.txt").write_text("\n".join([*lines, "", where]) + "\n")  # the table, kept with the run
@@ -310,7 +316,9 @@ def main() -> None:
             n = end_interrupted_sweep()
         except Exception:  # noqa: BLE001  # the message below is what matters
             n = 0
-        _err("interrupted" + (f"; {n} unfinished MLflow run(s) of the sweep marked KILLED" if n else ""))
+        saved = _sweep_outcome.get("recovered", 0)
+        _err("interrupted" + (f"; {n} unfinished MLflow run(s) of the sweep marked KILLED" if n else "")
+             + (f"; {saved} finished job(s) cut short while being logged, logged from their folders" if saved else ""))
         raise SystemExit(EXIT_INTERRUPTED)
     except BrokenPipeError:
         _stdout_gone()

@@ -211,6 +211,12 @@ class MlflowTracking:
                 raise
             return client, exp.experiment_id
 
+    def request(self, record: RunRecord, children: list[RunRecord] = ()) -> dict:
+        """What logging ``record`` (and ``children``) takes, as plain values (:func:`_log_request` logs it): sent
+        to the worker process, and kept in a sweep job's folder while it is logged (:data:`PENDING_RECORD`)."""
+        return {"uri": self.p.uri, "resolved_uri": self.uri, "experiment": self.p.experiment,
+                "sweep": sweep_info(), "record": asdict(record), "children": [asdict(c) for c in children]}
+
     def log_run(self, record: RunRecord, children: list[RunRecord] = ()) -> str:
         """Log a finished run (and ``children``, runs nested in it: a scan set's pairs); its run id. Through the
         worker process when the command started one (and MLflow is not imported here), else here."""
@@ -218,8 +224,7 @@ class MlflowTracking:
 
         from scanreg.app import startup
 
-        request = {"uri": self.p.uri, "resolved_uri": self.uri, "experiment": self.p.experiment,
-                   "sweep": sweep_info(), "record": asdict(record), "children": [asdict(c) for c in children]}
+        request = self.request(record, children)
         worker = None if "mlflow" in sys.modules else startup.take_tracking_worker()
         if worker is not None:
             return worker.log(request)
@@ -345,14 +350,23 @@ def _children(client, info: dict) -> list:
                               max_results=50000)
 
 
+PENDING_RECORD = "mlflow_pending.json"
+"""A sweep job that has finished keeps what it logs in its folder under this name until its run is logged: an
+interrupt that stops the job meanwhile (a parallel launcher ends its workers at once) leaves it there, and the
+launching process logs it (:func:`end_interrupted_sweep`), so that no finished job's results are lost."""
+
+
 def end_interrupted_sweep(reason: str = "interrupted", status: str = "KILLED") -> int:
-    """After an interrupt of a sweep (in the launching process): every child run still RUNNING, and the parent,
-    end KILLED with the reason, so that no run is left RUNNING. Returns the number of runs ended."""
+    """After an interrupt of a sweep (in the launching process): the finished jobs whose logging the interrupt
+    cut (:data:`PENDING_RECORD` left in their folders) logged from their folders, in place of what they had
+    logged; then every child run still RUNNING, and the parent, end KILLED with the reason, so that no run is
+    left RUNNING. Returns the number of runs ended."""
     info = json.loads(os.environ.pop(SWEEP_ENV, "null") or "null")
     if not info or not info.get("parent_run_id"):  # (an untracked sweep: no run to end)
         return 0
     tr = MlflowTracking(MlflowTracking.Params(uri=info["uri"], experiment=info["experiment"]))
     client = tr._client()
+    _sweep_outcome["recovered"] = _log_pending(client, info)
     children = _children(client, info)
     n = 0
     for r in children:
@@ -361,6 +375,29 @@ def end_interrupted_sweep(reason: str = "interrupted", status: str = "KILLED") -
             n += 1
     RunLog(client, info["parent_run_id"]).end(status, reason)
     return n + 1
+
+
+def _log_pending(client, info: dict) -> int:
+    """Log the finished jobs an interrupt stopped while they were being logged (:data:`PENDING_RECORD` in their
+    folders under the sweep directory), each in place of the part of it the job had logged; how many."""
+    sweep_dir = Path(info.get("sweep_dir") or "")
+    if not info.get("sweep_dir") or not sweep_dir.is_dir():
+        return 0
+    logged = 0
+    for f in sorted(sweep_dir.glob(f"*/{PENDING_RECORD}")):
+        try:
+            request = json.loads(f.read_text())
+            where = request["record"]["tags"].get("scanreg.run_dir")
+            for r in _children(client, info):  # the run the job had begun to log (its params cut short)
+                if where and r.data.tags.get("scanreg.run_dir") == where and r.info.status != "FINISHED":
+                    client.delete_run(r.info.run_id)
+            request["sweep"] = info
+            _log_request(request)
+            f.unlink()
+            logged += 1
+        except Exception:  # noqa: BLE001  # the job's folder keeps its results either way
+            continue
+    return logged
 
 
 def sweep_size(config: DictConfig) -> int | None:
