@@ -545,3 +545,13 @@ def test_per_case_tables_order_the_groups_by_value():
     assert list(per_table(df, ["sampler.n_points"], "data.pair").columns) == order
     assert list(per_errors(df, ["sampler.n_points"], "data.pair").columns) == order
     assert list(summarize(df, ["sampler.n_points"])["_label"]) == order
+
+
+def test_an_unknown_group_by_key_is_a_config_error():
+    """--group-by with a key no run has: a config error (the CLI's exit 2, as its docs say), naming what varies."""
+    from scanreg.app.report.tables import column_for
+    from scanreg.errors import ConfigError
+
+    df = mlflow_like_runs("icp.name", ["horn", "gicp"])
+    with pytest.raises(ConfigError, match=r"unknown group-by key 'icp.nme'; e.g. icp.name"):
+        column_for("icp.nme", df)

@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 
 from scanreg.app.report.stats import interval, wilson_interval
+from scanreg.errors import ConfigError
 from scanreg.runner.outputs import clipped, padded, text_columns
 
 STAGES = ("load", "repair", "sample", "coarse", "icp", "evaluate", "total")
@@ -49,7 +50,7 @@ def column_for(key: str, df: pd.DataFrame) -> str:
     c = find_column(key, df)
     if c is not None:
         return c
-    raise SystemExit(f"error: unknown group-by key '{key}'; e.g. {', '.join(varying_keys(df)) or 'sampler.n_points'}")
+    raise ConfigError(f"unknown group-by key '{key}'; e.g. {', '.join(varying_keys(df)) or 'sampler.n_points'}")
 
 
 def varying_keys(df: pd.DataFrame) -> list[str]:
