@@ -555,3 +555,14 @@ def test_an_unknown_group_by_key_is_a_config_error():
     df = mlflow_like_runs("icp.name", ["horn", "gicp"])
     with pytest.raises(ConfigError, match=r"unknown group-by key 'icp.nme'; e.g. icp.name"):
         column_for("icp.nme", df)
+
+
+def test_x_without_numbers_is_a_config_error(tmp_path):
+    """--x icp.name: its plot and curves vanished without a word (a researcher's trial); now one config line."""
+    from scanreg.errors import ConfigError
+
+    df = mlflow_like_runs("icp.name", ["horn", "gicp"])
+    with pytest.raises(ConfigError, match=r"report x 'icp.name' has no numbers \(horn, gicp\)"):
+        write_report(df, ReportParams(x="icp.name"), tmp_path, plots=False)
+    write_report(mlflow_like_runs("sampler.n_points", ["2000", "4000"]), ReportParams(x="sampler.n_points"), tmp_path,
+                 plots=False)

@@ -61,6 +61,21 @@ def configuration_line(df: pd.DataFrame) -> str:
     return "- stages: " + (", ".join(parts) or "unknown") + " (the defaults of that commit unless overridden above)"
 
 
+def _check_x(df: pd.DataFrame, x: str | None) -> None:
+    """``x`` (``--x``, ``report.x``) names a key with numbers (its plot and curves were left out without a
+    word for a key such as icp.name), else a config error."""
+    from scanreg.app.report.tables import column_for
+    from scanreg.errors import ConfigError
+
+    if x is None:
+        return
+    values = df[column_for(x, df)].dropna()
+    if len(values) and pd.to_numeric(values, errors="coerce").isna().all():
+        shown = ", ".join(map(str, list(dict.fromkeys(values))[:3]))
+        raise ConfigError(f"report x '{x}' has no numbers ({shown}): errors and times are plotted against a numeric "
+                          "key, e.g. sampler.n_points; group by it instead (--group-by)")
+
+
 def _check_metrics(df: pd.DataFrame, asked: dict) -> None:
     """A warning line for each metric asked for that no run has (a typo showed no column, silently; a sweep whose
     runs all failed has none, and still gets its report)."""
@@ -82,6 +97,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
                  plots: bool = True) -> dict:
     """Write report.md, report.csv (and per.csv, compare.csv) and PNG plots into ``out``."""
     _check_metrics(df, {"metrics": p.metrics, "bin_metrics": p.bin_metrics, "curves": p.curves})
+    _check_x(df, p.x)
     out.mkdir(parents=True, exist_ok=True)
     since = _clear_previous(out)
     if not p.group_by:  # the methods, the cases apart (default_grouping)
