@@ -61,6 +61,13 @@ def configuration_line(df: pd.DataFrame) -> str:
     return "- stages: " + (", ".join(parts) or "unknown") + " (the defaults of that commit unless overridden above)"
 
 
+def _check_asked(df: pd.DataFrame, p: ReportParams) -> None:
+    """What the report settings ``p`` ask of the runs, checked before anything is written: the metrics
+    (:func:`_check_metrics`, warnings) and the key to plot against (:func:`_check_x`, a config error)."""
+    _check_metrics(df, {"metrics": p.metrics, "bin_metrics": p.bin_metrics, "curves": p.curves})
+    _check_x(df, p.x)
+
+
 def _check_x(df: pd.DataFrame, x: str | None) -> None:
     """``x`` (``--x``, ``report.x``) names a key with numbers (its plot and curves were left out without a
     word for a key such as icp.name), else a config error."""
@@ -96,8 +103,7 @@ def _check_metrics(df: pd.DataFrame, asked: dict) -> None:
 def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.DataFrame | None = None,
                  plots: bool = True) -> dict:
     """Write report.md, report.csv (and per.csv, compare.csv) and PNG plots into ``out``."""
-    _check_metrics(df, {"metrics": p.metrics, "bin_metrics": p.bin_metrics, "curves": p.curves})
-    _check_x(df, p.x)
+    _check_asked(df, p)
     out.mkdir(parents=True, exist_ok=True)
     since = _clear_previous(out)
     if not p.group_by:  # the methods, the cases apart (default_grouping)
