@@ -128,8 +128,9 @@ def register(source: Any, target: Any, *, gt: Any = None, landmarks: Any = None,
     """
     with _run_folder(run_dir) as run_dir:
         folder = run_dir / "inputs"
-        ovs = [f"data.source={_quote(_as_input(source, 'source', folder))}",
-               f"data.target={_quote(_as_input(target, 'target', folder))}"]
+        given = {"source": source, "target": target}
+        paths = {role: _as_input(obj, role, folder) for role, obj in given.items()}
+        ovs = [f"data.{role}={_quote(path)}" for role, path in paths.items()]
         if gt is not None:
             if isinstance(gt, (str, Path)):
                 ovs.append(f"data.gt={_quote(str(gt))}")
@@ -155,23 +156,24 @@ def register(source: Any, target: Any, *, gt: Any = None, landmarks: Any = None,
             user.append("tracking=none")
         # data=files unless the caller chose otherwise; the inputs go last so that they win
         cfg = compose(["data=files", *user, *ovs], config_dirs=config_dirs)
-        with _arrays_named(folder, source=source, target=target):
+        in_memory = {paths[role]: (role, type(obj).__name__) for role, obj in given.items()
+                     if not isinstance(obj, (str, Path))}
+        with _named_as_given(in_memory):
             return run_config(cfg, run_dir, tracking, user)
 
 
 @contextmanager
-def _arrays_named(folder: Path, **given: Any):
-    """An error about an input the caller gave in memory names it as such ("the source array"), not by the
-    file it was written to for the run (which goes with the failed run's folder)."""
+def _named_as_given(written: dict[str, tuple[str, str]]):
+    """An error about an input the caller gave in memory names it as such ("source (the ndarray given)"), not by
+    the file it was written to for the run (which goes with the failed run's folder); ``written``: each such
+    file's path -> (its role, the type given)."""
     try:
         yield
     except ScanregError as e:
         text = str(e)
-        for role, obj in given.items():
-            if not isinstance(obj, (str, Path)):
-                for path in folder.glob(f"{role}.*"):
-                    text = text.replace(f"{role} {path}", f"{role} (the {type(obj).__name__} given)")
-                    text = text.replace(str(path), f"the {role} (the {type(obj).__name__} given)")
+        for path, (role, kind) in written.items():
+            text = text.replace(f"{role} {path}", f"{role} (the {kind} given)")
+            text = text.replace(path, f"the {role} (the {kind} given)")
         if text != str(e):
             e.args = (text, *e.args[1:])
         raise

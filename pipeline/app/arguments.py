@@ -252,7 +252,7 @@ def path_override_error(argv: list[str], multirun: bool) -> str | None:
     return line
 
 
-def _value(arg: str) -> str:
+def override_value(arg: str) -> str:
     """The value of ``key=value`` as Hydra reads it when it is quoted, else as written."""
     value = arg.partition("=")[2]
     if value[:1] in ("'", '"'):
@@ -269,7 +269,7 @@ def _positional_form(argv: list[str]) -> list[str] | None:
     for a in argv:
         key, eq, _ = a.partition("=")
         if eq and key in ("data.source", "data.target"):
-            values[key] = _value(a)
+            values[key] = override_value(a)
     if len(values) < 2:
         return None
     rest = [a for a in argv if a.partition("=")[0] not in ("data.source", "data.target")]

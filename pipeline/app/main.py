@@ -352,8 +352,10 @@ def _unwritable_output(e: BaseException, argv: list[str] = ()) -> str | None:
     import errno
 
     cannot = (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EEXIST)
-    named = {a.split("=", 1)[1].strip("'\"") for a in argv
-             if a.split("=", 1)[0].lstrip("+") in ("hydra.run.dir", "hydra.sweep.dir") and "=" in a}
+    from scanreg.app.arguments import override_value
+
+    named = {override_value(a) for a in argv
+             if "=" in a and a.partition("=")[0].lstrip("+") in ("hydra.run.dir", "hydra.sweep.dir")}
     seen = set()
     while e is not None and id(e) not in seen:
         seen.add(id(e))

@@ -383,12 +383,14 @@ def _log_pending(client, info: dict) -> int:
     sweep_dir = Path(info.get("sweep_dir") or "")
     if not info.get("sweep_dir") or not sweep_dir.is_dir():
         return 0
+    pending = sorted(sweep_dir.glob(f"*/{PENDING_RECORD}"))
+    children = _children(client, info) if pending else []
     logged = 0
-    for f in sorted(sweep_dir.glob(f"*/{PENDING_RECORD}")):
+    for f in pending:
         try:
             request = json.loads(f.read_text())
             where = request["record"]["tags"].get("scanreg.run_dir")
-            for r in _children(client, info):  # the run the job had begun to log (its params cut short)
+            for r in children:  # the run the job had begun to log (its params cut short)
                 if where and r.data.tags.get("scanreg.run_dir") == where and r.info.status != "FINISHED":
                     client.delete_run(r.info.run_id)
             request["sweep"] = info

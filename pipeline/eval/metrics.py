@@ -28,8 +28,16 @@ def input_unit_name(metres_per_unit) -> str | None:
     return None if unit is None else display_unit(unit)
 
 
+def unit_metrics(p: EvalParams, size: float | None) -> dict[str, float]:
+    """What a run's lengths are in: ``input_unit_m`` (metres per input unit, ``p.units`` or with ``auto`` the
+    guess for a target or model ``size`` across, :meth:`EvalParams.shown`) and ``input_unit_guessed`` (1 when
+    guessed)."""
+    return {"input_unit_m": METRES_PER_UNIT[p.shown(size).units], "input_unit_guessed": float(p.units == "auto")}
+
+
 METRES_BELOW = 5.0
-"""``units=auto``: a target whose bounding-box diagonal is below this is taken to be in metres."""
+"""``units=auto``: a target whose size (its diagonal across, along its principal axes) is below this is taken to be
+in metres."""
 
 
 @dataclass

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from scanreg.errors import StageError, note, warn
-from scanreg.eval.metrics import METRES_PER_UNIT
+from scanreg.eval.metrics import unit_metrics
 from scanreg.eval.scanset import scan_residuals, set_metrics, surface_metrics
 from scanreg.geometry import Mesh, invert_T, principal_box_diagonal, transform_geometry
 from scanreg.io import write_ply
@@ -43,9 +43,7 @@ def run_scanset(problem: ScanSet, stages: Stages, ctx: RunContext, m: dict[str, 
                                [s.cloud.points.mean(axis=0) for s in reg.scans])
     m.update(reg.metrics)
     m.update(sm)
-    units = stages.evaluate.units
-    m["input_unit_m"] = METRES_PER_UNIT[stages.evaluate.shown(diagonal or None).units]  # what the lengths are in
-    m["input_unit_guessed"] = float(units == "auto")
+    m.update(unit_metrics(stages.evaluate, diagonal or None))  # what the lengths are in
     links = [(e.i, e.j) for e in reg.edges if e.accepted and reg.poses[e.i] is not None and reg.poses[e.j] is not None]
     coarsest = max([reg.levels[k] for k, T in enumerate(reg.poses) if T is not None] or [reg.spacing])
     rms, share = scan_residuals([s.cloud for s in reg.scans], reg.poses, links, p.inlier_distance * coarsest)

@@ -20,8 +20,8 @@ import numpy as np
 
 from scanreg.errors import InputError, ScanregError, warn
 from scanreg.eval.checks import check_geometry, check_inputs
-from scanreg.eval.metrics import (METRES_PER_UNIT, EvalParams, alignment_metrics, field_metrics, gt_metrics,
-                                  inverted_gt_warning, low_fitness_warning, sparse_pair_warning, surface_deviation)
+from scanreg.eval.metrics import (EvalParams, alignment_metrics, field_metrics, gt_metrics, inverted_gt_warning,
+                                  low_fitness_warning, sparse_pair_warning, surface_deviation, unit_metrics)
 from scanreg.eval.uncertainty import (PoseCovariance, bootstrap_spread, degeneracy_warning, pairs_covariance,
                                       relative_motion)
 from scanreg.geometry import (ClosestPoints, Geometry, Mesh, apply_T, bbox_centre, bbox_diagonal, estimate_spacing,
@@ -54,8 +54,9 @@ def load_problem(stages: Stages, ctx: RunContext) -> Problem | ScanSet:
             check_geometry(g, name, MIN_POINTS)
     else:
         check_inputs(problem, MIN_POINTS)
-    for g, name in named if sampleable is not None else ():
-        sampleable(g, name)  # a mesh the sampler could take no point of, before the repair
+    if sampleable is not None:  # a mesh the sampler could take no point of, before the repair
+        for g, name in named:
+            sampleable(g, name)
     return problem
 
 
@@ -164,8 +165,7 @@ def evaluate_pair(problem: Problem, target: PreparedScan, source: PreparedScan, 
     src, tgt, spacing = source.cloud, target.cloud, pair.spacing
     out = Evaluation()
     m = out.metrics
-    m["input_unit_m"] = METRES_PER_UNIT[ev.units]  # (what every length below is in: set, or guessed)
-    m["input_unit_guessed"] = float(stages.evaluate.units == "auto")
+    m.update(unit_metrics(stages.evaluate, size))  # (what every length below is in: set, or guessed)
     with blas_single_thread():
         aligned = apply_T(T, src.points)
     on_target = ClosestPoints(tgt)  # the target points' search, for the fit and the field's overlap tests

@@ -52,9 +52,9 @@ def check_pair(src: Geometry, tgt: Geometry, max_size_ratio: float | None, sourc
     # and aligned_source.ply then overlay the target file as it is)
     fix = f"data.source_scale={source_scale * (1 / factor if big == 'source' else factor):g}"
     raise InputError(
-        f"{src.source or 'source'} is {ds:.4g} across (the diagonal of its box along its principal axes) and {tgt.source or 'target'} {dt:.4g}: "
-        f"{f:.3g}x apart, likely {unit}; set {fix} to bring the source into the target's units (or "
-        "data.max_size_ratio=null to register them as they are)")
+        f"{src.source or 'source'} is {ds:.4g} across (the diagonal of its box along its principal axes) and "
+        f"{tgt.source or 'target'} {dt:.4g}: {f:.3g}x apart, likely {unit}; set {fix} to bring the source into the "
+        "target's units (or data.max_size_ratio=null to register them as they are)")
 
 
 def _same_file(a: str, b: str) -> bool:
@@ -94,8 +94,9 @@ class Files(Provider):
         """Multiply the target's coordinates (and its landmarks) by this on reading (see ``source_scale``)."""
         max_size_ratio: Optional[float] = MAX_SIZE_RATIO
         """Stop, before any repair or registration, when the sizes of source and target (after scaling; the
-        diagonals of their boxes along their principal axes, the same in any pose) differ by more than this factor: such inputs are almost always in different units, and the
-        message names the likely unit factor. null: no check (a small part registered into a large scene)."""
+        diagonals of their boxes along their principal axes, the same in any pose) differ by more than this
+        factor: such inputs are almost always in different units, and the message names the likely unit factor.
+        null: no check (a small part registered into a large scene)."""
         columns: Optional[str] = None
         """What the columns of a text (.xyz .txt .pts .csv) or .npy cloud are, e.g. 'x y z nx ny nz' or
         'x y z r g b a' (names x y z nx ny nz r g b a; - ignores a column). Unset: a header line's names, or

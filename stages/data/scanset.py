@@ -120,9 +120,10 @@ def check_sizes(scans: list, max_size_ratio: float | None) -> None:
         if f > max_size_ratio:
             unit, factor = likely_units(float(f))
             raise InputError(f"scans {scans[a].source} and {scans[b].source} are {d[a]:.4g} and {d[b]:.4g} across "
-                             f"(diagonals of their boxes along their principal axes): {f:.3g}x apart, likely {unit}; multiply the larger one's "
-                             f"coordinates by {1 / factor:g} or the smaller one's by {factor:g} (or set "
-                             "data.max_size_ratio=null to register the scans as they are)")
+                             f"(diagonals of their boxes along their principal axes): {f:.3g}x apart, likely "
+                             f"{unit}; multiply the larger one's coordinates by {1 / factor:g} or the smaller "
+                             f"one's by {factor:g} (or set data.max_size_ratio=null to register the scans as they "
+                             "are)")
         return
     med = float(np.median(d[d > 0])) if (d > 0).any() else 0.0
     if not med > 0:
@@ -135,9 +136,9 @@ def check_sizes(scans: list, max_size_ratio: float | None) -> None:
     unit, factor = likely_units(float(off[k]))
     scale = 1 / factor if ratio[k] > 1 else factor
     raise InputError(
-        f"scan {scans[k].source} is {d[k]:.4g} across (the diagonal of its box along its principal axes) and the set's median scan {med:.4g}: "
-        f"{off[k]:.3g}x apart, likely {unit}; multiply its coordinates by {scale:g} (or set "
-        f"data.max_size_ratio=null to register the scans as they are)")
+        f"scan {scans[k].source} is {d[k]:.4g} across (the diagonal of its box along its principal axes) and the "
+        f"set's median scan {med:.4g}: {off[k]:.3g}x apart, likely {unit}; multiply its coordinates by {scale:g} "
+        "(or set data.max_size_ratio=null to register the scans as they are)")
 
 
 def warn_copies(scans: list) -> None:

@@ -173,9 +173,10 @@ class IcpParams:
     """When the pose found keeps at least this share of the source within ``accept_distance`` (unitless: the
     source lies almost entirely on the target), its three half-turns about the source's principal axes through
     its centroid are tried too: each that keeps at least half as large a share unrefined (screened on 1,000 of
-    the points, against the target's points) is refined by the variant's schedule, and the end point with the lowest truncated least-squares cost (:meth:`IcpBase.accept`'s) is kept
-    when at most half the pose's (a truly symmetric shape fits both alike). A nearly symmetric shape (a long bone, a box-like part) fits its half-turned pose
-    almost as well as its own, and the coarse stage may find either (a bone moved onto itself: 180 degrees off
+    the points, against the target's points) is refined by the variant's schedule, and the end point with the
+    lowest truncated least-squares cost (:meth:`IcpBase.accept`'s) is kept when at most half the pose's (a truly
+    symmetric shape fits both alike). A nearly symmetric shape (a long bone, a box-like part) fits its half-turned
+    pose almost as well as its own, and the coarse stage may find either (a bone moved onto itself: 180 degrees off
     at fitness 0.998 and a quarter spacing RMS, where the truth fits exactly). Logs ``icp_half_turns_refined``
     and ``icp_half_turn`` (1 when one was kept). null: not tried. (Not ``icp=open3d``, Open3D's own loop.)"""
     max_points: int = 200000

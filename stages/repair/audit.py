@@ -366,7 +366,7 @@ def repair_with_audit(stage, mesh: Mesh, ctx: RunContext) -> Repaired:
     m.update(_audit_distances(p, mesh, out, input_side, ctx.seed + 1))
     m["backend_time_s"] = t2 - t1 - t_folds  # the repair itself (slivers collapsed, the shell)
     m["audit_time_s"] = (t1 - t0) + t_folds + (time.perf_counter() - t2)  # audit and guard
-    problems = guard_problems(p, m, mode, mesh, where)
+    problems = guard_problems(p, m, mode, mesh, where, backend=stage.name)
     m["guard_ok"] = float(not problems)
     if problems:
         if not p.check_only:
@@ -485,9 +485,10 @@ def _near_vertices(mesh: Mesh, sites: np.ndarray, frozen: np.ndarray | None) -> 
     return out
 
 
-def guard_problems(p: GuardParams, m: dict[str, float], mode: str, mesh: Mesh, where: str) -> str | None:
+def guard_problems(p: GuardParams, m: dict[str, float], mode: str, mesh: Mesh, where: str,
+                   backend: str | None = None) -> str | None:
     """The guard's verdict on an audit ``m``: None, or the one-line message that names what the repair
-    destroyed and the parameter to change."""
+    destroyed and the parameter to change (``backend``: the repair's name, whose alternative the line names)."""
     problems, hints = [], []
     removed, lost = m["removed_area_share"], m["removed_kept_components"]
     if removed > p.max_removed_area:
@@ -510,9 +511,9 @@ def guard_problems(p: GuardParams, m: dict[str, float], mode: str, mesh: Mesh, w
     if mode == "cap" and len(border_loops(mesh)[0]):
         hints.append("if this is an open scan whose outer border was capped, keep it open with "
                      "repair.open_border=open (or close it as a thin shell with repair.open_border=shell)")
-    other = {"repair=meshfix": "repair=meshlab", "repair=meshlab": "repair=meshfix"}.get(where.split(":")[0])
-    hints.append("inspect with repair.check_only=true, " + (f"try the other backend ({other}), " if other else "")
-                 + "or skip the repair with repair=none")
+    other = {"meshfix": "meshlab", "meshlab": "meshfix"}.get(backend)
+    alternative = f"try the other backend (repair={other}), " if other else ""
+    hints.append(f"inspect with repair.check_only=true, {alternative}or skip the repair with repair=none")
     return f"{where}: the repair {' and '.join(problems)}; it would destroy part of the model. " + "; ".join(hints)
 
 

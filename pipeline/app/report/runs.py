@@ -62,8 +62,7 @@ def load_runs(experiment: str, uri: str | None = None, parent: str | None = None
     unlogged = int(bare.sum()) if not bare.all() else 0
     df = df[~bare] if unlogged else df
     df = df.sort_values("start_time").reset_index(drop=True)
-    df.attrs.update(unlogged=unlogged)
-    df.attrs.update(parent=parent, uri=tr.uri, experiment=experiment,
+    df.attrs.update(unlogged=unlogged, parent=parent, uri=tr.uri, experiment=experiment,
                     parent_tags={k[5:]: v for k, v in parent_row.items() if k.startswith("tags.")}
                     if parent_row is not None else {})
     return df

@@ -160,6 +160,9 @@ def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = (), how:
     for c in cols:
         work[c] = _typed(work[c])
     rows = []
+    # the coarse stage replaced the configured keypoints by uniform ones: a comparison of detectors (salience)
+    # compares nothing where it did, so the share is shown beside every group
+    fallback = "metrics.coarse_fallback" in work and bool((work["metrics.coarse_fallback"] > 0).any())
     groups = work.groupby(cols, dropna=False, sort=True) if cols else [((), work)]
     for key, g in groups:
         key = key if isinstance(key, tuple) else (key,)
@@ -178,10 +181,8 @@ def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = (), how:
                 row[f"{m}_{agg}"] = float(s.median() if agg == "median" else s.quantile(0.9))
                 if agg == "median":
                     row[f"{m}_lo"], row[f"{m}_hi"] = interval(s.values, how)
-        if "metrics.coarse_fallback" in work and (work["metrics.coarse_fallback"] > 0).any():
-            # the coarse stage replaced the configured keypoints by uniform ones: a comparison of detectors
-            # (salience) compares nothing where it did, so the share is shown beside every group
-            fell = ok["metrics.coarse_fallback"].dropna() if "metrics.coarse_fallback" in ok else pd.Series([])
+        if fallback:
+            fell = ok["metrics.coarse_fallback"].dropna()
             row["coarse_fallback_share"] = float(fell.mean()) if len(fell) else float("nan")
         row["_label"] = " / ".join(canonical(v) for v in key) if group_by else "all"
         rows.append(row)

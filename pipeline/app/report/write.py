@@ -71,7 +71,6 @@ def _check_asked(df: pd.DataFrame, p: ReportParams) -> None:
 def _check_x(df: pd.DataFrame, x: str | None) -> None:
     """``x`` (``--x``, ``report.x``) names a key with numbers (its plot and curves were left out without a
     word for a key such as icp.name), else a config error."""
-    from scanreg.app.report.tables import column_for
     from scanreg.errors import ConfigError
 
     if x is None:
@@ -219,7 +218,8 @@ def _clear_previous(out: Path) -> float:
 
 def _list_written(out: Path, since: float) -> None:
     """Keep the list of the files written into ``out`` since ``since`` (:data:`WRITTEN`)."""
-    names = sorted(f.name for f in out.iterdir() if f.is_file() and f.name != WRITTEN and f.stat().st_mtime >= since - 1)
+    names = sorted(f.name for f in out.iterdir()
+                   if f.is_file() and f.name != WRITTEN and f.stat().st_mtime >= since - 1)
     (out / WRITTEN).write_text("\n".join(names) + "\n")
 
 
