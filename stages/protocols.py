@@ -26,6 +26,10 @@ class DataProvider(Protocol):
         """Raise a :class:`~scanreg.errors.ConfigError` when a setting the provider needs is missing (checked
         before a run starts)."""
 
+    def preflight(self) -> None:
+        """:meth:`require`, and what else can be checked without reading a scan (its files are there): a sweep
+        runs it for every job before the first starts."""
+
     def load(self, ctx: RunContext) -> Problem | ScanSet:
         """The source, the target, and what is known about them (ground truth, landmarks); or, from a scan-set
         provider, every scan of one object."""

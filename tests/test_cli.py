@@ -237,12 +237,18 @@ def test_tracking_store_given_as_a_path():
         MlflowTracking(MlflowTracking.Params(uri="mlruns"))
 
 
+BUNNY = "pkg:pymeshfix/examples/StanfordBunny.ply"
+
+
 @pytest.mark.slow
 def test_sweep_goes_on_after_a_failed_job(tmp_path, mlflow_uri):
-    r = run_cli(["-m", "data=synthetic", "sampler.n_points=-1,3000", "tracking.experiment=sweepfail",
-                 f"hydra.sweep.dir={tmp_path / 'sweep'}"], tmp_path, mlflow_uri)
+    """A job that fails when it runs (a corrupt file passes the sweep's check before the start, which reads
+    no scan) fails alone: the other job runs, the parent ends FAILED."""
+    _write(tmp_path, "corrupt.ply", b"this is not a mesh\n")
+    r = run_cli(["-m", "data=synthetic", f"data.mesh=corrupt.ply,{BUNNY}", "sampler.n_points=3000",
+                 "tracking.experiment=sweepfail", f"hydra.sweep.dir={tmp_path / 'sweep'}"], tmp_path, mlflow_uri)
     assert r.returncode == 1
-    assert "n_points must be >= 1" in r.stderr and "1 failed" in r.stdout
+    assert "data.mesh corrupt.ply: not a PLY file" in r.stderr and "1 failed" in r.stdout
     df = runs(mlflow_uri, "sweepfail")
     parent = df[df["tags.scanreg.sweep"] == "parent"].iloc[0]
     children = df[df["tags.mlflow.parentRunId"] == parent["run_id"]]
@@ -256,31 +262,47 @@ def test_an_untracked_sweep_exits_1_when_a_job_failed(tmp_path):
     """The exit code of a sweep counts its jobs' outcomes with tracking=none too (it was 0 with every job failed):
     one closing line with the count, exit 1; a reused sweep folder does not count the earlier sweep's jobs."""
     sweep = tmp_path / "sweep"
-    args = ["-m", "data=synthetic", "tracking=none", f"hydra.sweep.dir={sweep}"]
-    r = run_cli([*args, "sampler.n_points=-1,3000"], tmp_path)
+    _write(tmp_path, "corrupt.ply", b"this is not a mesh\n")
+    args = ["-m", "data=synthetic", "tracking=none", f"hydra.sweep.dir={sweep}", "sampler.n_points=3000"]
+    r = run_cli([*args, f"data.mesh=corrupt.ply,{BUNNY}"], tmp_path)
     assert r.returncode == 1, r.stderr
-    assert "n_points must be >= 1" in r.stderr
+    assert "not a PLY file" in r.stderr
     assert f"sweep: 2 job(s), 1 failed; results in {sweep}" in r.stdout
-    r = run_cli([*args, "sampler.n_points=3000"], tmp_path)
+    r = run_cli([*args, f"data.mesh={BUNNY}"], tmp_path)
     assert r.returncode == 0, r.stderr
     assert "sweep: 1 job(s), 0 failed" in r.stdout
 
 
+SWEEP_TYPOS = {
+    "unknown_choice": (["repair=none,foo"], 2,
+                       "job #1 (repair=foo): unknown repair 'foo'; valid repair choices: meshfix, meshlab, none"),
+    "bad_value": (["sampler.n_points=3000,-1"], 2,
+                  "job #1 (sampler.n_points=-1): sampler=barycentric: n_points must be >= 1, got -1"),
+    "missing_file": ([f"data.mesh={BUNNY},bunny.pyl"], 1, "job #1 (data.mesh=bunny.pyl): data.mesh bunny.pyl: no such file"),
+    "two_of_six": (["sampler.n_points=3000,-1,-2", "seed=0,1"], 2,
+                   "job #2 (sampler.n_points=-1 seed=0): sampler=barycentric: n_points must be >= 1, got -1 (and 3 more "
+                   "of the 6 jobs)"),
+}
+
+
 @pytest.mark.slow
-def test_sweep_with_an_unknown_choice_runs_no_job(tmp_path, mlflow_uri):
-    """A swept value that is no choice of its group: Hydra composes each job, so the sweep has started (its
-    parent run exists) when the bad one is found; one error line, exit 2, no job ran, and the parent ends FAILED
-    with the reason (nothing left RUNNING, no child run)."""
-    r = run_cli(["-m", "data=synthetic", "repair=none,foo", "tracking.experiment=sweepchoice",
+@pytest.mark.parametrize("case", list(SWEEP_TYPOS))
+def test_a_sweep_with_a_value_no_job_can_run_starts_no_job(tmp_path, mlflow_uri, case):
+    """Every job of a sweep is checked as its run would first check it (config and data, files there) before
+    any starts: a typo in one swept value is one error line naming the job and the value, before any job ran
+    and before any MLflow run was made (exit 2 for a config error, 1 for a missing file)."""
+    args, code, message = SWEEP_TYPOS[case]
+    r = run_cli(["-m", "data=synthetic", *args, "tracking.experiment=sweeptypo",
                  f"hydra.sweep.dir={tmp_path / 'sweep'}"], tmp_path, mlflow_uri)
-    assert r.returncode == 2, r.stderr
+    assert r.returncode == code, r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    message = "unknown repair 'foo'; valid repair choices: meshfix, meshlab, none"
-    assert lines == [f"error: {message}"], r.stderr
-    assert not (tmp_path / "sweep" / "0").exists()
-    df = runs(mlflow_uri, "sweepchoice")
-    assert list(df["tags.scanreg.sweep"]) == ["parent"]
-    assert df.iloc[0]["status"] == "FAILED" and df.iloc[0]["tags.error"] == message
+    assert len(lines) == 1 and lines[0].startswith(f"error: sweep not started: {message}"), r.stderr
+    assert not (tmp_path / "sweep").exists()
+    import mlflow
+
+    mlflow.set_tracking_uri(mlflow_uri)
+    exp = mlflow.get_experiment_by_name("sweeptypo")
+    assert exp is None or mlflow.search_runs([exp.experiment_id]).empty
 
 
 @pytest.mark.slow

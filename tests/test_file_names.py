@@ -405,3 +405,38 @@ def test_the_view_carries_plotly_packed_and_cached(tmp_path, monkeypatch):
     (tmp_path / "file").write_text("")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "file"))  # a file where the folder would go
     assert view3d._plotly_js_packed() == packed
+
+
+def test_each_data_provider_checks_its_files_before_reading_any(tmp_path):
+    """``preflight`` (what a sweep checks for every job before the first starts) names a missing file or folder
+    and a Stanford scan name that is not in its .conf, and reads no scan: a corrupt file that is there passes
+    (it fails when the job reads it)."""
+    from scanreg import build_stage
+    from scanreg.errors import ConfigError, InputError
+
+    (tmp_path / "corrupt.ply").write_bytes(b"not a mesh\n")
+    (tmp_path / "bun.conf").write_text("bmesh corrupt.ply 0 0 0 0 0 0 1\nbmesh other.ply 0 0 0 0 0 0 1\n")
+    (tmp_path / "other.ply").write_bytes(b"not a mesh either\n")
+    ok = [("files", dict(source=str(tmp_path / "corrupt.ply"), target=str(tmp_path / "corrupt.ply"))),
+          ("stanford", dict(folder=str(tmp_path), pair="corrupt:other")),
+          ("synthetic", dict(mesh=str(tmp_path / "corrupt.ply"))),
+          ("scanset", dict(scans=[str(tmp_path / "corrupt.ply"), str(tmp_path / "other.ply")]))]
+    for name, params in ok:
+        build_stage("data", name, **params).preflight()
+    bad = [("files", dict(source=str(tmp_path / "corrupt.ply"), target="nope.ply"), InputError, "target nope.ply: no such file"),
+           ("files", dict(source=str(tmp_path / "corrupt.ply"), target=None), ConfigError, "data.target is not set"),
+           ("files", dict(source=str(tmp_path / "corrupt.ply"), target=str(tmp_path / "corrupt.ply"), gt="T.txt"),
+            InputError, "ground truth data.gt T.txt: no such file"),
+           ("stanford", dict(folder=str(tmp_path), pair="corrupt:othr"), ConfigError, "scan 'othr' is not in bun.conf"),
+           ("stanford", dict(folder=str(tmp_path / "none")), InputError, "data.folder"),
+           ("synthetic", dict(mesh="bunny.pyl"), InputError, "data.mesh bunny.pyl: no such file"),
+           ("scanset", dict(scans=str(tmp_path / "*.stl")), InputError, "the pattern matches no file"),
+           ("dental", dict(folder=str(tmp_path)), InputError, "data=dental: no folder"),
+           ("pairs_3dmatch", dict(folder=str(tmp_path / "none")), InputError, "data.folder"),
+           ("views", dict(mesh="nope.obj"), InputError, "data.mesh nope.obj: no such file")]
+    for name, params, error, message in bad:
+        with pytest.raises(error, match=re.escape(message)):
+            build_stage("data", name, **params).preflight()
+    (tmp_path / "other.ply").unlink()
+    with pytest.raises(InputError, match="source .*other.ply: no such file"):
+        build_stage("data", "stanford", folder=str(tmp_path), pair="corrupt:other").preflight()

@@ -5,16 +5,18 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import time
 from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from scanreg.errors import ConfigError
+from scanreg.errors import ConfigError, ScanregError
 from scanreg.app.tracking import (SWEEP_ENV, SWEEP_FILE, MlflowTracking, RunLog, _children, _sweep_outcome,
-                              launcher_tags, progress_counts, sweep_size)
+                              launcher_tags, progress_counts, sweep_jobs, sweep_size)
 
 
 class SweepCallback(Callback):
@@ -25,6 +27,13 @@ class SweepCallback(Callback):
         _sweep_outcome.clear()
         _sweep_outcome["started"] = True  # (the command exits normally after a sweep: scanreg.app.cli)
         os.environ.pop(SWEEP_ENV, None)
+        try:
+            check_jobs(config)
+        except ScanregError as e:  # (Hydra turns a callback's Exception into a warning and goes on: SystemExit)
+            from scanreg.app.main import EXIT_FAILED, EXIT_USAGE, _err
+
+            _err(str(e))
+            raise SystemExit(EXIT_USAGE if isinstance(e, ConfigError) else EXIT_FAILED) from None
         # every job appends its outcome to the progress file, tracked or not: the command's exit code and the
         # closing line count the jobs from it (a store that fails later cannot hide a failed job)
         sweep_dir = Path(str(config.hydra.sweep.dir))
@@ -87,6 +96,92 @@ class SweepCallback(Callback):
                 msg = str(e) if isinstance(e, (ConfigError, SystemExit)) else f"{type(e).__name__}: {e}"
                 print(f"error: report not written: {msg}".splitlines()[0])
                 _sweep_outcome["failed"] = _sweep_outcome.get("failed", 0) or 1
+
+
+def check_jobs(config: DictConfig) -> None:
+    """Every job of a basic sweep composed and checked as its run would first check it (its stages built, the
+    data's :meth:`~scanreg.stages.protocols.DataProvider.preflight`: settings, and files there) before any job
+    starts or any run is tracked: a typo in one swept value (``data.pair=bun000:bun045,bun000:bun04``) stops the
+    sweep at once, naming the job and its value, instead of failing when that job's turn comes. Raises the first
+    problem's :class:`~scanreg.errors.ScanregError`; a job whose config cannot be resolved here (an
+    interpolation of the job's own run) is left to the job."""
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+
+    from scanreg.app.config import config_error_line
+
+    jobs = sweep_jobs(config)
+    if not jobs or not GlobalHydra.instance().is_initialized():
+        return
+    configs = _job_configs(config, GlobalHydra.instance().config_loader())
+    bad: list[tuple[int, list[str], BaseException]] = []
+    checked: dict[str, BaseException | None] = {}
+    for i, job in enumerate(jobs):
+        try:
+            _check_job(next(configs), checked)
+        except HydraException as e:
+            bad.append((i, job, ConfigError(config_error_line(e))))
+        except ScanregError as e:
+            bad.append((i, job, e))
+        except OmegaConfBaseException:  # (e.g. ${hydra:runtime...}, set in the job): the job says what is wrong
+            continue
+    if bad:
+        i, job, e = bad[0]
+        swept = [k for k, column in enumerate(zip(*jobs)) if len(set(column)) > 1]  # (the same keys in each job)
+        named = re.sub(r"\\(.)", r"\1", " ".join(job[k] for k in swept) or " ".join(job))  # (Hydra's escapes)
+        more = f" (and {len(bad) - 1} more of the {len(jobs)} jobs)" if len(bad) > 1 else ""
+        raise type(e)(f"sweep not started: job #{i} ({named}): {e}{more}")
+
+
+def _job_configs(config: DictConfig, loader):
+    """Each job's config, as the launcher composes it (``load_sweep_config``), made cheaply: composing is slow,
+    so it is done once per distinct set of config-group choices, and each job's other overrides are applied to
+    that composition the way Hydra applies them after composing (its ``_apply_overrides_to_config``, hydra-core
+    1.3). Yields each job's config or the exception it raises."""
+    import copy
+
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser, composed = OverridesParser.create(), {}
+    for job in sweep_jobs(config):
+        try:
+            overrides = parser.parse_overrides(list(job))
+            groups = tuple(o.input_line for o in overrides if loader.repository.group_exists(o.key_or_group))
+            if groups not in composed:
+                composed[groups] = loader.load_sweep_config(config, list(groups))
+            values = [o for o in overrides if o.input_line not in groups]
+            # every job of a basic sweep sets the same keys: they can be set over the last job's, unless a key is
+            # added or deleted (then on a copy)
+            cfg = composed[groups]
+            if any(o.is_add() or o.is_delete() or o.is_force_add() for o in values):
+                cfg = copy.deepcopy(cfg)
+            ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
+        except Exception as e:  # noqa: BLE001  # raised where the job is checked
+            cfg = e
+        yield cfg
+
+
+def _check_job(cfg, checked: dict[str, BaseException | None]) -> None:
+    """:func:`~scanreg.app.main.check_config` and the data's preflight for one job's config (or raise what
+    making it raised); a config already checked but for its seed is checked for its seed alone."""
+    from scanreg.app.main import check_config
+    from scanreg.types import checked_seed
+
+    if isinstance(cfg, BaseException):
+        raise cfg
+    checked_seed(cfg.get("seed"))
+    plain = OmegaConf.to_container(cfg, resolve=False)
+    key = json.dumps({k: v for k, v in plain.items() if k not in ("seed", "hydra")}, sort_keys=True, default=str)
+    if key not in checked:
+        try:
+            stages, _ = check_config(cfg)
+            stages.data.preflight()
+            checked[key] = None
+        except ScanregError as e:
+            checked[key] = e
+    if checked[key] is not None:
+        raise checked[key]
 
 
 def _publish(sweep_dir: Path, info: dict) -> None:

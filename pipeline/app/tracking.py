@@ -402,24 +402,27 @@ def _log_pending(client, info: dict) -> int:
     return logged
 
 
-def sweep_size(config: DictConfig) -> int | None:
-    """Number of jobs of a basic-sweeper sweep (command-line sweeps and ``hydra.sweeper.params``), else None."""
-    try:
-        if "BasicSweeper" not in str(config.hydra.sweeper.get("_target_", "")):
-            return None
-        from hydra.core.override_parser.overrides_parser import OverridesParser
+def sweep_jobs(config: DictConfig) -> list[list[str]] | None:
+    """Each job's overrides in a basic-sweeper sweep (command-line sweeps and ``hydra.sweeper.params``), in
+    launch order, as the sweeper makes them; None for another sweeper (e.g. Optuna's, which picks values as it
+    goes)."""
+    if "BasicSweeper" not in str(config.hydra.sweeper.get("_target_", "")):
+        return None
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
 
-        lines = [f"{k}={v}" for k, v in (config.hydra.sweeper.get("params") or {}).items()]
-        lines += list(config.hydra.overrides.task)
-        sizes: dict[str, int] = {}
-        for o in OverridesParser.create().parse_overrides(lines):
-            sizes[o.get_key_element()] = len(list(o.sweep_string_iterator())) if o.is_sweep_override() else 1
-        n = 1
-        for v in sizes.values():
-            n *= v
-        return n
+    lines = [f"{k}={v}" for k, v in (config.hydra.sweeper.get("params") or {}).items()]
+    lines += list(config.hydra.overrides.task)
+    return BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(lines), None)[0]
+
+
+def sweep_size(config: DictConfig) -> int | None:
+    """Number of jobs of a basic-sweeper sweep, else None."""
+    try:
+        jobs = sweep_jobs(config)
     except Exception:  # noqa: BLE001  # progress is a nicety
         return None
+    return None if jobs is None else len(jobs)
 
 
 def progress_counts(path: str) -> tuple[int, int]:

@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from scanreg.errors import ConfigError, InputError
 from scanreg.geometry import apply_T, bbox_diagonal, invert_T, points_of, transform_geometry
-from scanreg.io import expand_path, read_geometry, read_stanford_conf, read_transform
+from scanreg.io import expand_path, read_geometry, read_stanford_conf, read_transform, resolve_path
 from scanreg.stages.data.perturb import PerturbParams, perturb_inputs
 from scanreg.stages.data.base import Provider
 from scanreg.stages.registry import DATA
@@ -49,7 +49,14 @@ class Stanford(Provider):
         nearest-neighbour spacing."""
 
 
-    def load(self, ctx: RunContext) -> Problem:
+    def preflight(self) -> None:
+        """The folder, its .conf, the two scans' names and files (reads only the .conf)."""
+        folder, _, source, target = self._scans()
+        resolve_path(folder / source, "source")
+        resolve_path(folder / target, "target")
+
+    def _scans(self) -> tuple[Path, dict, str, str]:
+        """``(folder, poses of the .conf, source name, target name)``, or one line that says what is wrong."""
         folder = Path(expand_path(self.p.folder))
         if not folder.is_dir():
             raise InputError(
@@ -68,6 +75,10 @@ class Stanford(Provider):
                                       f"{', '.join(stems)}")
             target, source = (stems.get(n, n) for n in names)
         source, target = (self._named(scan, poses, folder) for scan in (source, target))
+        return folder, poses, source, target
+
+    def load(self, ctx: RunContext) -> Problem:
+        folder, poses, source, target = self._scans()
         src = read_geometry(folder / source, "source")
         tgt = read_geometry(folder / target, "target")
         T_t_s = invert_T(poses[target]) @ poses[source]
@@ -115,11 +126,19 @@ class Pairs3DMatch(Provider):
         """Folder with src.npy, ref.npy and gt.npy (``shared:NAME`` = ../shared/data/NAME)."""
 
 
-    def load(self, ctx: RunContext) -> Problem:
+    def preflight(self) -> None:
+        """The pair's folder is there."""
+        self._folder()
+
+    def _folder(self) -> Path:
         folder = Path(expand_path(self.p.folder))
         if not folder.is_dir():
             raise InputError(f"data.folder {self.p.folder}: no such folder ({folder}); the 3DMatch pair lives in "
                              "../shared/data/3dmatch_pair")
+        return folder
+
+    def load(self, ctx: RunContext) -> Problem:
+        folder = self._folder()
         src = read_geometry(folder / "src.npy", "source")
         tgt = read_geometry(folder / "ref.npy", "target")
         T_gt = read_transform(folder / "gt.npy", "ground truth gt.npy")

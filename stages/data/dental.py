@@ -49,11 +49,17 @@ class Tooth:
     """Unit long axis pointing to the crown (from the JSON), None when the JSON has none."""
 
 
-def load_arch(folder: Path, arch: str) -> list[Tooth]:
+def arch_folder(folder: Path, arch: str) -> Path:
+    """The folder of ``arch``'s teeth, or one line naming it."""
     d = folder / arch
     if not d.is_dir():
         raise InputError(f"data=dental: no folder {d} (arch '{arch}'); the Open-Full-Jaw data lives in "
                          "../shared/data/open_full_jaw_p26")
+    return d
+
+
+def load_arch(folder: Path, arch: str) -> list[Tooth]:
+    d = arch_folder(folder, arch)
     axes_file = next(iter(sorted(d.glob("teeth_axes_*.json"))), None)
     axes = json.loads(axes_file.read_text()) if axes_file else {}
     teeth = []
@@ -147,12 +153,20 @@ class Dental(Provider):
                     raise ValueError(f"{k} must be >= 0, got {getattr(self, k)}")
 
 
+    def preflight(self) -> None:
+        """The data folder and the arch's folder in it."""
+        arch_folder(self._folder(), self.p.arch)
+
+    def _folder(self) -> Path:
+        folder = Path(expand_path(self.p.folder))
+        if not folder.is_dir():
+            raise InputError(f"data.folder {self.p.folder}: no such folder ({folder}); the Open-Full-Jaw data lives "
+                             "in ../shared/data/open_full_jaw_p26")
+        return folder
+
     def load(self, ctx: RunContext) -> Problem:
         p = self.p
-        folder = Path(expand_path(p.folder))
-        if not folder.is_dir():
-            raise InputError(f"data.folder {p.folder}: no such folder ({folder}); the Open-Full-Jaw data lives "
-                             "in ../shared/data/open_full_jaw_p26")
+        folder = self._folder()
         teeth = load_arch(folder, p.arch)
         # Open-Full-Jaw numbers teeth in the Universal scheme (1-32); parts are reported in FDI (ISO 3950)
         target, labels = merge([t.mesh for t in teeth], [universal_to_fdi(t.number) for t in teeth])

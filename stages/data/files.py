@@ -124,6 +124,14 @@ class Files(Provider):
                     "or the demo: 'scanreg data=synthetic'"
                 )
 
+    def preflight(self) -> None:
+        """Both files named and there, and the ground truth and landmarks files when named."""
+        self.require()
+        for label, path in (("source", self.p.source), ("target", self.p.target), ("ground truth data.gt", self.p.gt),
+                            ("data.landmarks", self.p.landmarks)):
+            if path:
+                resolve_path(expand_path(path), label)
+
     def load(self, ctx: RunContext) -> Problem:
         self.require()
         src, n_src_bad = read_input(expand_path(self.p.source), "source", self.p.source_columns or self.p.columns)

@@ -14,7 +14,8 @@ import numpy as np
 from scanreg.errors import ConfigError, InputError, note, warn
 from scanreg.eval.checks import likely_units
 from scanreg.geometry import bbox_diagonal, invert_T, points_of, principal_box_diagonal, transform_geometry
-from scanreg.io import CLOUD_EXTS, MESH_EXTS, expand_path, read_geometry, read_input, read_stanford_conf, read_transform
+from scanreg.io import (CLOUD_EXTS, MESH_EXTS, expand_path, read_geometry, read_input, read_stanford_conf,
+                        read_transform, resolve_path)
 from scanreg.stages.data.base import Provider
 from scanreg.stages.data.files import MAX_SIZE_RATIO
 from scanreg.stages.data.perturb import PoseParams
@@ -75,6 +76,16 @@ class ScanSetProvider(Provider):
         if not self.p.scans:
             raise ConfigError("data=scanset: data.scans is not set; give a folder, a glob or a list of scans, e.g. "
                               "'scanreg data=scanset data.scans=scans/'")
+
+    def preflight(self) -> None:
+        """The scans named and there (at least two), and the reference surface and a ``.conf`` of poses when
+        named."""
+        self.require()
+        scan_paths(self.p.scans)
+        if self.p.reference:
+            resolve_path(expand_path(self.p.reference), "reference")
+        if self.p.poses and self.p.poses.endswith(".conf"):
+            resolve_path(expand_path(self.p.poses), "Stanford .conf")
 
     def load(self, ctx: RunContext) -> ScanSet:
         self.require()

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from scanreg.geometry import Cloud, barycentric_sample, bbox_diagonal, transform_geometry, triangle_areas_normals
-from scanreg.io import expand_path, read_mesh
+from scanreg.io import expand_path, read_mesh, resolve_path
 from scanreg.stages.data.perturb import PoseParams
 from scanreg.stages.data.base import Provider
 from scanreg.stages.registry import DATA
@@ -44,6 +44,10 @@ class Synthetic(Provider):
             if self.n_points < 3:
                 raise ValueError(f"n_points must be >= 3, got {self.n_points}")
 
+
+    def preflight(self) -> None:
+        """The mesh file is there."""
+        resolve_path(expand_path(self.p.mesh), "data.mesh")
 
     def load(self, ctx: RunContext) -> Problem:
         p = self.p

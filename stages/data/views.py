@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scanreg.geometry import Mesh, bbox_diagonal
-from scanreg.io import expand_path, read_mesh
+from scanreg.io import expand_path, read_mesh, resolve_path
 from scanreg.stages.data.base import Provider
 from scanreg.stages.registry import DATA
 from scanreg.types import RunContext, ScanSet
@@ -50,6 +50,10 @@ class Views(Provider):
                 raise ValueError(f"fov_deg must be in (1, 170), got {self.fov_deg}")
             if not 0 < self.max_incidence_deg < 90:
                 raise ValueError(f"max_incidence_deg must be in (0, 90), got {self.max_incidence_deg}")
+
+    def preflight(self) -> None:
+        """The mesh file is there."""
+        resolve_path(expand_path(self.p.mesh), "data.mesh")
 
     def load(self, ctx: RunContext) -> ScanSet:
         mesh = read_mesh(expand_path(self.p.mesh), "data.mesh")
