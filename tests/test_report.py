@@ -230,6 +230,12 @@ def test_runs_without_ground_truth_are_reported_by_their_fit(tmp_path):
     t = summarize(df, ["icp.name"])
     console = console_table(t, ["icp.name"]).splitlines()
     assert console[0].split() == ["icp.name", "runs", "failed", "rms", "fitness", "coarse_s", "total_s"]
+    df["metrics.input_unit_m"] = 0.001  # (the runs logged their unit: the lengths' heading names it)
+    from scanreg.app.report.write import runs_unit
+
+    assert console_table(t, ["icp.name"], unit=runs_unit(df)).split()[3] == "rms_mm"
+    df.loc[0, "metrics.input_unit_m"] = 1.0
+    assert runs_unit(df) is None
     shown = display_table(t, ["icp.name"], []).set_index("icp.name")
     assert shown.loc["horn", "rms"].startswith("0.6 ") and shown.loc["gicp", "rms"].startswith("0.2 ")
     assert "rotation_error_deg" not in shown and "success [Wilson 95 %]" not in shown

@@ -440,11 +440,16 @@ set's placed scans, and the share of runs whose coarse stage fell back to unifor
 either)."""
 
 
-def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100) -> str:
+CONSOLE_LENGTHS = {"transl", "rms"}
+"""The console's headings of lengths in input units: they name the unit when the runs logged one."""
+
+
+def console_table(table: pd.DataFrame, group_by: list[str], width: int = 100, unit: str | None = None) -> str:
     """The summary as a table of at most ``width`` columns: the group (its canonical label), runs, success,
-    median errors and times; the rest is in report.csv."""
+    median errors and times; the rest is in report.csv. ``unit``: the runs' input unit, named in the headings of
+    lengths (``transl_mm``)."""
     columns = CONSOLE_COUNTS + (CONSOLE_ERRORS if has_errors(table) else CONSOLE_FIT) + CONSOLE_SET + CONSOLE_TIMES
-    cols = [(c, h) for c, h in columns if c in table]
+    cols = [(c, f"{h}_{unit}" if unit and h in CONSOLE_LENGTHS else h) for c, h in columns if c in table]
     head = " / ".join(group_by) or "group"
     def cell(r, c):  # success as a count of the runs (as report.md has it), the rest as values
         if c == "success_rate" and "successes" in r and pd.notna(r["successes"]) and pd.notna(r.get("judged")):

@@ -405,7 +405,7 @@ def _main(argv: list[str] | None) -> int:
     res = write_report(df, p, out, other, plots=not a.no_plots)
     print(f"{len(df)} run(s) of experiment '{a.experiment}'"
           + (f", sweep {df.attrs['parent']}" if df.attrs.get("parent") else ""))
-    print(console_table(res["table"], res["group_by"]))
+    print(console_table(res["table"], res["group_by"], unit=runs_unit(df)))
     if res["warning"]:
         print(f"warning: {res['warning']}")
     print(f"every column: {out / 'report.csv'}; every run: {out / 'runs.csv'}; report: {out / 'report.md'}")
@@ -431,12 +431,17 @@ def success_line(df) -> str:
             "medians and quantiles over the runs that finished; times are medians in seconds.")
 
 
-def _unit_note(df: pd.DataFrame) -> str:
-    """`` (m)``: the input unit the runs logged (``input_unit_m``), when they agree; else nothing."""
+def runs_unit(df: pd.DataFrame) -> str | None:
+    """The input unit the runs logged (``input_unit_m``) as written for people (``mm``), when they agree."""
     from scanreg.eval.metrics import input_unit_name
 
     vals = set(df["metrics.input_unit_m"].dropna()) if "metrics.input_unit_m" in df.columns else set()
-    unit = input_unit_name(next(iter(vals))) if len(vals) == 1 else None
+    return input_unit_name(next(iter(vals))) if len(vals) == 1 else None
+
+
+def _unit_note(df: pd.DataFrame) -> str:
+    """`` (m)``: the input unit the runs logged (``input_unit_m``), when they agree; else nothing."""
+    unit = runs_unit(df)
     if unit is None:
         return ""
     guessed = "metrics.input_unit_guessed" in df.columns and bool(df["metrics.input_unit_guessed"].fillna(0).max())
