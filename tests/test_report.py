@@ -572,3 +572,49 @@ def test_x_without_numbers_is_a_config_error(tmp_path):
         write_report(df, ReportParams(x="icp.name"), tmp_path, plots=False)
     write_report(mlflow_like_runs("sampler.n_points", ["2000", "4000"]), ReportParams(x="sampler.n_points"), tmp_path,
                  plots=False)
+
+
+def test_the_recorded_command_writes_the_same_report_again(tmp_path):
+    """report.md records the scanreg-report command that wrote it, with the runs pinned: re-run after a newer
+    sweep, it reads the same sweep and applies the same configured settings (--config: the title, per-case
+    table and bins of the experiment), and writes the same table (it recorded --group-by/--x/--per only, so a
+    configured report came back with other groups, and 'latest' read the newer sweep)."""
+    import re
+    import shlex
+
+    import mlflow
+
+    from scanreg.app.report.write import main
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = mlflow.MlflowClient(uri)
+    exp = client.create_experiment("icp_comparison")
+
+    def sweep(start, offset):
+        parent = client.create_run(exp, tags={"scanreg.sweep": "parent"}, start_time=start)
+        for k, (icp, pair) in enumerate([(i, p) for i in ("horn", "gicp") for p in ("a:b", "c:d")]):
+            run = client.create_run(exp, tags={"mlflow.parentRunId": parent.info.run_id}, start_time=start + k + 1)
+            rid = run.info.run_id
+            for key, v in (("group.icp", icp), ("data.pair", pair)):
+                client.log_param(rid, key, v)
+            for key, v in (("rotation_error_deg", offset + 0.1 * k), ("translation_error", 0.01 * k),
+                           ("translation_error_rel", 0.001), ("success", 1.0), ("gt_overlap", 0.3 + 0.2 * k),
+                           ("gt_rmse", 0.02), ("icp_iterations", 10 + k), ("time_total_s", 1.0 + k)):
+                client.log_metric(rid, key, v)
+            client.set_terminated(rid, "FINISHED", end_time=start + k + 2)
+        client.set_terminated(parent.info.run_id, "FINISHED", end_time=start + 10)
+        return parent.info.run_id
+
+    first = sweep(1_000_000, 0.0)
+    out = tmp_path / "report"
+    assert main(["--config", "icp_comparison", "--uri", uri, "--out", str(out), "--no-plots"]) == 0
+    text = (out / "report.md").read_text()
+    assert text.startswith("# ICP variants from a nearby start")
+    command = re.search(r"^- report: `(.*)`, ", text, re.M).group(1)
+    assert f"--parent {first}" in command and "--config icp_comparison" in command
+    table = (out / "report.csv").read_text()
+    sweep(2_000_000, 5.0)  # a newer sweep: 'latest' now
+    args = shlex.split(command)
+    assert args[0] == "scanreg-report" and main(args[1:]) == 0
+    assert (out / "report.csv").read_text() == table
+    assert (out / "report.md").read_text().startswith("# ICP variants from a nearby start")

@@ -16,6 +16,7 @@ median and 90th-percentile errors, median time per stage. Plots: success rate pe
 from __future__ import annotations
 
 import re
+import shlex
 import sys
 import time
 from dataclasses import replace
@@ -100,8 +101,10 @@ def _check_metrics(df: pd.DataFrame, asked: dict) -> None:
 
 # --------------------------------------------------------------------------------------------------- report
 def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.DataFrame | None = None,
-                 plots: bool = True) -> dict:
-    """Write report.md, report.csv (and per.csv, compare.csv) and PNG plots into ``out``."""
+                 plots: bool = True, again: str | None = None) -> dict:
+    """Write report.md, report.csv (and per.csv, compare.csv) and PNG plots into ``out``. ``again``: the
+    ``scanreg-report`` command that writes this report again, as report.md records it (default: one from the
+    experiment and ``p``'s options)."""
     _check_asked(df, p)
     out.mkdir(parents=True, exist_ok=True)
     since = _clear_previous(out)
@@ -152,9 +155,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
         configuration_line(df),
         f"- jobs: {jobs}",
         f"- tracking store: `{df.attrs.get('uri')}` (experiment `{exp}`)",
-        f"- report: `scanreg-report --experiment {exp}" + (f" --group-by {','.join(group_by)}" if group_by else "")
-        + (f" --x {p.x}" if p.x else "") + (f" --per {p.per}" if p.per else "") + "`, "
-        + f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
+        f"- report: `{again or _options_command(df, p, group_by)}`, {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
         "",
         success_line(df),
         "",
@@ -304,6 +305,39 @@ def _has_key(df: pd.DataFrame, key: str) -> bool:
     return find_column(key, df, bare=False) is not None
 
 
+def _options_command(df: pd.DataFrame, p: ReportParams, group_by: list[str]) -> str:
+    """A ``scanreg-report`` command for these runs with ``p``'s settings that have an option."""
+    parts = ["scanreg-report", "--experiment", df.attrs.get("experiment", "?")]
+    if df.attrs.get("parent"):
+        parts += ["--parent", df.attrs["parent"]]
+    for option, value in (("--group-by", ",".join(group_by)), ("--x", p.x), ("--per", p.per),
+                          ("--metrics", ",".join(p.metrics or ())), ("--title", p.title), ("--out", p.out)):
+        if value:
+            parts += [option, str(value)]
+    return shlex.join(parts)
+
+
+def given_command(argv: list[str], df: pd.DataFrame) -> str:
+    """The ``scanreg-report`` command as given (``argv``), with the runs it read named for good: the experiment,
+    and the sweep's parent run id in place of ``latest`` (a later sweep would be the latest)."""
+    out, skip = [], False
+    for i, a in enumerate(argv):
+        if skip:
+            skip = False
+            continue
+        key = a.split("=", 1)[0]
+        if key in ("--experiment", "--parent"):
+            skip = "=" not in a
+            continue
+        out.append(a)
+    pinned = ["--experiment", df.attrs.get("experiment", "?")]
+    if df.attrs.get("parent"):
+        pinned += ["--parent", df.attrs["parent"]]
+    elif "--parent" in argv or any(a.startswith("--parent=") for a in argv):
+        pinned += ["--parent", "all"]
+    return shlex.join(["scanreg-report", *pinned, *out])
+
+
 def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None:
     """Called when an experiment's sweep ends (``report.enabled``): write its report."""
     from omegaconf import OmegaConf
@@ -316,11 +350,29 @@ def report_for_sweep(cfg, parent_run_id: str, uri: str, experiment: str) -> None
     if changed and not p.out:  # a part or a variant of the experiment: its own folder, the experiment's kept
         out = out / _slug(" ".join(changed))
     df = load_runs(experiment, uri, parent_run_id)
-    res = write_report(df, p, out)
+    res = write_report(df, p, out, again=_sweep_report_command(cfg, df, out if changed and not p.out else None))
     if res["warning"]:
         print(f"warning: {res['warning']}")
     print(f"report: {res['paths'][0]}" + (f" (the sweep changed the experiment: {' '.join(changed)})"
                                           if changed and not p.out else ""))
+
+
+def _sweep_report_command(cfg, df: pd.DataFrame, out: Path | None) -> str:
+    """The command that writes a sweep's report again: ``--config`` with the sweep's experiment (its report
+    settings), the runs pinned, ``out`` when the report went elsewhere; the sweep's own ``report.*``
+    overrides, which have no option, are named after it."""
+    try:
+        name = cfg.hydra.runtime.choices.get("experiment")
+    except Exception:  # noqa: BLE001  # (a config without Hydra's node)
+        name = None
+    parts = ["scanreg-report", *(["--config", name] if name else []), "--experiment", df.attrs.get("experiment", "?")]
+    if df.attrs.get("parent"):
+        parts += ["--parent", df.attrs["parent"]]
+    if out is not None:
+        parts += ["--out", str(out)]
+    task = list(cfg.hydra.overrides.task) if "hydra" in cfg else []
+    report_overrides = [o for o in task if o.lstrip("+~").startswith("report.")]
+    return shlex.join(parts) + (f" (with the sweep's {' '.join(report_overrides)})" if report_overrides else "")
 
 
 PROCESS_KEYS = ("experiment", "hydra", "launch", "tracking", "verbose", "report")
@@ -402,7 +454,8 @@ def _main(argv: list[str] | None) -> int:
         out=a.out, group_by=split(a.group_by) if a.group_by else None, x=a.x, per=a.per, title=a.title,
         metrics=split(a.metrics) if a.metrics else None).items() if v is not None})
     out = Path(p.out or Path("outputs") / "reports" / a.experiment)
-    res = write_report(df, p, out, other, plots=not a.no_plots)
+    res = write_report(df, p, out, other, plots=not a.no_plots,
+                       again=given_command(sys.argv[1:] if argv is None else list(argv), df))
     print(f"{len(df)} run(s) of experiment '{a.experiment}'"
           + (f", sweep {df.attrs['parent']}" if df.attrs.get("parent") else ""))
     print(console_table(res["table"], res["group_by"], unit=runs_unit(df)))
