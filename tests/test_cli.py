@@ -126,11 +126,13 @@ BAD_CASES = {
     "no_source": (["data.source=null"], "data=files: data.source is not set"),
     "wrong_enum": (["icp.distances=furlongs"], "icp=point_to_plane: parameter 'distances' expects Distances, got 'furlongs'"),
     "unknown_tracking_param": (["tracking.bogus=1"], "tracking=mlflow: unknown parameter 'bogus'; valid parameters: uri, experiment"),
+    "several_values": (["icp=horn,gicp"], "icp=horn,gicp: several values for one run; to run each, sweep them with -m "
+                       "(scanreg -m icp=horn,gicp); for one value with commas quote it (icp=\"'horn,gicp'\")"),
 }
 
 
 CONFIG_CASES = {"unknown_group_choice", "unknown_stage_name", "wrong_type", "unknown_param", "no_source", "wrong_enum",
-                "unknown_tracking_param"}
+                "unknown_tracking_param", "several_values"}
 """Usage and config errors: exit 2 before any MLflow run exists. The others are input errors: exit 1, and the
 run ends FAILED with the reason."""
 

@@ -115,6 +115,12 @@ def config_error_line(e: BaseException) -> str:
     cause = e.__cause__ or e.__context__  # (Hydra chains some of OmegaConf's errors as the context)
     if isinstance(e, OverrideParseException):
         return f"bad override: {str(e).splitlines()[0]}"
+    m = re.match(r"Ambiguous value for argument '([^=']+)=(.*?)' 1\. ", text)
+    if m:  # (Hydra's own text shows its quotes escaped)
+        key, value = m.groups()
+        return (f"{key}={value}: several values for one run; to run each, sweep them with -m (scanreg -m "
+                f"{key}={value}); for one value with commas quote it ({key}=\"'{value}'\"), for a list write "
+                f"{key}=[{value}]")
     if isinstance(e, MissingConfigException):
         m = re.search(r"Could not find '([^']+)/([^'/]+)'", text)
         if m:
