@@ -24,11 +24,9 @@ class DataProvider(Protocol):
 
     def require(self) -> None:
         """Raise a :class:`~scanreg.errors.ConfigError` when a setting the provider needs is missing (checked
-        before a run starts)."""
-
-    def preflight(self) -> None:
-        """:meth:`require`, and what else can be checked without reading a scan (its files are there): a sweep
-        runs it for every job before the first starts."""
+        before a run starts). A provider may also have ``preflight()`` (optional; see
+        :class:`~scanreg.stages.data.base.Provider`): what can be checked without reading a scan, run by a sweep
+        for every job before the first starts; without it the sweep runs ``require``."""
 
     def load(self, ctx: RunContext) -> Problem | ScanSet:
         """The source, the target, and what is known about them (ground truth, landmarks); or, from a scan-set

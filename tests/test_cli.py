@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, run_cli, shared, runs
+from scanreg.errors import ConfigError
 from scanreg.geometry import Cloud, apply_T, random_pose, transform_geometry
 from scanreg.io import read_mesh, write_ply, write_transform
 from scanreg.geometry import barycentric_sample
@@ -126,13 +127,16 @@ BAD_CASES = {
     "no_source": (["data.source=null"], "data=files: data.source is not set"),
     "wrong_enum": (["icp.distances=furlongs"], "icp=point_to_plane: parameter 'distances' expects Distances, got 'furlongs'"),
     "unknown_tracking_param": (["tracking.bogus=1"], "tracking=mlflow: unknown parameter 'bogus'; valid parameters: uri, experiment"),
-    "several_values": (["icp=horn,gicp"], "icp=horn,gicp: several values for one run; to run each, sweep them with -m "
-                       "(scanreg -m icp=horn,gicp); for one value with commas quote it (icp=\"'horn,gicp'\")"),
+    "several_values": (["icp.max_iterations=10,20"], "icp.max_iterations=10,20: several values for one run; to run "
+                       "each, sweep them with -m (scanreg -m icp.max_iterations=10,20); for one value with commas "
+                       "quote it (icp.max_iterations=\"'10,20'\"), for a list write icp.max_iterations=[10,20]"),
+    "several_choices": (["icp=horn,gicp"], "icp=horn,gicp: several values for one run; to run each, sweep them with -m "
+                        "(scanreg -m icp=horn,gicp)"),
 }
 
 
 CONFIG_CASES = {"unknown_group_choice", "unknown_stage_name", "wrong_type", "unknown_param", "no_source", "wrong_enum",
-                "unknown_tracking_param", "several_values"}
+                "unknown_tracking_param", "several_values", "several_choices"}
 """Usage and config errors: exit 2 before any MLflow run exists. The others are input errors: exit 1, and the
 run ends FAILED with the reason."""
 
@@ -281,6 +285,8 @@ SWEEP_TYPOS = {
     "bad_value": (["sampler.n_points=3000,-1"], 2,
                   "job #1 (sampler.n_points=-1): sampler=barycentric: n_points must be >= 1, got -1"),
     "missing_file": ([f"data.mesh={BUNNY},bunny.pyl"], 1, "job #1 (data.mesh=bunny.pyl): data.mesh bunny.pyl: no such file"),
+    "glob_choices": (["icp=glob(ho*)", "icp.max_iterations=20,-1"], 2,
+                     "job #1 (icp.max_iterations=-1): icp=horn: max_iterations must be >= 1, got -1"),
     "two_of_six": (["sampler.n_points=3000,-1,-2", "seed=0,1"], 2,
                    "job #2 (sampler.n_points=-1 seed=0): sampler=barycentric: n_points must be >= 1, got -1 (and 3 more "
                    "of the 6 jobs)"),
@@ -367,3 +373,31 @@ def test_landmark_alignment_then_icp(tmp_path):
     assert res["landmark_count"] == 5 and res["landmark_rms"] < 1.0 and "landmark_loo_max" in res
     assert res["coarse_rotation_error_deg"] > res["rotation_error_deg"]  # ICP improves on the landmarks
     assert res["rotation_error_deg"] < 0.5
+
+
+@pytest.mark.slow
+def test_a_sweep_launches_unchecked_when_asked(tmp_path, monkeypatch):
+    """SCANREG_SWEEP_CHECK=0 (a launching machine that does not see the jobs' data): the sweep starts, and the
+    job whose file is missing fails alone when it runs."""
+    monkeypatch.setenv("SCANREG_SWEEP_CHECK", "0")
+    sweep = tmp_path / "sweep"
+    r = run_cli(["-m", "data=synthetic", f"data.mesh={BUNNY},bunny.pyl", "sampler.n_points=3000", "tracking=none",
+                 f"hydra.sweep.dir={sweep}"], tmp_path)
+    assert r.returncode == 1, r.stderr
+    assert "data.mesh bunny.pyl: no such file" in r.stderr and "sweep not started" not in r.stderr
+    assert f"sweep: 2 job(s), 1 failed; results in {sweep}" in r.stdout
+
+
+def test_a_plugin_data_provider_without_preflight_is_checked_by_its_require():
+    """preflight is optional for a data provider (a plugin written to the protocol has require and load)."""
+    from scanreg.app.sweep import _preflight
+
+    class Plugin:
+        def require(self):
+            raise ConfigError("data=mine: data.path is not set")
+
+        def load(self, ctx):
+            return None
+
+    with pytest.raises(ConfigError, match="data.path is not set"):
+        _preflight(Plugin())

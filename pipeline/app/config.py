@@ -118,9 +118,10 @@ def config_error_line(e: BaseException) -> str:
     m = re.match(r"Ambiguous value for argument '([^=']+)=(.*?)' 1\. ", text)
     if m:  # (Hydra's own text shows its quotes escaped)
         key, value = m.groups()
-        return (f"{key}={value}: several values for one run; to run each, sweep them with -m (scanreg -m "
-                f"{key}={value}); for one value with commas quote it ({key}=\"'{value}'\"), for a list write "
-                f"{key}=[{value}]")
+        line = f"{key}={value}: several values for one run; to run each, sweep them with -m (scanreg -m {key}={value})"
+        if group_choices(key.lstrip("+~")) or "'" in value or '"' in value:  # (a group's choice is one name)
+            return line
+        return f"{line}; for one value with commas quote it ({key}=\"'{value}'\"), for a list write {key}=[{value}]"
     if isinstance(e, MissingConfigException):
         m = re.search(r"Could not find '([^']+)/([^'/]+)'", text)
         if m:

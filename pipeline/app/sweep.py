@@ -12,9 +12,8 @@ from typing import Any
 
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
 
-from scanreg.errors import ConfigError, ScanregError
+from scanreg.errors import ConfigError, InputError, ScanregError
 from scanreg.app.tracking import (SWEEP_ENV, SWEEP_FILE, MlflowTracking, RunLog, _children, _sweep_outcome,
                               launcher_tags, progress_counts, sweep_jobs, sweep_size)
 
@@ -28,12 +27,15 @@ class SweepCallback(Callback):
         _sweep_outcome["started"] = True  # (the command exits normally after a sweep: scanreg.app.cli)
         os.environ.pop(SWEEP_ENV, None)
         try:
-            check_jobs(config)
+            if os.environ.get(CHECK_ENV, "1") != "0":
+                check_jobs(config)
         except ScanregError as e:  # (Hydra turns a callback's Exception into a warning and goes on: SystemExit)
             from scanreg.app.main import EXIT_FAILED, EXIT_USAGE, _err
 
             _err(str(e))
             raise SystemExit(EXIT_USAGE if isinstance(e, ConfigError) else EXIT_FAILED) from None
+        except Exception:  # noqa: BLE001  # the check is an early warning: each job still checks itself
+            pass
         # every job appends its outcome to the progress file, tracked or not: the command's exit code and the
         # closing line count the jobs from it (a store that fails later cannot hide a failed job)
         sweep_dir = Path(str(config.hydra.sweep.dir))
@@ -98,6 +100,11 @@ class SweepCallback(Callback):
                 _sweep_outcome["failed"] = _sweep_outcome.get("failed", 0) or 1
 
 
+CHECK_ENV = "SCANREG_SWEEP_CHECK"
+"""``SCANREG_SWEEP_CHECK=0`` launches a sweep without :func:`check_jobs` (e.g. on a launching machine that does
+not see the data its jobs will read)."""
+
+
 def check_jobs(config: DictConfig) -> None:
     """Every job of a basic sweep composed and checked as its run would first check it (its stages built, the
     data's :meth:`~scanreg.stages.protocols.DataProvider.preflight`: settings, and files there) before any job
@@ -123,14 +130,15 @@ def check_jobs(config: DictConfig) -> None:
             bad.append((i, job, ConfigError(config_error_line(e))))
         except ScanregError as e:
             bad.append((i, job, e))
-        except OmegaConfBaseException:  # (e.g. ${hydra:runtime...}, set in the job): the job says what is wrong
+        except Exception:  # noqa: BLE001  # (e.g. ${hydra:runtime...}, set in the job): the job says what is wrong
             continue
     if bad:
         i, job, e = bad[0]
         swept = [k for k, column in enumerate(zip(*jobs)) if len(set(column)) > 1]  # (the same keys in each job)
         named = re.sub(r"\\(.)", r"\1", " ".join(job[k] for k in swept) or " ".join(job))  # (Hydra's escapes)
         more = f" (and {len(bad) - 1} more of the {len(jobs)} jobs)" if len(bad) > 1 else ""
-        raise type(e)(f"sweep not started: job #{i} ({named}): {e}{more}")
+        unseen = f"; {CHECK_ENV}=0 launches it unchecked" if isinstance(e, InputError) else ""
+        raise type(e)(f"sweep not started: job #{i} ({named}): {e}{more}{unseen}")
 
 
 def _job_configs(config: DictConfig, loader):
@@ -143,7 +151,7 @@ def _job_configs(config: DictConfig, loader):
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    parser, composed = OverridesParser.create(), {}
+    parser, composed = OverridesParser.create(config_loader=loader), {}
     for job in sweep_jobs(config):
         try:
             overrides = parser.parse_overrides(list(job))
@@ -152,9 +160,10 @@ def _job_configs(config: DictConfig, loader):
                 composed[groups] = loader.load_sweep_config(config, list(groups))
             values = [o for o in overrides if o.input_line not in groups]
             # every job of a basic sweep sets the same keys: they can be set over the last job's, unless a key is
-            # added or deleted (then on a copy)
+            # added or deleted or a value is merged into (a dict): then on a copy
             cfg = composed[groups]
-            if any(o.is_add() or o.is_delete() or o.is_force_add() for o in values):
+            if any(o.is_add() or o.is_delete() or o.is_force_add() or isinstance(o.value(), (dict, list))
+                   for o in values):
                 cfg = copy.deepcopy(cfg)
             ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
         except Exception as e:  # noqa: BLE001  # raised where the job is checked
@@ -164,24 +173,34 @@ def _job_configs(config: DictConfig, loader):
 
 def _check_job(cfg, checked: dict[str, BaseException | None]) -> None:
     """:func:`~scanreg.app.main.check_config` and the data's preflight for one job's config (or raise what
-    making it raised); a config already checked but for its seed is checked for its seed alone."""
+    making it raised). The data block is checked on its own (built, its preflight), and the rest of the config
+    once per distinct rest (``checked`` keeps each outcome): a sweep of pairs or seeds builds its stages once."""
     from scanreg.app.main import check_config
+    from scanreg.stages.registry import DATA
     from scanreg.types import checked_seed
 
     if isinstance(cfg, BaseException):
         raise cfg
     checked_seed(cfg.get("seed"))
     plain = OmegaConf.to_container(cfg, resolve=False)
-    key = json.dumps({k: v for k, v in plain.items() if k not in ("seed", "hydra")}, sort_keys=True, default=str)
-    if key not in checked:
-        try:
-            stages, _ = check_config(cfg)
-            stages.data.preflight()
-            checked[key] = None
-        except ScanregError as e:
-            checked[key] = e
-    if checked[key] is not None:
-        raise checked[key]
+    for key, check in ((json.dumps(["data", plain.get("data")], sort_keys=True, default=str), lambda: _preflight(
+                           DATA.build(cfg.data))),
+                       (json.dumps({k: v for k, v in plain.items() if k not in ("seed", "hydra", "data")},
+                                   sort_keys=True, default=str), lambda: check_config(cfg))):
+        if key not in checked:
+            try:
+                check()
+                checked[key] = None
+            except ScanregError as e:
+                checked[key] = e
+        if checked[key] is not None:
+            raise checked[key]
+
+
+def _preflight(data) -> None:
+    """A data provider's preflight (:class:`~scanreg.stages.data.base.Provider`); a plugin's provider that has
+    none: its ``require``."""
+    getattr(data, "preflight", data.require)()
 
 
 def _publish(sweep_dir: Path, info: dict) -> None:

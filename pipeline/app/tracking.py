@@ -409,11 +409,14 @@ def sweep_jobs(config: DictConfig) -> list[list[str]] | None:
     if "BasicSweeper" not in str(config.hydra.sweeper.get("_target_", "")):
         return None
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     lines = [f"{k}={v}" for k, v in (config.hydra.sweeper.get("params") or {}).items()]
     lines += list(config.hydra.overrides.task)
-    return BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(lines), None)[0]
+    loader = GlobalHydra.instance().config_loader() if GlobalHydra.instance().is_initialized() else None
+    parser = OverridesParser.create(config_loader=loader)  # (glob() needs the loader: it lists a group's choices)
+    return BasicSweeper.split_arguments(parser.parse_overrides(lines), None)[0]
 
 
 def sweep_size(config: DictConfig) -> int | None:

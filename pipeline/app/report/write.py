@@ -184,11 +184,7 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
                   to_markdown(per_e.map(lambda v: fmt_value(v) if pd.notna(v) else "–"), index=True), ""]
     lines += paired_section(df, group_labels(df, group_by), group_by, list(p.paired), out)
     if compare_to is not None:
-        other = summarize(compare_to, [k for k in group_by if _has_key(compare_to, k)])
-        cmp = compare(table.copy(), other, [k for k in group_by if _has_key(compare_to, k)], exp,
-                      compare_to.attrs.get("experiment", "other"))
-        cmp.to_csv(out / "compare.csv", index=False)
-        lines += [f"## Compared with experiment `{compare_to.attrs.get('experiment')}`", "", to_markdown(cmp), ""]
+        lines += _compare_section(table, compare_to, group_by, exp, out)
     if p.showcase:
         lines += showcase_section(df, dict(p.showcase), out)
     if "metrics.scans_within_tolerance" in df.columns:
@@ -200,6 +196,16 @@ def write_report(df: pd.DataFrame, p: ReportParams, out: Path, compare_to: pd.Da
     _list_written(out, since)
     return {"table": table, "per": per_t, "group_by": group_by, "warning": warn,
             "paths": [out / "report.md", out / "report.csv", out / "runs.csv", *figs]}
+
+
+def _compare_section(table: pd.DataFrame, compare_to: pd.DataFrame, group_by: list[str], exp: str,
+                     out: Path) -> list[str]:
+    """The table beside another experiment's runs (``compare.csv``), naming the sweep compared with."""
+    keys = [k for k in group_by if _has_key(compare_to, k)]
+    cmp = compare(table.copy(), summarize(compare_to, keys), keys, exp, compare_to.attrs.get("experiment", "other"))
+    cmp.to_csv(out / "compare.csv", index=False)
+    which = f" (its sweep `{compare_to.attrs['parent']}`, then the latest)" if compare_to.attrs.get("parent") else ""
+    return [f"## Compared with experiment `{compare_to.attrs.get('experiment')}`{which}", "", to_markdown(cmp), ""]
 
 
 WRITTEN = ".scanreg-report-files"
@@ -368,6 +374,14 @@ def _sweep_report_command(cfg, df: pd.DataFrame, out: Path | None) -> str:
     parts = ["scanreg-report", *(["--config", name] if name else []), "--experiment", df.attrs.get("experiment", "?")]
     if df.attrs.get("parent"):
         parts += ["--parent", df.attrs["parent"]]
+    if df.attrs.get("uri"):
+        parts += ["--uri", str(df.attrs["uri"])]
+    try:  # the user's config folders (--config-dir) where --config finds the experiment
+        for source in cfg.hydra.runtime.config_sources:
+            if name and source.get("provider") == "command-line" and source.get("schema") == "file":
+                parts += ["--config-dir", str(source.get("path"))]
+    except Exception:  # noqa: BLE001  # (a config without Hydra's node)
+        pass
     if out is not None:
         parts += ["--out", str(out)]
     task = list(cfg.hydra.overrides.task) if "hydra" in cfg else []
@@ -403,7 +417,8 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None) -> int:
     from scanreg.app.stages_cli import _one_line_parser
 
-    ap = _one_line_parser()(prog="scanreg-report", description=__doc__.split("\n\n")[0])
+    ap = _one_line_parser()(prog="scanreg-report", description=__doc__.split("\n\n")[0],
+                            allow_abbrev=False)  # (report.md records the options as given: in full)
     ap.add_argument("--experiment", default=None,
                     help="MLflow experiment name (default: the experiment of the newest sweep in the store)")
     ap.add_argument("--parent", default="latest",
