@@ -174,7 +174,7 @@ def _job_configs(config: DictConfig, loader):
 def _check_job(cfg, checked: dict[str, BaseException | None]) -> None:
     """:func:`~scanreg.app.main.check_config` and the data's preflight for one job's config (or raise what
     making it raised). The data block is checked on its own (built, its preflight), and the rest of the config
-    once per distinct rest (``checked`` keeps each outcome): a sweep of pairs or seeds builds its stages once."""
+    once per distinct rest (``checked`` keeps the passes): a sweep of pairs or seeds builds its stages once."""
     from scanreg.app.main import check_config
     from scanreg.stages.registry import DATA
     from scanreg.types import checked_seed
@@ -187,14 +187,15 @@ def _check_job(cfg, checked: dict[str, BaseException | None]) -> None:
                            DATA.build(cfg.data))),
                        (json.dumps({k: v for k, v in plain.items() if k not in ("seed", "hydra", "data")},
                                    sort_keys=True, default=str), lambda: check_config(cfg))):
-        if key not in checked:
+        # a key is the block as written (an interpolation, e.g. ${seed}, not resolved): only a pass is taken
+        # from another job, a failure is checked again with this job's own values (no valid job is refused)
+        if checked.get(key, ...) is not None:
             try:
                 check()
                 checked[key] = None
             except ScanregError as e:
                 checked[key] = e
-        if checked[key] is not None:
-            raise checked[key]
+                raise
 
 
 def _preflight(data) -> None:
