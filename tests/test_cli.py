@@ -401,3 +401,21 @@ def test_a_plugin_data_provider_without_preflight_is_checked_by_its_require():
 
     with pytest.raises(ConfigError, match="data.path is not set"):
         _preflight(Plugin())
+
+
+def test_hydras_validation_is_left_out_only_after_every_job_was_checked():
+    """The basic sweeper's own composition of every job (validate_batch_is_legal) runs unless scanreg's check
+    composed and checked every job of this sweep."""
+    from scanreg.app.sweep import _validate_unless_checked
+    from scanreg.app.tracking import _sweep_outcome
+
+    calls = []
+    validate = _validate_unless_checked(lambda self, batch: calls.append(batch))
+    _sweep_outcome.clear()
+    validate(None, ["a"])
+    _sweep_outcome["checked"] = False
+    validate(None, ["b"])
+    _sweep_outcome["checked"] = True
+    validate(None, ["c"])
+    _sweep_outcome.clear()
+    assert calls == [["a"], ["b"]]

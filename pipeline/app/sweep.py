@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
@@ -28,7 +29,10 @@ class SweepCallback(Callback):
         os.environ.pop(SWEEP_ENV, None)
         try:
             if os.environ.get(CHECK_ENV, "1") != "0":
-                check_jobs(config)
+                _sweep_outcome["checked"] = check_jobs(config)
+                validate = BasicSweeper.validate_batch_is_legal
+                if not hasattr(validate, "wrapped"):
+                    BasicSweeper.validate_batch_is_legal = _validate_unless_checked(validate)
         except ScanregError as e:  # (Hydra turns a callback's Exception into a warning and goes on: SystemExit)
             from scanreg.app.main import EXIT_FAILED, EXIT_USAGE, _err
 
@@ -105,13 +109,14 @@ CHECK_ENV = "SCANREG_SWEEP_CHECK"
 not see the data its jobs will read)."""
 
 
-def check_jobs(config: DictConfig) -> None:
+def check_jobs(config: DictConfig) -> bool:
     """Every job of a basic sweep composed and checked as its run would first check it (its stages built, the
     data's :meth:`~scanreg.stages.protocols.DataProvider.preflight`: settings, and files there) before any job
     starts or any run is tracked: a typo in one swept value (``data.pair=bun000:bun045,bun000:bun04``) stops the
     sweep at once, naming the job and its value, instead of failing when that job's turn comes. Raises the first
     problem's :class:`~scanreg.errors.ScanregError`; a job whose config cannot be resolved here (an
-    interpolation of the job's own run) is left to the job."""
+    interpolation of the job's own run) is left to the job. Returns whether every job was composed and checked
+    (then Hydra's own composition of every job is left out: :func:`_validate_unless_checked`)."""
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
 
@@ -119,8 +124,9 @@ def check_jobs(config: DictConfig) -> None:
 
     jobs = sweep_jobs(config)
     if not jobs or not GlobalHydra.instance().is_initialized():
-        return
+        return False
     configs = _job_configs(config, GlobalHydra.instance().config_loader())
+    every = True
     bad: list[tuple[int, list[str], BaseException]] = []
     checked: dict[str, BaseException | None] = {}
     for i, job in enumerate(jobs):
@@ -131,7 +137,7 @@ def check_jobs(config: DictConfig) -> None:
         except ScanregError as e:
             bad.append((i, job, e))
         except Exception:  # noqa: BLE001  # (e.g. ${hydra:runtime...}, set in the job): the job says what is wrong
-            continue
+            every = False
     if bad:
         i, job, e = bad[0]
         swept = [k for k, column in enumerate(zip(*jobs)) if len(set(column)) > 1]  # (the same keys in each job)
@@ -139,6 +145,7 @@ def check_jobs(config: DictConfig) -> None:
         more = f" (and {len(bad) - 1} more of the {len(jobs)} jobs)" if len(bad) > 1 else ""
         unseen = f"; {CHECK_ENV}=0 launches it unchecked" if isinstance(e, InputError) else ""
         raise type(e)(f"sweep not started: job #{i} ({named}): {e}{more}{unseen}")
+    return every
 
 
 def _job_configs(config: DictConfig, loader):
@@ -202,6 +209,20 @@ def _preflight(data) -> None:
     """A data provider's preflight (:class:`~scanreg.stages.data.base.Provider`); a plugin's provider that has
     none: its ``require``."""
     getattr(data, "preflight", data.require)()
+
+
+def _validate_unless_checked(validate):
+    """Hydra's basic sweeper composes every job once more before launching, to validate it (its
+    ``validate_batch_is_legal``, most of a sweep's start: ``experiments/benchmarks/sweep_check.md``); when
+    :func:`check_jobs` has composed and checked every job of this sweep, that second composition is left out.
+    (Hydra takes a sweeper class only from a ``hydra_plugins`` package, which this one-package project does not
+    install: the basic sweeper's method is wrapped instead, in the launching process, hydra-core 1.3.)"""
+    def validate_batch_is_legal(self, batch) -> None:
+        if not _sweep_outcome.get("checked"):
+            validate(self, batch)
+
+    validate_batch_is_legal.wrapped = validate
+    return validate_batch_is_legal
 
 
 def _publish(sweep_dir: Path, info: dict) -> None:
