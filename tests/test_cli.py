@@ -419,3 +419,23 @@ def test_hydras_validation_is_left_out_only_after_every_job_was_checked():
     validate(None, ["c"])
     _sweep_outcome.clear()
     assert calls == [["a"], ["b"]]
+
+
+@pytest.mark.slow
+def test_the_sweep_check_resolves_each_jobs_own_values(tmp_path):
+    """A swept value with an interpolation (data.mesh=m${seed}.ply) is checked with each job's own values and
+    environment (hydra.job.env_set), not the sweep's base config (it was checked as m0.ply, refusing a valid
+    sweep): only the job whose file is missing is named."""
+    (tmp_path / "m1.ply").symlink_to(pkg_bunny_path())
+    r = run_cli(["-m", "data=synthetic", "tracking=none", "seed=1,3", "data.mesh=${oc.env:MESHES,nowhere}/m${seed}.ply",
+                 f"+hydra.job.env_set.MESHES={tmp_path}", f"hydra.sweep.dir={tmp_path / 'sweep'}"], tmp_path)
+    assert r.returncode == 1, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith(
+        f"error: sweep not started: job #1 (seed=3): data.mesh {tmp_path}/m3.ply: no such file"), r.stderr
+
+
+def pkg_bunny_path():
+    from scanreg.io import resolve_path
+
+    return resolve_path(BUNNY)

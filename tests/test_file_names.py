@@ -100,6 +100,11 @@ def test_unparsable_path_overrides_say_the_working_command():
         o = _parse(cmd[1])
         assert o.value() == argv[0].partition("=")[2] and not o.is_sweep_override()
         assert _fix_command(line, "position")[1:3] == [argv[0].partition("=")[2], argv[1].partition("=")[2]]
+    # a sweep over such paths: each value quoted alone, so that the fix is still a sweep over both files
+    line = path_override_error(["-m", "data.source=~/s/a.ply,~/s/b.ply", "data.target=t.ply"], multirun=True)
+    o = _parse(_fix_command(line)[2])
+    assert o.is_sweep_override() and [v.text for v in o.value().list] == ["~/s/a.ply", "~/s/b.ply"], line
+    assert "holds '~', which" in line and "by position" not in line
     # what parses as meant is left alone: plain paths, quoted paths, spaces, and a sweep over files with -m
     for argv, multirun in ((["data.source=scans/a b.ply"], False), (["data.source='x (1).ply'"], False),
                            (["data.source=a.ply,b.ply"], True), (["icp=gicp", "seed=3"], False)):

@@ -240,13 +240,18 @@ def path_override_error(argv: list[str], multirun: bool) -> str | None:
             bad[i] = found
     if not bad:
         return None
-    chars = dict.fromkeys(c for _, value in bad.values() for c in _needs_quoting(value))
-    fixed = [f"{bad[i][0]}={quote_value(bad[i][1])}" if i in bad else a for i, a in enumerate(argv)]
+    swept = multirun and any("," in value for _, value in bad.values())  # (a sweep over several paths)
+    chars = dict.fromkeys(c for _, value in bad.values() for c in _needs_quoting(value) if not (swept and c == ","))
+    def quoted(value: str) -> str:  # in a sweep, commas separate the values: each is quoted alone
+        return ",".join(map(quote_value, value.split(","))) if multirun else quote_value(value)
+
+    fixed = [f"{bad[i][0]}={quoted(bad[i][1])}" if i in bad else a for i, a in enumerate(argv)]
     keys = ", ".join(key for key, _ in bad.values())
     line = (f"{keys}: {'a path holds' if len(bad) == 1 else 'paths hold'} "
             f"{', '.join(repr(c) for c in chars) or 'characters'}, which Hydra's override grammar reads as syntax; "
-            f"quote {'the value' if len(bad) == 1 else 'the values'}: scanreg {' '.join(shell_arg(x) for x in fixed)}")
-    positional = _positional_form(argv)
+            f"quote {'the value' if len(bad) == 1 and not swept else 'the values'}: "
+            f"scanreg {' '.join(shell_arg(x) for x in fixed)}")
+    positional = None if swept else _positional_form(argv)
     if positional:
         line += f"  (or give the files by position: scanreg {' '.join(shell_arg(x) for x in positional)})"
     return line

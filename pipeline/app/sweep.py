@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+from contextlib import contextmanager
 import time
 from pathlib import Path
 from typing import Any
@@ -63,7 +64,7 @@ class SweepCallback(Callback):
 
         tr = MlflowTracking(params)
         client, eid = tr.prepare()
-        overrides = " ".join(config.hydra.overrides.task)
+        overrides = " ".join(OmegaConf.to_container(config.hydra.overrides.task, resolve=False))  # (as written)
         command = " ".join(["scanreg", *sys.argv[1:]]) if Path(sys.argv[0]).name == "scanreg" else \
             f"scanreg -m {overrides}"
         parent = client.create_run(eid, run_name=f"sweep: {overrides}"[:250],
@@ -190,19 +191,39 @@ def _check_job(cfg, checked: dict[str, BaseException | None]) -> None:
         raise cfg
     checked_seed(cfg.get("seed"))
     plain = OmegaConf.to_container(cfg, resolve=False)
-    for key, check in ((json.dumps(["data", plain.get("data")], sort_keys=True, default=str), lambda: _preflight(
-                           DATA.build(cfg.data))),
-                       (json.dumps({k: v for k, v in plain.items() if k not in ("seed", "hydra", "data")},
-                                   sort_keys=True, default=str), lambda: check_config(cfg))):
+    # the data block as this job resolves it; its files only where the job will look for them (not from a job
+    # folder it changes into: hydra.job.chdir)
+    data = json.dumps(["data", OmegaConf.to_container(cfg.data, resolve=True)], sort_keys=True, default=str)
+    checks = [(data, lambda: DATA.build(cfg.data) if cfg.hydra.job.get("chdir") else _preflight(DATA.build(cfg.data))),
+              (json.dumps({k: v for k, v in plain.items() if k not in ("seed", "hydra", "data")}, sort_keys=True,
+                          default=str), lambda: check_config(cfg))]
+    for key, check in checks:
         # a key is the block as written (an interpolation, e.g. ${seed}, not resolved): only a pass is taken
         # from another job, a failure is checked again with this job's own values (no valid job is refused)
         if checked.get(key, ...) is not None:
             try:
-                check()
+                with _job_environment(cfg):
+                    check()
                 checked[key] = None
             except ScanregError as e:
                 checked[key] = e
                 raise
+
+
+@contextmanager
+def _job_environment(cfg):
+    """The environment variables the job will have (``hydra.job.env_set``), set while it is checked."""
+    env = {str(k): str(v) for k, v in (cfg.hydra.job.get("env_set") or {}).items()}
+    before = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def _preflight(data) -> None:

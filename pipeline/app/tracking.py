@@ -411,9 +411,13 @@ def sweep_jobs(config: DictConfig) -> list[list[str]] | None:
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
 
-    lines = [f"{k}={v}" for k, v in (config.hydra.sweeper.get("params") or {}).items()]
-    lines += list(config.hydra.overrides.task)
+    # as written (an interpolation in a value, ${seed}, is the job's to resolve, as Hydra's sweeper reads them)
+    params = OmegaConf.to_container(config.hydra.sweeper.params, resolve=False) if config.hydra.sweeper.get(
+        "params") else {}
+    lines = [f"{k}={v}" for k, v in params.items()]
+    lines += OmegaConf.to_container(config.hydra.overrides.task, resolve=False)
     loader = GlobalHydra.instance().config_loader() if GlobalHydra.instance().is_initialized() else None
     parser = OverridesParser.create(config_loader=loader)  # (glob() needs the loader: it lists a group's choices)
     return BasicSweeper.split_arguments(parser.parse_overrides(lines), None)[0]
