@@ -126,13 +126,13 @@ def check_jobs(config: DictConfig) -> bool:
     jobs = sweep_jobs(config)
     if not jobs or not GlobalHydra.instance().is_initialized():
         return False
-    configs = _job_configs(config, GlobalHydra.instance().config_loader())
+    configs = _job_configs(config, jobs, GlobalHydra.instance().config_loader())
     every = True
     bad: list[tuple[int, list[str], BaseException]] = []
-    checked: dict[str, BaseException | None] = {}
-    for i, job in enumerate(jobs):
+    passed: set[str] = set()
+    for i, (job, cfg) in enumerate(zip(jobs, configs)):
         try:
-            _check_job(next(configs), checked)
+            _check_job(cfg, passed)
         except HydraException as e:
             bad.append((i, job, ConfigError(config_error_line(e))))
         except ScanregError as e:
@@ -149,18 +149,19 @@ def check_jobs(config: DictConfig) -> bool:
     return every
 
 
-def _job_configs(config: DictConfig, loader):
+def _job_configs(config: DictConfig, jobs: list[list[str]], loader):
     """Each job's config, as the launcher composes it (``load_sweep_config``), made cheaply: composing is slow,
     so it is done once per distinct set of config-group choices, and each job's other overrides are applied to
     that composition the way Hydra applies them after composing (its ``_apply_overrides_to_config``, hydra-core
-    1.3). Yields each job's config or the exception it raises."""
+    1.3). Yields each job's config (``jobs``: each one's overrides, :func:`sweep_jobs`) or the exception making it
+    raises."""
     import copy
 
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     parser, composed = OverridesParser.create(config_loader=loader), {}
-    for job in sweep_jobs(config):
+    for job in jobs:
         try:
             overrides = parser.parse_overrides(list(job))
             groups = tuple(o.input_line for o in overrides if loader.repository.group_exists(o.key_or_group))
@@ -179,10 +180,11 @@ def _job_configs(config: DictConfig, loader):
         yield cfg
 
 
-def _check_job(cfg, checked: dict[str, BaseException | None]) -> None:
+def _check_job(cfg, passed: set[str]) -> None:
     """:func:`~scanreg.app.main.check_config` and the data's preflight for one job's config (or raise what
     making it raised). The data block is checked on its own (built, its preflight), and the rest of the config
-    once per distinct rest (``checked`` keeps the passes): a sweep of pairs or seeds builds its stages once."""
+    once per distinct rest (``passed`` keeps the keys of the blocks that passed): a sweep of pairs or seeds builds
+    its stages once."""
     from scanreg.app.main import check_config
     from scanreg.stages.registry import DATA
     from scanreg.types import checked_seed
@@ -190,24 +192,24 @@ def _check_job(cfg, checked: dict[str, BaseException | None]) -> None:
     if isinstance(cfg, BaseException):
         raise cfg
     checked_seed(cfg.get("seed"))
+
+    def check_data() -> None:
+        data = DATA.build(cfg.data)
+        if not cfg.hydra.job.get("chdir"):  # (files relative to a job folder it changes into: the job's to find)
+            _preflight(data)
+
     plain = OmegaConf.to_container(cfg, resolve=False)
-    # the data block as this job resolves it; its files only where the job will look for them (not from a job
-    # folder it changes into: hydra.job.chdir)
-    data = json.dumps(["data", OmegaConf.to_container(cfg.data, resolve=True)], sort_keys=True, default=str)
-    checks = [(data, lambda: DATA.build(cfg.data) if cfg.hydra.job.get("chdir") else _preflight(DATA.build(cfg.data))),
-              (json.dumps({k: v for k, v in plain.items() if k not in ("seed", "hydra", "data")}, sort_keys=True,
-                          default=str), lambda: check_config(cfg))]
-    for key, check in checks:
-        # a key is the block as written (an interpolation, e.g. ${seed}, not resolved): only a pass is taken
-        # from another job, a failure is checked again with this job's own values (no valid job is refused)
-        if checked.get(key, ...) is not None:
-            try:
-                with _job_environment(cfg):
-                    check()
-                checked[key] = None
-            except ScanregError as e:
-                checked[key] = e
-                raise
+    rest = {k: v for k, v in plain.items() if k not in ("seed", "hydra", "data")}
+    # the data block keyed as this job resolves it, the rest as written (an interpolation such as ${seed} not
+    # resolved): only a pass is taken from another job, a block that failed is checked again with this job's own
+    # values (no valid job is refused)
+    for block, check in ((["data", OmegaConf.to_container(cfg.data, resolve=True)], check_data),
+                         (rest, lambda: check_config(cfg))):
+        key = json.dumps(block, sort_keys=True, default=str)
+        if key not in passed:
+            with _job_environment(cfg):
+                check()
+            passed.add(key)
 
 
 @contextmanager

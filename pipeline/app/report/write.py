@@ -311,11 +311,16 @@ def _has_key(df: pd.DataFrame, key: str) -> bool:
     return find_column(key, df, bare=False) is not None
 
 
+def _runs_options(df: pd.DataFrame) -> list[str]:
+    """The ``scanreg-report`` options that name the runs ``df`` holds for good: their experiment and their
+    sweep's parent run id (``latest`` would read a later sweep)."""
+    return ["--experiment", df.attrs.get("experiment", "?"), *(["--parent", df.attrs["parent"]]
+                                                               if df.attrs.get("parent") else [])]
+
+
 def _options_command(df: pd.DataFrame, p: ReportParams, group_by: list[str]) -> str:
     """A ``scanreg-report`` command for these runs with ``p``'s settings that have an option."""
-    parts = ["scanreg-report", "--experiment", df.attrs.get("experiment", "?")]
-    if df.attrs.get("parent"):
-        parts += ["--parent", df.attrs["parent"]]
+    parts = ["scanreg-report", *_runs_options(df)]
     for option, value in (("--group-by", ",".join(group_by)), ("--x", p.x), ("--per", p.per),
                           ("--metrics", ",".join(p.metrics or ())), ("--title", p.title), ("--out", p.out)):
         if value:
@@ -327,7 +332,7 @@ def given_command(argv: list[str], df: pd.DataFrame) -> str:
     """The ``scanreg-report`` command as given (``argv``), with the runs it read named for good: the experiment,
     and the sweep's parent run id in place of ``latest`` (a later sweep would be the latest)."""
     out, skip = [], False
-    for i, a in enumerate(argv):
+    for a in argv:
         if skip:
             skip = False
             continue
@@ -336,10 +341,8 @@ def given_command(argv: list[str], df: pd.DataFrame) -> str:
             skip = "=" not in a
             continue
         out.append(a)
-    pinned = ["--experiment", df.attrs.get("experiment", "?")]
-    if df.attrs.get("parent"):
-        pinned += ["--parent", df.attrs["parent"]]
-    elif "--parent" in argv or any(a.startswith("--parent=") for a in argv):
+    pinned = _runs_options(df)
+    if not df.attrs.get("parent") and ("--parent" in argv or any(a.startswith("--parent=") for a in argv)):
         pinned += ["--parent", "all"]
     return shlex.join(["scanreg-report", *pinned, *out])
 
@@ -371,9 +374,7 @@ def _sweep_report_command(cfg, df: pd.DataFrame, out: Path | None) -> str:
         name = cfg.hydra.runtime.choices.get("experiment")
     except Exception:  # noqa: BLE001  # (a config without Hydra's node)
         name = None
-    parts = ["scanreg-report", *(["--config", name] if name else []), "--experiment", df.attrs.get("experiment", "?")]
-    if df.attrs.get("parent"):
-        parts += ["--parent", df.attrs["parent"]]
+    parts = ["scanreg-report", *(["--config", name] if name else []), *_runs_options(df)]
     if df.attrs.get("uri"):
         parts += ["--uri", str(df.attrs["uri"])]
     try:  # the user's config folders (--config-dir) where --config finds the experiment
