@@ -87,7 +87,9 @@ class CoarseStage(Protocol):
     def align(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext,
               landmarks: Optional[tuple[np.ndarray, np.ndarray]] = None) -> CoarseResult:
         """``spacing``: the pair's sampling spacing (input units); ``landmarks``: picked pairs ``(target, source)``
-        when the problem has them."""
+        when the problem has them. A stage may also have ``second_look(...)`` (optional; see
+        :meth:`~scanreg.stages.coarse.base.CoarseBase.second_look`): a second estimate of a pair whose refined
+        pose keeps little of the source, which the pipeline refines too, keeping the better of the two."""
 
     def describe_set(self, clouds: list[Cloud], spacing: float, ctx: RunContext) -> list[Described]:
         """Every scan of a set described once (:class:`~scanreg.stages.coarse.base.CoarseBase` describes a scan

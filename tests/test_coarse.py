@@ -231,6 +231,42 @@ def test_the_fallback_matcher_is_the_configured_one_with_fallback_k():
         build_coarse("lo_ransac", fallback_k=0)
 
 
+def test_second_look_only_for_a_fallback_pose_that_keeps_little():
+    """The coarse stage looks again only when its uniform keypoints served and the refined pose keeps less than
+    second_look_fitness of the source, and only when it can match wider than it did."""
+    from scanreg.types import CoarseResult
+
+    stage = build_coarse("lo_ransac", {"matcher": build(MATCHER, "mutual_knn")})
+    fell_back, served = CoarseResult(np.eye(4), {"coarse_fallback": 1}), CoarseResult(np.eye(4), {"coarse_fallback": 0})
+    c, ctx = Cloud(np.zeros((3, 3))), RunContext(seed=0)
+    for res, fitness in ((served, 0.01), (fell_back, 0.15), (fell_back, 0.5), (fell_back, None)):
+        assert stage.second_look(c, c, 1.0, ctx, res, fitness) is None, (res.metrics, fitness)
+    for kw in ({"second_look_fitness": None}, {"fallback_k": 5}, {"second_look_k": 3}):
+        off = build_coarse("lo_ransac", {"matcher": build(MATCHER, "mutual_knn")}, **kw)
+        assert off.second_look(c, c, 1.0, ctx, fell_back, 0.01) is None, kw
+    assert build_coarse("lo_ransac", {"matcher": object()}).second_look(c, c, 1.0, ctx, fell_back, 0.01) is None
+    with pytest.raises(Exception, match="second_look_fitness must be in"):
+        build_coarse("lo_ransac", second_look_fitness=0)
+    with pytest.raises(Exception, match="second_look_k must be >= 1"):
+        build_coarse("lo_ransac", second_look_k=0)
+
+
+@pytest.mark.slow
+def test_second_look_matches_the_uniform_keypoints_wider():
+    """A pose from the fallback that keeps little of the source: the second look matches the same uniform
+    keypoints with 5 nearest descriptors (more matches than the first look's 3), skipping the configured
+    keypoints, and finds the pair's pose again."""
+    tgt, src, T_gt, sp, helpers = stanford_case(11, 15000, build(SALIENCE, "iss", salient_radius=0.1,
+                                                                  non_max_radius=0.1))
+    stage = build_coarse("lo_ransac", helpers)
+    first = stage.align(tgt, src, sp, RunContext(seed=0))
+    again = stage.second_look(tgt, src, sp, RunContext(seed=0), first, 0.05)
+    assert again is not None and again.metrics["coarse_fallback"] == 1
+    assert again.metrics["coarse_correspondences"] > 1.4 * first.metrics["coarse_correspondences"], again.metrics
+    assert again.metrics["coarse_keypoints_source"] == first.metrics["coarse_keypoints_source"]
+    assert transform_errors(again.T_target_source, T_gt)[0] < 0.45  # measured: 0.149 deg
+
+
 def test_landmarks_known_transform_and_a_bad_pick():
     from scanreg.stages.coarse.landmarks import landmark_fit
 

@@ -3,12 +3,16 @@
     ./run python experiments/benchmarks/low_overlap.py            # both parts (about 8 min)
     ./run python experiments/benchmarks/low_overlap.py success    # success per overlap bin, per estimator
     ./run python experiments/benchmarks/low_overlap.py consensus  # the consensus check on the failing pairs
+    ./run python experiments/benchmarks/low_overlap.py second_look  # the second look off and on, pose seeds 0, 1
 
 ``success``: the bunny benchmark's 51 cases (``experiment=bunny_benchmark``, method scanreg, pose seed 0: every
 ordered Stanford pair with 10-60 % overlap and 6 above) run with ``coarse.estimator=ransac`` (LO-RANSAC, the
 default) and ``sc2`` (SC2-PCR), interleaved per pair, through ``scanreg.run_config`` as the sweep runs them;
 success per ``gt_overlap`` bin as the benchmark's report counts it (rotation < 2 deg, translation < 1 % of the
 diagonal), and the coarse stage's time.
+
+``second_look``: the 51 cases at pose seeds 0 and 1, each with the coarse stage's second look off
+(``coarse.second_look_fitness=null``) and on (the default), interleaved per pair (about 12 min).
 
 ``consensus``: for each pair of the 10-20 % bin that fails with either estimator, the matches the coarse stage
 compared (its trace) are scored two ways: the ground truth refitted on its own inliers, and the best wrong pose
@@ -45,9 +49,10 @@ def pairs() -> list[str]:
         return yaml.safe_load(f)["hydra"]["sweeper"]["params"]["data.pair"].split(",")
 
 
-def config(pair: str, estimator: str):
-    return scanreg.compose(["experiment=bunny_benchmark", "method=scanreg", f"data.pair={pair}", "data.pose_seed=0",
-                            "tracking=none", "evaluate.view_html=false", f"coarse.estimator={estimator}"])
+def config(pair: str, estimator: str, pose_seed: int = 0, *overrides: str):
+    return scanreg.compose(["experiment=bunny_benchmark", "method=scanreg", f"data.pair={pair}",
+                            f"data.pose_seed={pose_seed}", "tracking=none", "evaluate.view_html=false",
+                            f"coarse.estimator={estimator}", *overrides])
 
 
 def success() -> dict[str, dict[str, tuple[float, float, float]]]:
@@ -72,6 +77,34 @@ def success() -> dict[str, dict[str, tuple[float, float, float]]]:
         f"{k} ({out[ESTIMATORS[0]][k][0]:.2f}: " + "/".join(f"{out[e][k][1]:.0f}" for e in ESTIMATORS) + ")"
         for k in differ))
     return out
+
+
+def second_look(pose_seed: int) -> None:
+    """The 51 cases at ``pose_seed`` with the second look off (``coarse.second_look_fitness=null``) and on (the
+    default), interleaved per pair: success per bin, the pairs looked at again and kept, the coarse stage's time,
+    and whether any pair not looked at moved (its rotation error differs)."""
+    sides = {"off": ("coarse.second_look_fitness=null",), "on": ()}
+    out: dict[str, dict] = {side: {} for side in sides}
+    for pair in pairs():
+        for side, extra in sides.items():
+            m = scanreg.run_config(config(pair, "ransac", pose_seed, *extra),
+                                   tempfile.mkdtemp(prefix="low-overlap-")).metrics
+            out[side][pair] = (m["gt_overlap"], m.get("success", 0.0), m["time_coarse_s"],
+                               m.get("coarse_second_look", 0.0), m.get("coarse_second_look_kept", 0.0),
+                               m.get("rotation_error_deg"))
+    print(f"\npose seed {pose_seed}\n\n| gt_overlap | pairs | off: success | on: success | looked again | kept "
+          "| off: median time_coarse_s | on: median time_coarse_s |\n|---|---|---|---|---|---|---|---|")
+    for lo, hi in BINS:
+        ks = [k for k, v in out["off"].items() if lo <= v[0] < hi]
+        col = {i: [sum(out[side][k][i] for k in ks) for side in sides] for i in (1, 3, 4)}
+        times = [f"{np.median([out[side][k][2] for k in ks]):.2f}" for side in sides]
+        print(f"| [{lo}, {min(hi, 1.0)}) | {len(ks)} | {col[1][0]:.0f}/{len(ks)} | {col[1][1]:.0f}/{len(ks)} | "
+              f"{col[3][1]:.0f} | {col[4][1]:.0f} | {times[0]} | {times[1]} |")
+    looked = [k for k, v in out["on"].items() if v[3]]
+    moved = [k for k in out["on"] if k not in looked and out["on"][k][5] != out["off"][k][5]]
+    print("\nlooked again (success off/on): " + ", ".join(
+        f"{k} ({out['off'][k][1]:.0f}/{out['on'][k][1]:.0f})" for k in looked))
+    print("not looked at, pose moved: " + (", ".join(moved) or "none"))
 
 
 def matches_of(pair: str):
@@ -122,6 +155,11 @@ def consensus(pair: str) -> str:
 def main():
     what = sys.argv[1] if len(sys.argv) > 1 else "both"
     t0 = time.perf_counter()
+    if what == "second_look":
+        for pose_seed in (0, 1):
+            second_look(pose_seed)
+        print(f"\n({time.perf_counter() - t0:.0f} s)")
+        return
     out = success() if what in ("both", "success") else None
     if what in ("both", "consensus"):
         if out is None:

@@ -29,7 +29,8 @@ from scanreg.geometry import (ClosestPoints, Geometry, Mesh, apply_T, bbox_centr
 from scanreg.process import blas_single_thread, cores, start_isolated
 from scanreg.runner.build import Stages
 from scanreg.runner.outputs import write_keypoints
-from scanreg.types import Correspondences, PairResult, PreparedScan, Problem, Repaired, RunContext, ScanSet, to_abs
+from scanreg.types import (CoarseResult, Correspondences, IcpResult, PairResult, PreparedScan, Problem, Repaired,
+                           RunContext, ScanSet, to_abs)
 
 MIN_POINTS = 10
 """Fewest points a cloud may have after sampling (the coarse and fine stages need neighbourhoods)."""
@@ -140,7 +141,36 @@ def register_pair(target: PreparedScan, source: PreparedScan, stages: Stages, ct
     t1 = time.perf_counter_ns()
     icp = stages.icp.refine(target.cloud, source.cloud, coarse.T_target_source, spacing, ctx, target.mesh,
                             coarse.estimated)
-    return PairResult(coarse, icp, spacing, diagonal, {"coarse": (t1 - t0) / 1e9, "icp": _seconds_since(t1)})
+    timings = {"coarse": (t1 - t0) / 1e9, "icp": _seconds_since(t1)}
+    coarse, icp = second_look(target, source, stages, ctx, spacing, coarse, icp, timings)
+    return PairResult(coarse, icp, spacing, diagonal, timings)
+
+
+def second_look(target: PreparedScan, source: PreparedScan, stages: Stages, ctx: RunContext, spacing: float,
+                coarse: CoarseResult, icp: IcpResult, timings: dict[str, float]) -> tuple[CoarseResult, IcpResult]:
+    """The coarse stage's second estimate of the pair, when it makes one for the pose ``icp`` refined (its
+    ``second_look``, e.g. for a pose that keeps little of the source on the target), refined by the fine stage
+    too; of the two, the results whose refined pose keeps the larger share of the source (``icp_fitness``;
+    ties: the first). The kept coarse result's metrics say whether a second look was made
+    (``coarse_second_look``) and kept (``coarse_second_look_kept``); its time goes to ``timings``."""
+    look = getattr(stages.coarse, "second_look", None)  # (optional in the CoarseStage protocol)
+    if look is None:
+        return coarse, icp
+    t0 = time.perf_counter_ns()
+    fitness = icp.metrics.get("icp_fitness")
+    again = look(target.cloud, source.cloud, spacing, ctx, coarse, fitness)
+    timings["coarse"] += _seconds_since(t0)
+    if again is None:
+        coarse.metrics["coarse_second_look"] = 0.0
+        return coarse, icp
+    t1 = time.perf_counter_ns()
+    icp_again = stages.icp.refine(target.cloud, source.cloud, again.T_target_source, spacing, ctx, target.mesh,
+                                  again.estimated)
+    timings["icp"] += _seconds_since(t1)
+    kept = icp_again.metrics.get("icp_fitness", -1.0) > fitness
+    coarse, icp = (again, icp_again) if kept else (coarse, icp)
+    coarse.metrics.update({"coarse_second_look": 1.0, "coarse_second_look_kept": float(kept)})
+    return coarse, icp
 
 
 @dataclass

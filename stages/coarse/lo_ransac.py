@@ -96,7 +96,20 @@ class LoRansac(CoarseBase):
         bunny benchmark's 10-20 % bin 8 of 16 against 7 at its pose seed 0, 7 against 6 at seed 1; with
         ``matcher.k=5`` none of the other 35 cases of seed 0 was lost); but the fallback's matches about double
         and so does its RANSAC's work, where users start too: the 3DMatch pair always falls back, and its coarse
-        stage then takes 1.7 times as long for the same final pose (``experiments/benchmarks/low_overlap.md``)."""
+        stage then takes 1.7 times as long for the same final pose (``experiments/benchmarks/low_overlap.md``).
+        ``second_look_fitness`` widens the matching only for the pairs that need it."""
+        second_look_fitness: Optional[float] = 0.15
+        """When the fallback's uniform keypoints served and the fine stage's pose keeps less than this share of
+        the source on the target (``icp_fitness``: within its acceptance distance; unitless, in (0, 1]), the pair
+        is registered once more, its uniform keypoints matched with ``second_look_k`` nearest descriptors, and
+        of the two refined poses the one that keeps the larger share is kept (ties: the first). At 10-20 %
+        overlap the true match of a uniform keypoint is often not among its 3 nearest descriptors: the bunny
+        benchmark's wrong poses there keep 4-17 % of the source, its right ones 19-43 %; the 3DMatch pair,
+        which always falls back, 43 %, so it is not looked at again. Logged as ``coarse_second_look`` (1: made)
+        and ``coarse_second_look_kept`` (1: its pose kept). null: never."""
+        second_look_k: int = 5
+        """The second look's matching: each uniform keypoint's this many nearest descriptors (the matcher's ``k``
+        in its place); no second look when the first already looked this far (``fallback_k``)."""
         voxel: Optional[float] = 4.0
         """Run the whole coarse stage (keypoints, descriptors, matching, RANSAC) on the clouds voxel-downsampled to
         this edge, in sampling spacings of the full clouds (one point per voxel, the one nearest the voxel's
@@ -155,6 +168,10 @@ class LoRansac(CoarseBase):
                 raise ValueError(f"fallback_voxel must be > 0 or null, got {self.fallback_voxel}")
             if self.fallback_k is not None and self.fallback_k < 1:
                 raise ValueError(f"fallback_k must be >= 1 or null, got {self.fallback_k}")
+            if self.second_look_fitness is not None and not 0 < self.second_look_fitness <= 1:
+                raise ValueError(f"second_look_fitness must be in (0, 1] or null, got {self.second_look_fitness}")
+            if self.second_look_k < 1:
+                raise ValueError(f"second_look_k must be >= 1, got {self.second_look_k}")
             if not 0 < self.miss_probability < 1:
                 raise ValueError(f"miss_probability must be in (0, 1), got {self.miss_probability}")
             if self.batch < 1 or self.max_iterations < 1:
@@ -174,10 +191,40 @@ class LoRansac(CoarseBase):
 
     def align(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext,
               landmarks=None) -> CoarseResult:
+        return self._thinned_then(self._run, target, source, spacing, ctx)
+
+    def second_look(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext, first: CoarseResult,
+                    fitness: float | None) -> CoarseResult | None:
+        """The pair again with the fallback's uniform keypoints matched wider (``second_look_fitness``,
+        ``second_look_k``), when the fallback served ``first`` and its refined pose keeps less than
+        ``second_look_fitness`` of the source; None otherwise, or when the wider matching finds too little."""
+        p, k = self.p, self.p.second_look_k
+        looked = getattr(getattr(self._fallback_matcher(), "p", None), "k", None)  # how far the first look matched
+        if (p.second_look_fitness is None or fitness is None or not fitness < p.second_look_fitness
+                or first.metrics.get("coarse_fallback") != 1 or looked is None or looked >= k):
+            return None
+        if ctx.verbose:
+            print(f"coarse=lo_ransac: the pose keeps {fitness:.1%} of the source (second_look_fitness "
+                  f"{p.second_look_fitness:g}); matching the uniform keypoints with {k} nearest descriptors")
+        wider = self._matcher_with(k)
+
+        def uniform_only(t: Cloud, s: Cloud, sp: float, ctx: RunContext) -> CoarseResult:
+            res = self._attempt(t, s, sp, self._uniform_salience(), wider)
+            res.metrics["coarse_fallback"] = 1
+            return res
+
+        try:
+            return self._thinned_then(uniform_only, target, source, spacing, ctx)
+        except StageError:
+            return None
+
+    def _thinned_then(self, run, target: Cloud, source: Cloud, spacing: float, ctx: RunContext) -> CoarseResult:
+        """``run(target, source, spacing, ctx)`` on the clouds thinned as ``voxel`` and its neighbours say, its
+        result's metrics with the thinning's."""
         p = self.p
         with blas_single_thread():
             if p.voxel is None:
-                return self._run(target, source, spacing, ctx)
+                return run(target, source, spacing, ctx)
             target, source, spacing = thinned_pair(target, source, spacing, p.max_input_points, ctx, THIN_SALT)
             inputs = {"coarse_input_points_target": target.n_points, "coarse_input_points_source": source.n_points}
             voxel, dropped = p.voxel * spacing, (0, 0)
@@ -186,7 +233,7 @@ class LoRansac(CoarseBase):
                 target, source, dropped, voxel = without_isolated(target, source, spacing, p.voxel,
                                                                   p.isolated_ratio, ctx)
             target, source, thinned = downsampled(target, source, spacing, ctx, voxel, p.max_points, p.min_points)
-            res = self._run(target, source, thinned, ctx)
+            res = run(target, source, thinned, ctx)
             res.metrics.update({**inputs, "coarse_points_target": target.n_points,
                                 "coarse_points_source": source.n_points, "coarse_spacing": thinned,
                                 "coarse_isolated_target": dropped[0], "coarse_isolated_source": dropped[1]})
@@ -201,24 +248,31 @@ class LoRansac(CoarseBase):
         except StageError as first:
             if self.p.fallback_voxel is None or getattr(self.salience, "name", "") == "uniform":
                 raise
-            uniform = SALIENCE.build({"name": "uniform", "voxel": self.p.fallback_voxel, "distances": "spacing"})
             if ctx.verbose:
                 print(f"coarse=lo_ransac: {first}; trying uniform keypoints every {self.p.fallback_voxel:g} spacings")
             try:
-                res = self._attempt(target, source, spacing, uniform, self._fallback_matcher())
+                res = self._attempt(target, source, spacing, self._uniform_salience(), self._fallback_matcher())
             except StageError as second:
                 raise StageError(f"{first}; the fallback to uniform keypoints failed too: "
                                  f"{str(second).removeprefix('coarse=lo_ransac: ')}") from None
             res.metrics["coarse_fallback"] = 1
             return res
 
+    def _uniform_salience(self):
+        """The fallback's keypoints: uniform, one per ``fallback_voxel``."""
+        return SALIENCE.build({"name": "uniform", "voxel": self.p.fallback_voxel, "distances": "spacing"})
+
     def _fallback_matcher(self):
         """The matcher of the fallback's uniform keypoints: the configured one with ``k`` = ``fallback_k`` (when
         it has a ``k``)."""
+        return self.matcher if self.p.fallback_k is None else self._matcher_with(self.p.fallback_k)
+
+    def _matcher_with(self, k: int):
+        """The configured matcher with ``k`` nearest descriptors (itself when it has no ``k``)."""
         params = getattr(self.matcher, "p", None)
-        if self.p.fallback_k is None or not hasattr(params, "k"):
+        if not hasattr(params, "k"):
             return self.matcher
-        return type(self.matcher)(replace(params, k=self.p.fallback_k))
+        return type(self.matcher)(replace(params, k=k))
 
     def _attempt(self, target: Cloud, source: Cloud, spacing: float, salience, matcher) -> CoarseResult:
         """Keypoints by ``salience``, descriptors, matches by ``matcher`` and RANSAC; a :class:`StageError` when any
@@ -329,7 +383,7 @@ class LoRansac(CoarseBase):
     def _uniformly(self, d: Described) -> Described:
         """``d``'s cloud described with uniform keypoints (``fallback_voxel``), once."""
         if d.fallback is None:
-            uniform = SALIENCE.build({"name": "uniform", "voxel": self.p.fallback_voxel, "distances": "spacing"})
+            uniform = self._uniform_salience()
             kp = uniform.keypoints(d.cloud, d.spacing)
             d.fallback = Described(d.cloud, d.spacing, kp, self.descriptor.compute(d.cloud, kp, d.spacing))
         return d.fallback
