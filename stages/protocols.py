@@ -87,9 +87,11 @@ class CoarseStage(Protocol):
     def align(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext,
               landmarks: Optional[tuple[np.ndarray, np.ndarray]] = None) -> CoarseResult:
         """``spacing``: the pair's sampling spacing (input units); ``landmarks``: picked pairs ``(target, source)``
-        when the problem has them. A stage may also have ``second_look(...)`` (optional; see
-        :meth:`~scanreg.stages.coarse.base.CoarseBase.second_look`): a second estimate of a pair whose refined
-        pose keeps little of the source, which the pipeline refines too, keeping the better of the two."""
+        when the problem has them. A stage may also have ``second_look(target, source, spacing, ctx, first,
+        fitness) -> CoarseResult | None`` (optional; ``lo_ransac`` has one): a second estimate of a pair whose
+        ``first`` estimate the fine stage refined to a pose that keeps only ``fitness`` of the source on the
+        target (``icp_fitness``), or None when it makes none; the pipeline refines it too and keeps the pose
+        that keeps more of the source (:func:`scanreg.runner.steps.second_look`)."""
 
     def describe_set(self, clouds: list[Cloud], spacing: float, ctx: RunContext) -> list[Described]:
         """Every scan of a set described once (:class:`~scanreg.stages.coarse.base.CoarseBase` describes a scan

@@ -236,15 +236,22 @@ def test_second_look_only_for_a_fallback_pose_that_keeps_little():
     second_look_fitness of the source, and only when it can match wider than it did."""
     from scanreg.types import CoarseResult
 
-    stage = build_coarse("lo_ransac", {"matcher": build(MATCHER, "mutual_knn")})
+    def stage(helpers=None, **kw):  # its search replaced by one that says it ran, and with which matcher's k
+        st = build_coarse("lo_ransac", helpers or {"matcher": build(MATCHER, "mutual_knn")}, **kw)
+        st._attempt = lambda t, s, sp, salience, matcher: CoarseResult(np.eye(4), {"k": matcher.p.k})
+        st._thinned_then = lambda run, t, s, sp, ctx: run(t, s, sp, ctx)
+        return st
+
     fell_back, served = CoarseResult(np.eye(4), {"coarse_fallback": 1}), CoarseResult(np.eye(4), {"coarse_fallback": 0})
     c, ctx = Cloud(np.zeros((3, 3))), RunContext(seed=0)
+    looked = stage().second_look(c, c, 1.0, ctx, fell_back, 0.149)
+    assert looked is not None and looked.metrics == {"k": 5, "coarse_fallback": 1}, looked
+    assert stage(second_look_k=7).second_look(c, c, 1.0, ctx, fell_back, 0.01).metrics["k"] == 7
     for res, fitness in ((served, 0.01), (fell_back, 0.15), (fell_back, 0.5), (fell_back, None)):
-        assert stage.second_look(c, c, 1.0, ctx, res, fitness) is None, (res.metrics, fitness)
+        assert stage().second_look(c, c, 1.0, ctx, res, fitness) is None, (res.metrics, fitness)
     for kw in ({"second_look_fitness": None}, {"fallback_k": 5}, {"second_look_k": 3}):
-        off = build_coarse("lo_ransac", {"matcher": build(MATCHER, "mutual_knn")}, **kw)
-        assert off.second_look(c, c, 1.0, ctx, fell_back, 0.01) is None, kw
-    assert build_coarse("lo_ransac", {"matcher": object()}).second_look(c, c, 1.0, ctx, fell_back, 0.01) is None
+        assert stage(**kw).second_look(c, c, 1.0, ctx, fell_back, 0.01) is None, kw
+    assert stage({"matcher": object()}).second_look(c, c, 1.0, ctx, fell_back, 0.01) is None  # (no k to widen)
     with pytest.raises(Exception, match="second_look_fitness must be in"):
         build_coarse("lo_ransac", second_look_fitness=0)
     with pytest.raises(Exception, match="second_look_k must be >= 1"):

@@ -524,7 +524,7 @@ def test_a_report_into_a_folder_removes_what_the_previous_report_wrote(tmp_path)
     assert "report.md" in (tmp_path / ".scanreg-report-files").read_text().split()
 
 
-def test_the_share_of_runs_whose_coarse_stage_fell_back_is_shown_when_any_did():
+def test_the_share_of_runs_whose_coarse_stage_fell_back_or_looked_again_is_shown_when_any_did():
     """A sweep over salience measures at few points: ISS and cn_l3 both fell back to uniform keypoints and gave the
     same transform, and the report did not say so (a researcher's trial). The share per group is shown when any
     run fell back, and only then."""
@@ -538,6 +538,12 @@ def test_the_share_of_runs_whose_coarse_stage_fell_back_is_shown_when_any_did():
     assert "fallback" in console_table(table, ["salience.name"], width=200).splitlines()[0]
     df["metrics.coarse_fallback"] = 0.0
     assert "coarse_fallback_share" not in summarize(df, ["salience.name"])
+    # likewise the share of runs whose coarse stage looked at the pair a second time
+    df["metrics.coarse_second_look"] = [0.0, 1.0, 0.0, 0.0, 0.0, 0.0]
+    table = summarize(df, ["salience.name"])
+    assert list(table["coarse_second_look_share"]) == pytest.approx([1 / 3, 0.0])
+    assert "coarse_second_look (share of runs)" in display_table(table, ["salience.name"], [])
+    assert "second_look" in console_table(table, ["salience.name"], width=200).splitlines()[0]
 
 
 def test_per_case_tables_order_the_groups_by_value():

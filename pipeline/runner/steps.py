@@ -148,28 +148,36 @@ def register_pair(target: PreparedScan, source: PreparedScan, stages: Stages, ct
 
 def second_look(target: PreparedScan, source: PreparedScan, stages: Stages, ctx: RunContext, spacing: float,
                 coarse: CoarseResult, icp: IcpResult, timings: dict[str, float]) -> tuple[CoarseResult, IcpResult]:
-    """The coarse stage's second estimate of the pair, when it makes one for the pose ``icp`` refined (its
-    ``second_look``, e.g. for a pose that keeps little of the source on the target), refined by the fine stage
-    too; of the two, the results whose refined pose keeps the larger share of the source (``icp_fitness``;
-    ties: the first). The kept coarse result's metrics say whether a second look was made
-    (``coarse_second_look``) and kept (``coarse_second_look_kept``); its time goes to ``timings``."""
-    look = getattr(stages.coarse, "second_look", None)  # (optional in the CoarseStage protocol)
-    if look is None:
+    """The coarse stage's second estimate of the pair, when it has a ``second_look`` (optional in the
+    :class:`~scanreg.stages.protocols.CoarseStage` protocol) and makes one for the pose ``icp`` refined (e.g. a
+    pose that keeps little of the source on the target), refined by the fine stage too; of the two, the results
+    whose refined pose keeps the larger share of the source (``icp_fitness``; ties, or a second refinement that
+    fails: the first). The share, not the acceptance test's truncated cost, because at these overlaps it
+    separated right from wrong poses more clearly (``experiments/benchmarks/low_overlap.md``). The kept coarse
+    result's metrics say whether a second look was made (``coarse_second_look``) and kept
+    (``coarse_second_look_kept``); its time goes to ``timings``."""
+    look = getattr(stages.coarse, "second_look", None)
+    fitness = icp.metrics.get("icp_fitness")
+    if look is None or fitness is None:
         return coarse, icp
     t0 = time.perf_counter_ns()
-    fitness = icp.metrics.get("icp_fitness")
     again = look(target.cloud, source.cloud, spacing, ctx, coarse, fitness)
     timings["coarse"] += _seconds_since(t0)
-    if again is None:
-        coarse.metrics["coarse_second_look"] = 0.0
-        return coarse, icp
-    t1 = time.perf_counter_ns()
-    icp_again = stages.icp.refine(target.cloud, source.cloud, again.T_target_source, spacing, ctx, target.mesh,
-                                  again.estimated)
-    timings["icp"] += _seconds_since(t1)
-    kept = icp_again.metrics.get("icp_fitness", -1.0) > fitness
-    coarse, icp = (again, icp_again) if kept else (coarse, icp)
-    coarse.metrics.update({"coarse_second_look": 1.0, "coarse_second_look_kept": float(kept)})
+    kept = False
+    if again is not None:
+        t1 = time.perf_counter_ns()
+        try:
+            icp_again = stages.icp.refine(target.cloud, source.cloud, again.T_target_source, spacing, ctx,
+                                          target.mesh, again.estimated)
+            kept = icp_again.metrics.get("icp_fitness", -1.0) > fitness
+        except ScanregError:  # (e.g. too few pairs from the second estimate: the first stands)
+            pass
+        timings["icp"] += _seconds_since(t1)
+    if kept:
+        coarse, icp = again, icp_again
+    coarse.metrics["coarse_second_look"] = float(again is not None)
+    if again is not None:
+        coarse.metrics["coarse_second_look_kept"] = float(kept)
     return coarse, icp
 
 

@@ -43,11 +43,3 @@ class CoarseBase:
                         budget: int | None = None) -> CoarseResult:
         """One pair of a set (``budget``: at most this many hypotheses, for a stage that draws them)."""
         return self.align(target.cloud, source.cloud, max(target.spacing, source.spacing), ctx)
-
-    def second_look(self, target: Cloud, source: Cloud, spacing: float, ctx: RunContext, first: CoarseResult,
-                    fitness: float | None) -> CoarseResult | None:
-        """A second estimate of a pair whose ``first`` estimate the fine stage refined to a pose that keeps only
-        ``fitness`` of the source on the target (``icp_fitness``; None when the fine stage does not say), made by
-        searching wider; None when the stage has no wider search or the pose needs none (here: never). The
-        caller refines it too and keeps the pose that keeps more of the source."""
-        return None

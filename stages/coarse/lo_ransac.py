@@ -109,7 +109,8 @@ class LoRansac(CoarseBase):
         and ``coarse_second_look_kept`` (1: its pose kept). null: never."""
         second_look_k: int = 5
         """The second look's matching: each uniform keypoint's this many nearest descriptors (the matcher's ``k``
-        in its place); no second look when the first already looked this far (``fallback_k``)."""
+        in its place); no second look when the first already looked this far (``fallback_k``, else the
+        matcher's ``k``) or the matcher has no ``k``."""
         voxel: Optional[float] = 4.0
         """Run the whole coarse stage (keypoints, descriptors, matching, RANSAC) on the clouds voxel-downsampled to
         this edge, in sampling spacings of the full clouds (one point per voxel, the one nearest the voxel's
@@ -197,7 +198,9 @@ class LoRansac(CoarseBase):
                     fitness: float | None) -> CoarseResult | None:
         """The pair again with the fallback's uniform keypoints matched wider (``second_look_fitness``,
         ``second_look_k``), when the fallback served ``first`` and its refined pose keeps less than
-        ``second_look_fitness`` of the source; None otherwise, or when the wider matching finds too little."""
+        ``second_look_fitness`` of the source (``fitness``); None otherwise, or when the wider matching finds
+        too little. (The optional method of :class:`~scanreg.stages.protocols.CoarseStage`; pairs only, a scan
+        set's pairs are not looked at again.)"""
         p, k = self.p, self.p.second_look_k
         looked = getattr(getattr(self._fallback_matcher(), "p", None), "k", None)  # how far the first look matched
         if (p.second_look_fitness is None or fitness is None or not fitness < p.second_look_fitness

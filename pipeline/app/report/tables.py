@@ -151,6 +151,12 @@ def median_stats(ok: pd.DataFrame, metrics, how: str) -> dict:
     return row
 
 
+SHARE_FLAGS = ("coarse_fallback", "coarse_second_look")
+"""0/1 metrics shown beside every group as the share of its finished runs that had 1 (``M_share``), when any run
+had: the coarse stage replaced the configured keypoints by uniform ones (a comparison of detectors, salience,
+compares nothing where it did), and it looked at the pair a second time (wider matching at low overlap)."""
+
+
 def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = (), how: str = "bootstrap") -> pd.DataFrame:
     """One row per group: runs, failed, success rate with its Wilson interval (``success_lo``, ``success_hi``),
     error quantiles, median stage times (and the median of each ``extra`` metric); every median ``M_median``
@@ -160,9 +166,7 @@ def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = (), how:
     for c in cols:
         work[c] = _typed(work[c])
     rows = []
-    # the coarse stage replaced the configured keypoints by uniform ones: a comparison of detectors (salience)
-    # compares nothing where it did, so the share is shown beside every group
-    fallback = "metrics.coarse_fallback" in work and bool((work["metrics.coarse_fallback"] > 0).any())
+    flags = [f for f in SHARE_FLAGS if f"metrics.{f}" in work and bool((work[f"metrics.{f}"] > 0).any())]
     groups = work.groupby(cols, dropna=False, sort=True) if cols else [((), work)]
     for key, g in groups:
         key = key if isinstance(key, tuple) else (key,)
@@ -181,9 +185,9 @@ def summarize(df: pd.DataFrame, group_by: list[str], extra: list[str] = (), how:
                 row[f"{m}_{agg}"] = float(s.median() if agg == "median" else s.quantile(0.9))
                 if agg == "median":
                     row[f"{m}_lo"], row[f"{m}_hi"] = interval(s.values, how)
-        if fallback:
-            fell = ok["metrics.coarse_fallback"].dropna()
-            row["coarse_fallback_share"] = float(fell.mean()) if len(fell) else float("nan")
+        for f in flags:
+            said = ok[f"metrics.{f}"].dropna()
+            row[f"{f}_share"] = float(said.mean()) if len(said) else float("nan")
         row["_label"] = " / ".join(canonical(v) for v in key) if group_by else "all"
         rows.append(row)
     return pd.DataFrame(rows)
@@ -268,8 +272,9 @@ def display_table(table: pd.DataFrame, group_by: list[str], metrics: list[str]) 
     if "success_rate" in table:
         out["success [Wilson 95 %]"] = [fmt_success(r.get("successes"), r.get("judged", r["runs"]), r.get("success_lo"),
                                                     r.get("success_hi")) for _, r in table.iterrows()]
-    if "coarse_fallback_share" in table:
-        out["coarse_fallback (share of runs)"] = [fmt_value(v) for v in table["coarse_fallback_share"]]
+    for f in SHARE_FLAGS:
+        if f"{f}_share" in table:
+            out[f"{f} (share of runs)"] = [fmt_value(v) for v in table[f"{f}_share"]]
     fit = [] if has_errors(table) else TABLE_FIT
     shown = TABLE_MEDIANS + TABLE_SET + fit
     for m in [*shown, *[m for m in metrics if m not in shown], *TABLE_TIMES]:
@@ -433,11 +438,12 @@ CONSOLE_ERRORS = [("rotation_error_deg_median", "rot_deg"), ("translation_error_
                   ("scan_rotation_error_max_deg_median", "worst_rot_deg"),
                   ("scan_translation_error_max_rel_median", "worst_transl_rel")]
 CONSOLE_FIT = [("rms_median", "rms"), ("fitness_median", "fitness")]
-CONSOLE_SET = [("scans_placed_median", "placed"), ("coarse_fallback_share", "fallback")]
+CONSOLE_SET = [("scans_placed_median", "placed"), ("coarse_fallback_share", "fallback"),
+               ("coarse_second_look_share", "second_look")]
 CONSOLE_TIMES = [("time_coarse_s_median", "coarse_s"), ("time_total_s_median", "total_s")]
 """The console's short table: (report.csv column, heading); the errors, or without ground truth the fit (a scan
-set's placed scans, and the share of runs whose coarse stage fell back to uniform keypoints when any did, beside
-either)."""
+set's placed scans, and the share of runs whose coarse stage fell back to uniform keypoints, or looked again,
+when any did, beside either)."""
 
 
 CONSOLE_LENGTHS = {"transl", "rms"}
