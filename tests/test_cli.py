@@ -243,6 +243,28 @@ def test_tracking_store_given_as_a_path():
         MlflowTracking(MlflowTracking.Params(uri="mlruns"))
 
 
+def test_a_file_store_uri_is_one_line_before_any_run(tmp_path, monkeypatch):
+    """tracking.uri=file:///...: MLflow 3 refuses its file store only when a run is logged, after the work; a
+    sweep then printed MLflow's exception as a Python warning and counted every job twice (4/2 jobs, exit 1).
+    Now one line before any run or job starts, unless MLflow's own opt-in MLFLOW_ALLOW_FILE_STORE is set."""
+    from scanreg.app.tracking import store_uri
+    from scanreg.errors import ConfigError
+
+    monkeypatch.delenv("MLFLOW_ALLOW_FILE_STORE", raising=False)
+    uri = (tmp_path / "mlruns").as_uri()
+    with pytest.raises(ConfigError, match=r"^MLFLOW_TRACKING_URI=file:///.*a file store .*MLFLOW_ALLOW_FILE_STORE=true"):
+        store_uri(uri, "MLFLOW_TRACKING_URI")
+    monkeypatch.setenv("MLFLOW_ALLOW_FILE_STORE", "true")
+    assert store_uri(uri, "x") == uri
+    monkeypatch.delenv("MLFLOW_ALLOW_FILE_STORE")
+    for args in (["data=synthetic"], ["-m", "data=synthetic", "sampler.n_points=2000,3000"]):
+        r = run_cli([*args, f"tracking.uri={uri}", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+                     f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert "a file store" in r.stderr and "Warning" not in r.stderr and "jobs" not in r.stdout, r.stderr
+    assert not (tmp_path / "mlruns").exists() and not (tmp_path / "sweep").exists() and not (tmp_path / "run").exists()
+
+
 BUNNY = "pkg:pymeshfix/examples/StanfordBunny.ply"
 
 

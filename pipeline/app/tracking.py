@@ -156,13 +156,20 @@ def store_uri(uri: str, where: str) -> str:
     """The tracking URI ``uri`` as MLflow takes it: a URI (``scheme://...``) as it is; a plain path to a SQLite
     file (``outputs/mlflow.db``, as the default is written) as ``sqlite:///<absolute path>``. Any other plain path
     (a folder: MLflow's file store, which MLflow 3 no longer writes) is a :class:`~scanreg.errors.ConfigError`
-    naming ``where`` (the parameter or variable that gave it)."""
+    naming ``where`` (the parameter or variable that gave it); so is a ``file:`` URI, unless
+    ``MLFLOW_ALLOW_FILE_STORE`` is true (MLflow's own opt-in: without it MLflow refuses the store only once a run
+    is logged, after the run's work, and in a sweep after every job's)."""
+    from scanreg.errors import ConfigError
+
+    if uri.lower().startswith("file:") and os.environ.get("MLFLOW_ALLOW_FILE_STORE", "").lower() not in ("true",
+                                                                                                           "1"):
+        raise ConfigError(f"{where}={uri}: a file store (a folder), which MLflow 3 no longer writes; give a SQLite "
+                          "file (e.g. outputs/mlflow.db; `mlflow migrate-filestore` moves a folder's runs into one) or "
+                          "set MLFLOW_ALLOW_FILE_STORE=true to write the folder anyway")
     if "://" in uri:
         return uri
     if uri.lower().endswith(SQLITE_SUFFIXES):
         return f"sqlite:///{Path(uri).expanduser().resolve()}"
-    from scanreg.errors import ConfigError
-
     raise ConfigError(f"{where}={uri}: not a tracking store scanreg can use; give a SQLite file (a path ending in "
                       f"{', '.join(SQLITE_SUFFIXES)}, e.g. outputs/mlflow.db) or a URI (sqlite:///..., http://...)")
 
