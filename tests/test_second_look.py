@@ -49,19 +49,27 @@ def _look(coarse_stage, fits, first_fitness=0.05):
     return coarse, fine, timings, first
 
 
-def test_the_step_keeps_the_pose_that_keeps_more_of_the_source():
+def test_the_step_keeps_the_pose_that_keeps_more_of_the_source(capsys):
     T2 = np.eye(4)
     T2[0, 3] = 2.0
     again = CoarseResult(T2, {"coarse_fallback": 1, "coarse_correspondences": 9})
     coarse, fine, timings, first = _look(_Coarse(again), {2.0: 0.2})
     assert coarse is again and fine.metrics["icp_fitness"] == 0.2 and fine.T_target_source is T2
     assert coarse.metrics["coarse_second_look"] == 1 and coarse.metrics["coarse_second_look_kept"] == 1
+    assert coarse.metrics["coarse_first_look_fitness"] == 0.05 and coarse.metrics["coarse_second_look_fitness"] == 0.2
     assert timings["coarse"] > 1.0 and timings["icp"] > 1.0 and "coarse_second_look" not in first.metrics
+    said = capsys.readouterr().out.strip().splitlines()  # the user is told, in one line
+    assert len(said) == 1 and said[0].startswith("note: second look:") and "5.0%" in said[0], said
+    assert said[0].endswith("that pose keeps 20.0%: kept"), said
     for fit in (0.05, 0.01, None):  # a tie, a worse pose, a second refinement that fails: the first stands
         again = CoarseResult(T2.copy(), {})
         coarse, fine, _, first = _look(_Coarse(again), {2.0: fit})
         assert coarse is first and fine.metrics["icp_fitness"] == 0.05, fit
         assert coarse.metrics["coarse_second_look"] == 1 and coarse.metrics["coarse_second_look_kept"] == 0
+        assert coarse.metrics["coarse_second_look_fitness"] == fit if fit else \
+            np.isnan(coarse.metrics["coarse_second_look_fitness"])
+        said = capsys.readouterr().out
+        assert said.strip().endswith("the first pose kept") and ("refinement failed" in said) == (fit is None), said
 
 
 def test_the_step_without_a_second_estimate():

@@ -165,7 +165,7 @@ def store_uri(uri: str, where: str) -> str:
                                                                                                            "1"):
         raise ConfigError(f"{where}={uri}: a file store (a folder), which MLflow 3 no longer writes; give a SQLite "
                           "file (e.g. outputs/mlflow.db; `mlflow migrate-filestore` moves a folder's runs into one) or "
-                          "set MLFLOW_ALLOW_FILE_STORE=true to write the folder anyway")
+                          "set MLFLOW_ALLOW_FILE_STORE=true to use the folder anyway")
     if "://" in uri:
         return uri
     if uri.lower().endswith(SQLITE_SUFFIXES):

@@ -18,7 +18,7 @@ from typing import Optional
 
 import numpy as np
 
-from scanreg.errors import InputError, ScanregError, warn
+from scanreg.errors import InputError, ScanregError, note, one_line, warn
 from scanreg.eval.checks import check_geometry, check_inputs
 from scanreg.eval.metrics import (EvalParams, alignment_metrics, field_metrics, gt_metrics, inverted_gt_warning,
                                   low_fitness_warning, sparse_pair_warning, surface_deviation, unit_metrics)
@@ -155,7 +155,9 @@ def second_look(target: PreparedScan, source: PreparedScan, stages: Stages, ctx:
     fails: the first). The share, not the acceptance test's truncated cost, because at these overlaps it
     separated right from wrong poses more clearly (``experiments/benchmarks/low_overlap.md``). The kept coarse
     result's metrics say whether a second look was made (``coarse_second_look``) and kept
-    (``coarse_second_look_kept``); its time goes to ``timings``."""
+    (``coarse_second_look_kept``), and the share each look's refined pose keeps (``coarse_first_look_fitness``,
+    ``coarse_second_look_fitness``; NaN when the second refinement failed); a look made prints one note line;
+    its time goes to ``timings``."""
     look = getattr(stages.coarse, "second_look", None)
     fitness = icp.metrics.get("icp_fitness")
     if look is None or fitness is None:
@@ -163,21 +165,25 @@ def second_look(target: PreparedScan, source: PreparedScan, stages: Stages, ctx:
     t0 = time.perf_counter_ns()
     again = look(target.cloud, source.cloud, spacing, ctx, coarse, fitness)
     timings["coarse"] += _seconds_since(t0)
-    kept = False
-    if again is not None:
-        t1 = time.perf_counter_ns()
-        try:
-            icp_again = stages.icp.refine(target.cloud, source.cloud, again.T_target_source, spacing, ctx,
-                                          target.mesh, again.estimated)
-            kept = icp_again.metrics.get("icp_fitness", -1.0) > fitness
-        except ScanregError:  # (e.g. too few pairs from the second estimate: the first stands)
-            pass
-        timings["icp"] += _seconds_since(t1)
+    if again is None:
+        coarse.metrics["coarse_second_look"] = 0.0
+        return coarse, icp
+    t1 = time.perf_counter_ns()
+    try:
+        icp_again = stages.icp.refine(target.cloud, source.cloud, again.T_target_source, spacing, ctx,
+                                      target.mesh, again.estimated)
+        second, outcome = icp_again.metrics.get("icp_fitness", float("nan")), ""
+    except ScanregError as e:  # (e.g. too few pairs from the second estimate: the first stands)
+        icp_again, second, outcome = None, float("nan"), f"its refinement failed ({one_line(e)}): "
+    timings["icp"] += _seconds_since(t1)
+    kept = second > fitness
+    outcome = outcome or f"that pose keeps {second:.1%}: "
+    note(f"second look: the refined pose keeps {fitness:.1%} of the source on the target, so the coarse stage "
+         f"registered the pair again with wider matching; {outcome}{'kept' if kept else 'the first pose kept'}")
     if kept:
         coarse, icp = again, icp_again
-    coarse.metrics["coarse_second_look"] = float(again is not None)
-    if again is not None:
-        coarse.metrics["coarse_second_look_kept"] = float(kept)
+    coarse.metrics.update({"coarse_second_look": 1.0, "coarse_second_look_kept": float(kept),
+                           "coarse_first_look_fitness": fitness, "coarse_second_look_fitness": second})
     return coarse, icp
 
 

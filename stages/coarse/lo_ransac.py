@@ -105,8 +105,13 @@ class LoRansac(CoarseBase):
         of the two refined poses the one that keeps the larger share is kept (ties: the first). At 10-20 %
         overlap the true match of a uniform keypoint is often not among its 3 nearest descriptors: the bunny
         benchmark's wrong poses there keep 4-17 % of the source, its right ones 19-43 %; the 3DMatch pair,
-        which always falls back, 43 %, so it is not looked at again. Logged as ``coarse_second_look`` (1: made)
-        and ``coarse_second_look_kept`` (1: its pose kept). null: never."""
+        which always falls back, 43 %, so it is not looked at again. The share is a weak signal at such
+        overlaps (on the raw scans' repaired meshes, 20 000 points, wrong poses kept 22-31 % and right ones
+        15-19 %): the second look is a second chance for a pose that keeps little, at the cost of another coarse
+        and fine stage (about twice the first coarse stage), not a verdict on the pose. Logged as
+        ``coarse_second_look`` (1: made), ``coarse_second_look_kept`` (1: its pose kept),
+        ``coarse_first_look_fitness`` and ``coarse_second_look_fitness``; a look made prints a note line.
+        null: never."""
         second_look_k: int = 5
         """The second look's matching: each uniform keypoint's this many nearest descriptors (the matcher's ``k``
         in its place); no second look when the first already looked this far (``fallback_k``, else the
