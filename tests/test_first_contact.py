@@ -63,8 +63,10 @@ def test_size_mismatch_names_both_extents_and_the_unit():
 def test_the_same_file_as_source_and_target_is_said(tmp_path, capsys):
     """Source and target the same file: the result is the identity; one warning says so and how to pose the
     source. Not when a pose is set (the benchmark's closed mesh onto itself) or the file is read otherwise (scales,
-    columns: one file holding two clouds)."""
+    columns: one file holding two clouds). Read alike, the file's truth is known without data.gt: the identity,
+    followed by the pose (a user's trial posed a mesh onto itself and got no rotation error)."""
     from scanreg import build_stage
+    from scanreg.geometry import apply_T
     from scanreg.types import RunContext
 
     np.savetxt(tmp_path / "a.xyz", np.random.default_rng(0).random((200, 6)))
@@ -72,9 +74,14 @@ def test_the_same_file_as_source_and_target_is_said(tmp_path, capsys):
                                                                           False),
                         ({"source_columns": "x y z - - -", "target_columns": "- - - x y z"}, False)]:
         stage = build_stage("data", "files", source=str(tmp_path / "a.xyz"), target=f"{tmp_path}/./a.xyz", **extra)
-        stage.load(RunContext())
+        problem = stage.load(RunContext())
         out = capsys.readouterr().out
         assert ("are the same file" in out and "data.max_angle_deg" in out) == said, (extra, out)
+        alike = "source_scale" not in extra and "source_columns" not in extra
+        assert (problem.T_gt is not None) == alike, extra
+        if alike:  # the truth takes the (posed) source back onto the target
+            np.testing.assert_allclose(apply_T(problem.T_gt, problem.source.points), problem.target.points, atol=1e-12)
+            assert np.allclose(problem.source.points, problem.target.points) == (not extra)
 
 
 @pytest.mark.slow

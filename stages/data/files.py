@@ -73,7 +73,8 @@ class Files(Provider):
     class Params(PoseParams):
         max_angle_deg: float = 0.0
         """Largest rotation of a further random pose of the source, degrees (0 with ``max_translation`` 0: the
-        source as read; >= 180: any rotation); the ground truth and landmarks follow it."""
+        source as read; >= 180: any rotation); the ground truth and landmarks follow it (without ``gt``, a source
+        and target that are one file read alike have the identity as their truth)."""
         max_translation: float = 0.0
         """Largest translation of that pose, as a share of the target's bounding-box diagonal."""
         source: Optional[str] = None
@@ -146,7 +147,10 @@ class Files(Provider):
         posed = self.p.max_angle_deg > 0 or self.p.max_translation > 0
         same_reading = (self.p.source_scale == self.p.target_scale and
                         (self.p.source_columns or self.p.columns) == (self.p.target_columns or self.p.columns))
-        if not posed and same_reading and _same_file(self.p.source, self.p.target):
+        same = same_reading and _same_file(self.p.source, self.p.target)
+        if gt is None and same:  # one file read alike: the source lies on the target, the truth is the identity
+            gt = np.eye(4)
+        if not posed and same:
             warn(f"data.source and data.target are the same file ({self.p.source}): the source lies on the target "
                  "already, so the result is the identity; to test the registration, move the source with "
                  "data.max_angle_deg=A data.max_translation=T (the truth follows the pose)")
