@@ -168,10 +168,38 @@ def make_params(params_cls: type, values: dict, where: str) -> Any:
 
 
 def type_error(params_cls: type, key: str, value: Any, where: str) -> str:
-    """The one-line message for a value of the wrong type."""
-    ftype = {f.name: f.type for f in dataclasses.fields(params_cls)}.get(key.split(".")[0])
-    tname = getattr(ftype, "__name__", str(ftype))
-    return f"{where}: parameter '{key}' expects {tname}, got {value!r}"
+    """The one-line message for a value of the wrong type, the type as ``scanreg-stages`` lists it."""
+    name = key.split(".")[0]
+    ftype = field_types(params_cls).get(name, {f.name: f.type for f in dataclasses.fields(params_cls)}.get(name))
+    return f"{where}: parameter '{key}' expects {type_text(ftype)}, got {value!r}"
+
+
+def field_types(params_cls: type) -> dict[str, Any]:
+    """The dataclass's field types, resolved (its annotations are text under ``from __future__ import
+    annotations``); empty when they cannot be."""
+    import typing
+
+    try:
+        return typing.get_type_hints(params_cls)
+    except Exception:  # noqa: BLE001  # (the annotation text then stands)
+        return {}
+
+
+def type_text(tp: Any) -> str:
+    """A parameter type as a user writes it: ``float | null``, ``spacing | absolute`` for an enum."""
+    import enum
+    import typing
+
+    if isinstance(tp, str):
+        return tp
+    args = [a for a in typing.get_args(tp) if a is not type(None)]
+    if typing.get_origin(tp) is typing.Union:
+        return " | ".join(type_text(a) for a in args) + (" | null" if type(None) in typing.get_args(tp) else "")
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return " | ".join(str(m.value) for m in tp)
+    if typing.get_origin(tp) in (list, dict, tuple):
+        return f"{typing.get_origin(tp).__name__}[{', '.join(type_text(a) for a in args)}]"
+    return getattr(tp, "__name__", str(tp).replace("typing.", ""))
 
 
 def field_docs(params_cls: type) -> dict[str, str]:

@@ -125,7 +125,7 @@ BAD_CASES = {
     "wrong_type": (["icp.max_iterations=many"], "icp=point_to_plane: parameter 'max_iterations' expects int, got 'many'"),
     "unknown_param": (["sampler.n_pionts=5"], "sampler=barycentric: unknown parameter 'n_pionts'"),
     "no_source": (["data.source=null"], "data=files: data.source is not set"),
-    "wrong_enum": (["icp.distances=furlongs"], "icp=point_to_plane: parameter 'distances' expects Distances, got 'furlongs'"),
+    "wrong_enum": (["icp.distances=furlongs"], "icp=point_to_plane: parameter 'distances' expects spacing | absolute, got 'furlongs'"),
     "unknown_tracking_param": (["tracking.bogus=1"], "tracking=mlflow: unknown parameter 'bogus'; valid parameters: uri, experiment"),
     "several_values": (["icp.max_iterations=10,20"], "icp.max_iterations=10,20: several values for one run; to run "
                        "each, sweep them with -m (scanreg -m icp.max_iterations=10,20); for one value with commas "

@@ -92,8 +92,11 @@ def test_wrong_type_and_unknown_parameter():
         make_params(Horn.Params, {"max_iterations": "abc"}, "icp=horn")
     with pytest.raises(ConfigError, match=r"unknown parameter 'bogus'; valid parameters: max_iterations"):
         make_params(Horn.Params, {"bogus": 1}, "icp=horn")
-    with pytest.raises(ConfigError, match=r"distances"):
+    with pytest.raises(ConfigError, match=r"parameter 'distances' expects spacing \| absolute, got 'furlongs'"):
         make_params(Horn.Params, {"distances": "furlongs"}, "icp=horn")
+    # the type as scanreg-stages lists it, not Python's annotation text ('expects Optional[float]', a user's trial)
+    with pytest.raises(ConfigError, match=r"parameter 'max_correspondence_distance' expects float \| null, got 'x'$"):
+        make_params(Horn.Params, {"max_correspondence_distance": "x"}, "icp=horn")
     p = make_params(Horn.Params, {"max_iterations": "7"}, "icp=horn")  # numeric strings from the CLI are fine
     assert p.max_iterations == 7
 
@@ -155,7 +158,7 @@ def test_unknown_tracking_parameter_is_one_line():
 
 def test_wrong_enum_value_names_the_value():
     assert _compose_error(["icp.distances=furlongs"]) == \
-        "icp=point_to_plane: parameter 'distances' expects Distances, got 'furlongs'"
+        "icp=point_to_plane: parameter 'distances' expects spacing | absolute, got 'furlongs'"
 
 
 def test_unknown_hydra_group_choice_lists_the_valid_ones():

@@ -8,7 +8,7 @@ import sys
 import textwrap
 from typing import Any
 
-from scanreg.stages.registry import REGISTRIES, conf_dir, field_docs, load_all
+from scanreg.stages.registry import REGISTRIES, conf_dir, field_docs, field_types, load_all, type_text
 
 
 def plain(text: str) -> str:
@@ -18,21 +18,6 @@ def plain(text: str) -> str:
     text = re.sub(r":[a-z]+:`~?([^`]+)`", r"'\1'", text)
     text = re.sub(r"``([^`]+)``", r"'\1'", text)
     return " ".join(text.split())
-
-
-def type_text(tp: Any) -> str:
-    """A parameter type as a user writes it: ``float | null``, ``spacing | absolute`` for an enum."""
-    import enum
-    import typing
-
-    args = [a for a in typing.get_args(tp) if a is not type(None)]
-    if typing.get_origin(tp) is typing.Union:
-        return " | ".join(type_text(a) for a in args) + (" | null" if type(None) in typing.get_args(tp) else "")
-    if isinstance(tp, type) and issubclass(tp, enum.Enum):
-        return " | ".join(str(m.value) for m in tp)
-    if typing.get_origin(tp) in (list, dict, tuple):
-        return f"{typing.get_origin(tp).__name__}[{', '.join(type_text(a) for a in args)}]"
-    return getattr(tp, "__name__", str(tp).replace("typing.", ""))
 
 
 def value_text(v: Any) -> str:
@@ -85,13 +70,8 @@ def _wrap(text: str, indent: str, width: int) -> list[str]:
 def param_lines(params: type, values: dict[str, Any], width: int = 100) -> list[str]:
     """Each parameter of the dataclass ``params``: its value in ``values``, its type, then its docstring,
     wrapped at ``width`` columns."""
-    import typing
-
     docs = field_docs(params)
-    try:
-        hints = typing.get_type_hints(params)
-    except Exception:  # noqa: BLE001  # fall back to the annotation text
-        hints = {}
+    hints = field_types(params)
     lines = []
     for f in dataclasses.fields(params):
         tp = type_text(hints.get(f.name, f.type))
