@@ -6,8 +6,8 @@ from __future__ import annotations
 import json
 import os
 import re
-from contextlib import contextmanager
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 

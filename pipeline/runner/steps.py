@@ -172,14 +172,14 @@ def second_look(target: PreparedScan, source: PreparedScan, stages: Stages, ctx:
     try:
         icp_again = stages.icp.refine(target.cloud, source.cloud, again.T_target_source, spacing, ctx,
                                       target.mesh, again.estimated)
-        second, outcome = icp_again.metrics.get("icp_fitness", float("nan")), ""
+        second = icp_again.metrics.get("icp_fitness", float("nan"))
+        outcome = f"that pose keeps {second:.1%}"
     except ScanregError as e:  # (e.g. too few pairs from the second estimate: the first stands)
-        icp_again, second, outcome = None, float("nan"), f"its refinement failed ({one_line(e)}): "
+        icp_again, second, outcome = None, float("nan"), f"its refinement failed ({one_line(e)})"
     timings["icp"] += _seconds_since(t1)
     kept = second > fitness
-    outcome = outcome or f"that pose keeps {second:.1%}: "
     note(f"second look: the refined pose keeps {fitness:.1%} of the source on the target, so the coarse stage "
-         f"registered the pair again with wider matching; {outcome}{'kept' if kept else 'the first pose kept'}")
+         f"registered the pair again with wider matching; {outcome}: {'kept' if kept else 'the first pose kept'}")
     if kept:
         coarse, icp = again, icp_again
     coarse.metrics.update({"coarse_second_look": 1.0, "coarse_second_look_kept": float(kept),

@@ -215,14 +215,9 @@ class LoRansac(CoarseBase):
             print(f"coarse=lo_ransac: the pose keeps {fitness:.1%} of the source (second_look_fitness "
                   f"{p.second_look_fitness:g}); matching the uniform keypoints with {k} nearest descriptors")
         wider = self._matcher_with(k)
-
-        def uniform_only(t: Cloud, s: Cloud, sp: float, ctx: RunContext) -> CoarseResult:
-            res = self._attempt(t, s, sp, self._uniform_salience(), wider)
-            res.metrics["coarse_fallback"] = 1
-            return res
-
         try:
-            return self._thinned_then(uniform_only, target, source, spacing, ctx)
+            return self._thinned_then(lambda t, s, sp, _: self._uniform_attempt(t, s, sp, wider), target, source,
+                                      spacing, ctx)
         except StageError:
             return None
 
@@ -259,12 +254,17 @@ class LoRansac(CoarseBase):
             if ctx.verbose:
                 print(f"coarse=lo_ransac: {first}; trying uniform keypoints every {self.p.fallback_voxel:g} spacings")
             try:
-                res = self._attempt(target, source, spacing, self._uniform_salience(), self._fallback_matcher())
+                return self._uniform_attempt(target, source, spacing, self._fallback_matcher())
             except StageError as second:
                 raise StageError(f"{first}; the fallback to uniform keypoints failed too: "
                                  f"{str(second).removeprefix('coarse=lo_ransac: ')}") from None
-            res.metrics["coarse_fallback"] = 1
-            return res
+
+    def _uniform_attempt(self, target: Cloud, source: Cloud, spacing: float, matcher) -> CoarseResult:
+        """:meth:`_attempt` with the fallback's uniform keypoints and ``matcher``, logged as ``coarse_fallback``
+        1."""
+        res = self._attempt(target, source, spacing, self._uniform_salience(), matcher)
+        res.metrics["coarse_fallback"] = 1
+        return res
 
     def _uniform_salience(self):
         """The fallback's keypoints: uniform, one per ``fallback_voxel``."""
