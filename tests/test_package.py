@@ -72,7 +72,9 @@ def test_pyproject_lists_every_package_folder():
 
 def test_wheel_holds_one_package_and_the_configs(wheel):
     names = zipfile.ZipFile(wheel).namelist()
-    assert {n.split("/")[0] for n in names} == {"scanreg", wheel.name.split("-py3")[0] + ".dist-info"}
+    assert {n.split("/")[0] for n in names} == {"scanreg", "-".join(wheel.name.split("-")[:2]) + ".dist-info"}
+    # the compiled kernels, built for this platform (pyproject.toml's ext-modules)
+    assert any(n.startswith("scanreg/mesh/_native.") and n.endswith(".so") for n in names)
     assert "scanreg/conf/config.yaml" in names and "scanreg/conf/icp/point_to_plane.yaml" in names
     yamls = {n.removeprefix("scanreg/conf/") for n in names if n.endswith(".yaml")}
     assert yamls == {str(p.relative_to(ROOT / "conf")) for p in (ROOT / "conf").rglob("*.yaml")}

@@ -1,6 +1,5 @@
 """The ``run`` entry point: the caller's working directory is kept, and the libusb check is not flaky."""
 
-import hashlib
 import shutil
 import subprocess
 import sys
@@ -31,11 +30,18 @@ echo "$fails"
     assert r.stdout.strip() == "0", f"{r.stdout.strip()} of 200 checks failed"
 
 
+def _stamp(root: Path) -> str:
+    """The install stamp ``run`` wants for the checkout at ``root`` (its own ``install_stamp``)."""
+    r = subprocess.run(["bash", "-c", f"source {root / 'run'} && install_stamp"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    return r.stdout.strip()
+
+
 def _venv_ready(root=ROOT) -> bool:
     """``./run`` would (re)install first unless its stamp matches: the tests must not run pip."""
     stamp = root / ".venv" / ".scanreg-installed"
-    want = hashlib.sha256(b"".join((root / f).read_bytes() for f in ("pyproject.toml", "constraints.txt", "run")))
-    return stamp.exists() and stamp.read_text().strip() == want.hexdigest()[:16]
+    return stamp.exists() and stamp.read_text().strip() == _stamp(root)
 
 
 def _run_script(tmp_path) -> Path:
@@ -46,11 +52,12 @@ def _run_script(tmp_path) -> Path:
         return RUN
     root = tmp_path / "project"
     (root / ".venv" / "bin").mkdir(parents=True)
-    for f in ("pyproject.toml", "constraints.txt", "run"):
+    (root / "pipeline" / "mesh").mkdir(parents=True)
+    for f in ("pyproject.toml", "constraints.txt", "run", *(str(c.relative_to(ROOT))
+                                                           for c in (ROOT / "pipeline" / "mesh").glob("*.c"))):
         shutil.copy2(ROOT / f, root / f)
     (root / ".venv" / "bin" / "scanreg").symlink_to(Path(sys.executable).parent / "scanreg")
-    want = hashlib.sha256(b"".join((root / f).read_bytes() for f in ("pyproject.toml", "constraints.txt", "run")))
-    (root / ".venv" / ".scanreg-installed").write_text(want.hexdigest()[:16] + "\n")
+    (root / ".venv" / ".scanreg-installed").write_text(_stamp(root) + "\n")
     assert _venv_ready(root)
     return root / "run"
 

@@ -29,6 +29,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from scanreg.geometry import Mesh, col_max, col_min, rows_any
+from scanreg.mesh import native
 from scanreg.mesh.intersect import candidate_pairs
 from scanreg.mesh.predicates import orient3d_filter
 from scanreg.mesh.topology import (SLIVER_ANGLE_DEG, _cached, _cross_columns, _face_areas, _mesh_edges_sorted,
@@ -523,6 +524,50 @@ def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarr
     base = col_min(a)
     a = a - base
     dims = col_max(a) + col_max(span) + 1
+    face, ckey, present, sheet, n_sheets = _sheets(a, span, cnt, nrm, f1, f2, dims, base, frame)
+    # a sheet is a graph when each face's unit normal is within the cone around the sheet's mean normal
+    fn = nrm[face]
+    norm = np.sqrt(nrm[:, 0] * nrm[:, 0] + nrm[:, 1] * nrm[:, 1] + nrm[:, 2] * nrm[:, 2])
+    mean = np.stack([np.bincount(sheet, fn[:, k], minlength=n_sheets) for k in range(3)], axis=1)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1), 1e-300)[:, None]
+    dot = np.einsum("ij,ij->i", fn, mean[sheet])
+    bad_sheet = np.bincount(sheet, (dot <= CONE_COS * norm[face]) | suspect[face], minlength=n_sheets) > 0
+    bad_face = np.zeros(m, bool)
+    bad_face[face[bad_sheet[sheet]]] = True
+    bad = none if last else np.flatnonzero(bad_face)
+    return (*_cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last), bad)
+
+
+def _sheets(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarray, f1: np.ndarray, f2: np.ndarray,
+            dims: np.ndarray, base: np.ndarray, frame: tuple) -> tuple:
+    """One level's instances and sheets: ``(face, ckey, present, sheet, n_sheets)`` (:func:`_sheets_numpy`), by
+    the compiled kernel when there is one (:mod:`scanreg.mesh.native`: the same arrays)."""
+    if native.kernels is None:
+        return _sheets_numpy(a, span, cnt, nrm, f1, f2, dims, base, frame)
+    return _sheets_kernel(a, span, cnt, nrm, f1, f2, dims, base, frame)
+
+
+def _sheets_kernel(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarray, f1: np.ndarray,
+                   f2: np.ndarray, dims: np.ndarray, base: np.ndarray, frame: tuple) -> tuple:
+    """:func:`_sheets_numpy` by the compiled kernel ``sheets``."""
+    org, cell, p0 = frame
+    face, ckey, present, sheet, n_sheets = native.kernels.sheets(
+        *(np.ascontiguousarray(x, dtype=np.int64) for x in (a, span, cnt)),
+        *(np.ascontiguousarray(x, dtype=np.float64) for x in (nrm, p0)),
+        *(np.ascontiguousarray(x, dtype=np.int64) for x in (f1, f2)),
+        tuple(int(x) for x in dims), tuple(int(x) for x in base), tuple(float(x) for x in org), float(cell))
+    return (np.frombuffer(face, np.int64), np.frombuffer(ckey, np.int64), np.frombuffer(present, np.bool_),
+            np.frombuffer(sheet, np.int64), int(n_sheets))
+
+
+def _sheets_numpy(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarray, f1: np.ndarray,
+                  f2: np.ndarray, dims: np.ndarray, base: np.ndarray, frame: tuple) -> tuple:
+    """The instances of one level of :func:`_sheet_pairs` (a face in each cell its box touches, face by face, its
+    cells x-major) and its sheets: per instance its ``face``, cell key ``ckey``, whether it is ``present`` (the
+    face's plane passes through the cell) and its ``sheet`` (labelled in the order of each sheet's first
+    instance), and the number of sheets. ``a``: each face's first cell from ``base`` (the grid's cells in
+    ``dims``), the other arguments :func:`_sheet_pairs`'."""
+    m = len(a)
     # one instance per (face, cell its box touches), face by face; cell keys ckey (a face in one cell: its own)
     start = np.cumsum(cnt) - cnt
     face = np.repeat(np.arange(m), cnt)
@@ -559,17 +604,7 @@ def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarr
     u, w = u[both], w[both]
     g = coo_matrix((np.ones(len(u), np.int8), (u, w)), shape=(n_inst, n_inst))
     n_sheets, sheet = connected_components(g, directed=True, connection="weak")
-    # a sheet is a graph when each face's unit normal is within the cone around the sheet's mean normal
-    fn = nrm[face]
-    norm = np.sqrt(nrm[:, 0] * nrm[:, 0] + nrm[:, 1] * nrm[:, 1] + nrm[:, 2] * nrm[:, 2])
-    mean = np.stack([np.bincount(sheet, fn[:, k], minlength=n_sheets) for k in range(3)], axis=1)
-    mean /= np.maximum(np.linalg.norm(mean, axis=1), 1e-300)[:, None]
-    dot = np.einsum("ij,ij->i", fn, mean[sheet])
-    bad_sheet = np.bincount(sheet, (dot <= CONE_COS * norm[face]) | suspect[face], minlength=n_sheets) > 0
-    bad_face = np.zeros(m, bool)
-    bad_face[face[bad_sheet[sheet]]] = True
-    bad = none if last else np.flatnonzero(bad_face)
-    return (*_cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last), bad)
+    return face, ckey, present, sheet, n_sheets
 
 
 def _cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last) -> tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,4 @@
-"""Exact self-intersection test of a triangle mesh (NumPy, no compiled code of its own).
+"""Exact self-intersection test of a triangle mesh (NumPy; its box search by a compiled kernel when built).
 
 A face is self-intersecting when it has a point in common with another face beyond the vertices they share
 (vertices at the same position count as one: two faces that touch only at a duplicated vertex do not intersect):
@@ -13,7 +13,8 @@ separately. Every decision rests on the exact predicates of :mod:`scanreg.mesh.p
 exact for the floating-point coordinates as given and depends on nothing but them: not on the order of the
 faces, on what was tested before, or on the scale of the coordinates (a ``2^k`` scaling gives the same answer).
 
-Candidate pairs are the faces whose bounding boxes overlap (k-d trees over the box centres, by size level).
+Candidate pairs are the faces whose bounding boxes overlap (grids by size level in the compiled kernel of
+:mod:`scanreg.mesh.native`, else k-d trees over the box centres by size level: the same pairs).
 Pairs that share a vertex whose fan turns once around it (:func:`regular_vertices`, decided with the same
 predicates) cannot intersect and are not tested: that settles most neighbours. A mesh that shares most faces
 with one tested before can be tested from that outcome (:func:`self_intersections` with ``previous``): the
@@ -27,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from scanreg.mesh import native
 from scanreg.geometry import col_max, col_min, in_cells_around, rows_all, rows_any
 from scanreg.mesh.predicates import EPS, orient2d, orient3d, projection_axes, segment_meets_triangle, take2
 
@@ -134,9 +136,29 @@ same pairs in the same order; 8 % faster on the bunny than all at once)."""
 def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
                     among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs ``(i, j)``, ``i < j``, of the closed boxes ``[lo, hi]`` (rows) that overlap, each once (with
-    the mask ``among``: only the pairs with at least one box in it). Found with k-d trees over the box centres in
-    the maximum norm, the boxes split into levels of twice the size (half the longest side) each, so that a few
-    long boxes do not widen every search."""
+    the mask ``among``: only the pairs with at least one box in it), in an order that depends on the boxes only.
+    The compiled kernel's grids (``box_pairs`` of :mod:`scanreg.mesh.native`) when it was built and the boxes are finite,
+    else :func:`candidate_pairs_numpy`: the same pairs, in another order."""
+    m = len(lo)
+    if native.kernels is None or m < 2 or not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        return candidate_pairs_numpy(lo, hi, among)
+    lo = np.ascontiguousarray(lo, dtype=np.float64)
+    hi = np.ascontiguousarray(hi, dtype=np.float64)
+    d = hi - lo
+    side = np.maximum(np.maximum(d[:, 0], d[:, 1]), d[:, 2])
+    # the first level's cells 1.5 times the median box side: fewer levels than from the median itself, fewer
+    # boxes per cell than from 3 times it (any side gives the same pairs)
+    base = 1.5 * float(np.median(side))
+    mask = None if among is None else np.ascontiguousarray(among, dtype=np.uint8)
+    pairs = np.frombuffer(native.kernels.box_pairs(lo, hi, mask, base), dtype=np.int64).reshape(-1, 2)
+    return pairs[:, 0].copy(), pairs[:, 1].copy()
+
+
+def candidate_pairs_numpy(lo: np.ndarray, hi: np.ndarray,
+                          among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`candidate_pairs` in NumPy and SciPy: found with k-d trees over the box centres in the maximum norm,
+    the boxes split into levels of twice the size (half the longest side) each, so that a few long boxes do not
+    widen every search."""
     from scipy.spatial import cKDTree
 
     m = len(lo)

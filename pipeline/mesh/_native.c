@@ -1,0 +1,454 @@
+/* scanreg.mesh._native: compiled kernels of the mesh layer, each the same function as a NumPy reference in
+ * scanreg.mesh (tests/test_native.py compares them) and used in its place when this module was built.
+ *
+ * box_pairs(lo, hi, among, base) -> bytearray
+ *     The pairs (i, j), i < j, of the closed axis-aligned boxes [lo[i], hi[i]] that overlap, each once; with
+ *     among (a bytes-like mask, one byte per box, or None) only the pairs with at least one box in it.
+ *     lo, hi: C-contiguous float64 buffers of m rows of 3, finite. base: the cell side of the first level.
+ *     Returned as native int64 (i, j) rows, in a deterministic order (by the querying box, then by cell).
+ *
+ * sheets(a, span, cnt, nrm, p0, f1, f2, dims, base, org, cell) -> (face, ckey, present, sheet, n_sheets)
+ *     One level of the census's broad phase up to its sheets: the instances (face, cell its box touches) with
+ *     their cell keys, whether the face's plane passes through the cell, and the sheets (connected components of
+ *     the instances joined across manifold edges within a cell), labelled as scipy's connected_components
+ *     labels them (in the order of each sheet's first instance). What scanreg.mesh.census._sheets_numpy
+ *     computes, bit for bit (the plane test with the same operations in the same order, no contraction).
+ *
+ * box_pairs: the boxes are put in levels by their largest side (level l: side <= base * 2^l) and each level in a grid of
+ * that side, keyed by the cell of each box's lower corner. Two boxes that overlap, q of level b, have
+ * lo_q >= lo_p - side_q >= lo_p - w_b and lo_q <= hi_p on every axis, so q's cell lies in the block of level
+ * b's grid between those bounds (taken a rounding margin wider): a box queries that block on its own level and
+ * the levels below (with among, on every level), a block with more cells than its level has boxes being every
+ * box of the level, and keeps the boxes that overlap it, each pair once (keep()). A level's rows of cells are
+ * found by hashing.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define MAX_LEVELS 64
+
+typedef struct {
+    uint64_t key;  /* the cell of the box's lower corner, (x * dims_y + y) * dims_z + z */
+    int64_t box;   /* the box's index */
+} Entry;
+
+typedef struct {
+    uint64_t row;        /* a row of cells (x, y, *): x * dims_y + y */
+    int64_t start, end;  /* its entries, at[start:end] (end 0: an empty slot) */
+} Row;
+
+typedef struct {
+    int64_t n;         /* boxes in the level */
+    double w;          /* its cell side */
+    int64_t top[3];    /* the largest cell coordinate per axis */
+    uint64_t dims[3];  /* cells per axis (top + 1) */
+    Entry *at;         /* its boxes, sorted by cell key, then by index */
+    Row *rows;         /* a hash table of its non-empty rows */
+    uint64_t mask;     /* the table's size minus one (a power of two) */
+} Level;
+
+typedef struct {
+    int64_t *data;
+    int64_t n, cap;  /* pairs held, pairs room */
+} Pairs;
+
+static int push(Pairs *out, int64_t i, int64_t j) {
+    if (out->n == out->cap) {
+        int64_t cap = out->cap ? 2 * out->cap : 4096;
+        int64_t *d = realloc(out->data, (size_t)cap * 2 * sizeof(int64_t));
+        if (!d) return -1;
+        out->data = d;
+        out->cap = cap;
+    }
+    out->data[2 * out->n] = i;
+    out->data[2 * out->n + 1] = j;
+    out->n++;
+    return 0;
+}
+
+/* Sorts the entries by key, stably (LSD radix sort, a byte per pass, as many passes as the largest key needs). */
+static int sort_entries(Entry *at, int64_t n) {
+    uint64_t most = 0;
+    for (int64_t t = 0; t < n; t++) most |= at[t].key;
+    Entry *tmp = malloc((size_t)(n ? n : 1) * sizeof(Entry));
+    if (!tmp) return -1;
+    Entry *src = at, *dst = tmp;
+    for (int shift = 0; shift < 64 && (most >> shift); shift += 8) {
+        int64_t count[257] = {0};
+        for (int64_t t = 0; t < n; t++) count[((src[t].key >> shift) & 255) + 1]++;
+        for (int b = 0; b < 256; b++) count[b + 1] += count[b];
+        for (int64_t t = 0; t < n; t++) dst[count[(src[t].key >> shift) & 255]++] = src[t];
+        Entry *x = src; src = dst; dst = x;
+    }
+    if (src != at) memcpy(at, src, (size_t)n * sizeof(Entry));
+    free(tmp);
+    return 0;
+}
+
+static uint64_t row_hash(uint64_t row) {
+    uint64_t h = row * 0x9E3779B97F4A7C15ull;
+    return h ^ (h >> 29);
+}
+
+/* The level's rows in a hash table (open addressing, at most half full). */
+static int index_rows(Level *L) {
+    uint64_t size = 16;
+    while (size < 2 * (uint64_t)L->n) size *= 2;
+    L->rows = calloc(size, sizeof(Row));
+    if (!L->rows) return -1;
+    L->mask = size - 1;
+    for (int64_t t = 0; t < L->n;) {
+        uint64_t row = L->at[t].key / L->dims[2];
+        int64_t e = t;
+        while (e < L->n && L->at[e].key / L->dims[2] == row) e++;
+        uint64_t h = row_hash(row) & L->mask;
+        while (L->rows[h].end) h = (h + 1) & L->mask;
+        L->rows[h] = (Row){row, t, e};
+        t = e;
+    }
+    return 0;
+}
+
+static const Row *find_row(const Level *L, uint64_t row) {
+    for (uint64_t h = row_hash(row) & L->mask; L->rows[h].end; h = (h + 1) & L->mask)
+        if (L->rows[h].row == row) return &L->rows[h];
+    return NULL;
+}
+
+/* The cell of coordinate x on a grid of side w from org, clamped to [0, top]. */
+static int64_t cell_of(double x, double org, double w, int64_t top) {
+    double c = floor((x - org) / w);
+    if (!(c >= 0)) return 0;
+    if (c >= (double)top) return top;
+    return (int64_t)c;
+}
+
+static int overlap(const double *lo, const double *hi, int64_t p, int64_t q) {
+    for (int k = 0; k < 3; k++)
+        if (!(lo[3 * p + k] <= hi[3 * q + k] && lo[3 * q + k] <= hi[3 * p + k])) return 0;
+    return 1;
+}
+
+/* Whether the pair (p, q) found from p's query is kept: each pair once. With a query set (among), p's query
+ * looks at every level, so a pair of two boxes in it is found from both; without, p looks at its own level and
+ * the levels below, so a pair of one level is found from both and a pair across levels once. */
+static int keep(int64_t p, int64_t q, int same_level, const unsigned char *among) {
+    if (p == q) return 0;
+    if (among) return p < q || !among[q];
+    return !same_level || p < q;
+}
+
+static int query(const Level *L, const double *lo, const double *hi, const double *org, int64_t p,
+                 int same_level, const unsigned char *among, Pairs *out) {
+    int64_t c0[3], c1[3];
+    double w = L->w;
+    for (int k = 0; k < 3; k++) {
+        double margin = 1e-9 * w + 8 * 1.1102230246251565e-16 * (fabs(lo[3 * p + k]) + fabs(org[k]) + w);
+        c0[k] = cell_of(lo[3 * p + k] - w - margin, org[k], w, L->top[k]);
+        c1[k] = cell_of(hi[3 * p + k] + margin, org[k], w, L->top[k]);
+    }
+    double rows = (double)(c1[0] - c0[0] + 1) * (double)(c1[1] - c0[1] + 1);
+    if (rows * (double)(c1[2] - c0[2] + 1) > (double)L->n) {  /* a wide box: every box of the level */
+        for (int64_t t = 0; t < L->n; t++) {
+            int64_t q = L->at[t].box;
+            if (keep(p, q, same_level, among) && overlap(lo, hi, p, q) && push(out, p < q ? p : q, p < q ? q : p))
+                return -1;
+        }
+        return 0;
+    }
+    for (int64_t x = c0[0]; x <= c1[0]; x++)
+        for (int64_t y = c0[1]; y <= c1[1]; y++) {
+            uint64_t row = (uint64_t)x * L->dims[1] + (uint64_t)y;
+            const Row *r = find_row(L, row);
+            if (!r) continue;
+            for (int64_t t = r->start; t < r->end; t++) {
+                int64_t z = (int64_t)(L->at[t].key - row * L->dims[2]);
+                if (z < c0[2]) continue;
+                if (z > c1[2]) break;
+                int64_t q = L->at[t].box;
+                if (keep(p, q, same_level, among) && overlap(lo, hi, p, q)
+                    && push(out, p < q ? p : q, p < q ? q : p))
+                    return -1;
+            }
+        }
+    return 0;
+}
+
+static int box_pairs_run(const double *lo, const double *hi, int64_t m, const unsigned char *among, double base,
+                         Pairs *out) {
+    double org[3], ext = 0;
+    for (int k = 0; k < 3; k++) {
+        double a = INFINITY, b = -INFINITY;
+        for (int64_t i = 0; i < m; i++) {
+            if (lo[3 * i + k] < a) a = lo[3 * i + k];
+            if (hi[3 * i + k] > b) b = hi[3 * i + k];
+        }
+        org[k] = a;
+        if (b - a > ext) ext = b - a;
+    }
+    if (!(base >= ldexp(ext, -20))) base = ldexp(ext, -20);  /* at most 2^20 + 1 cells per axis: keys fit */
+    if (!(base > 0)) base = 1.0;
+    int *level = malloc((size_t)(m ? m : 1) * sizeof(int));
+    Level L[MAX_LEVELS];
+    memset(L, 0, sizeof L);
+    int n_levels = 0, rc = -1;
+    if (!level) return -1;
+    for (int64_t i = 0; i < m; i++) {
+        double side = 0;
+        for (int k = 0; k < 3; k++)
+            if (hi[3 * i + k] - lo[3 * i + k] > side) side = hi[3 * i + k] - lo[3 * i + k];
+        int l = 0;
+        while (l < MAX_LEVELS - 1 && side > ldexp(base, l)) l++;
+        level[i] = l;
+        if (l + 1 > n_levels) n_levels = l + 1;
+        L[l].n++;
+    }
+    for (int l = 0; l < n_levels; l++) {
+        L[l].w = ldexp(base, l);
+        L[l].at = malloc((size_t)(L[l].n ? L[l].n : 1) * sizeof(Entry));
+        if (!L[l].at) goto done;
+        L[l].n = 0;
+    }
+    for (int l = 0; l < n_levels; l++)
+        for (int k = 0; k < 3; k++) {
+            L[l].top[k] = (int64_t)floor(ext / L[l].w) + 1;
+            L[l].dims[k] = (uint64_t)L[l].top[k] + 1;
+        }
+    for (int64_t i = 0; i < m; i++) {
+        Level *V = &L[level[i]];
+        int64_t c[3];
+        for (int k = 0; k < 3; k++) c[k] = cell_of(lo[3 * i + k], org[k], V->w, V->top[k]);
+        V->at[V->n++] = (Entry){((uint64_t)c[0] * V->dims[1] + (uint64_t)c[1]) * V->dims[2] + (uint64_t)c[2], i};
+    }
+    for (int l = 0; l < n_levels; l++)
+        if (sort_entries(L[l].at, L[l].n) || index_rows(&L[l])) goto done;
+    for (int64_t p = 0; p < m; p++) {
+        if (among && !among[p]) continue;
+        int last = among ? n_levels - 1 : level[p];
+        for (int l = 0; l <= last; l++)
+            if (L[l].n && query(&L[l], lo, hi, org, p, l == level[p], among, out)) goto done;
+    }
+    rc = 0;
+done:
+    for (int l = 0; l < n_levels; l++) {
+        free(L[l].at);
+        free(L[l].rows);
+    }
+    free(level);
+    return rc;
+}
+
+/* ---- sheets ---- */
+
+static int64_t find(int64_t *parent, int64_t x) {
+    while (parent[x] != x) {
+        parent[x] = parent[parent[x]];
+        x = parent[x];
+    }
+    return x;
+}
+
+static void join(int64_t *parent, int64_t x, int64_t y) {
+    x = find(parent, x);
+    y = find(parent, y);
+    if (x != y) parent[x > y ? x : y] = x < y ? x : y;  /* the smaller index is the root */
+}
+
+typedef struct {
+    const int64_t *a, *span, *cnt, *f1, *f2;
+    const double *nrm, *p0;
+    int64_t m, e, dims[3], base[3];
+    double org[3], cell;
+} SheetInput;
+
+/* Whether the plane of face i passes through the cell (x, y, z): census._on_plane's operations, in its order. */
+static int on_plane(const SheetInput *in, int64_t i, const int64_t c[3]) {
+    double d = 0.0, reach = 0.0, size = 0.0;
+    for (int k = 0; k < 3; k++) {
+        double centre = in->org[k] + ((double)(c[k] + in->base[k]) + 0.5) * in->cell;
+        double nk = in->nrm[3 * i + k], pk = in->p0[3 * i + k];
+        d = d + nk * (centre - pk);
+        reach = reach + fabs(nk);
+        size = size + fabs(nk) * (fabs(centre) + fabs(pk));
+    }
+    return fabs(d) <= 0.5 * in->cell * reach * (1 + 1e-9) + 1e-12 * size;
+}
+
+static int sheets_run(const SheetInput *in, int64_t *start, int64_t *face, int64_t *ckey, unsigned char *present,
+                      int64_t *sheet, int64_t *n_sheets) {
+    const int64_t *a = in->a, *span = in->span, *cnt = in->cnt;
+    uint64_t d1 = (uint64_t)in->dims[1], d2 = (uint64_t)in->dims[2];
+    int64_t t = 0;
+    for (int64_t i = 0; i < in->m; i++) {  /* the instances, face by face, each face's cells x-major */
+        start[i] = t;
+        uint64_t fkey = ((uint64_t)a[3 * i] * d1 + (uint64_t)a[3 * i + 1]) * d2 + (uint64_t)a[3 * i + 2];
+        for (int64_t ox = 0; ox < span[3 * i] && cnt[i]; ox++)
+            for (int64_t oy = 0; oy < span[3 * i + 1]; oy++)
+                for (int64_t oz = 0; oz < span[3 * i + 2]; oz++, t++) {
+                    face[t] = i;
+                    ckey[t] = (int64_t)(fkey + ((uint64_t)ox * d1 + (uint64_t)oy) * d2 + (uint64_t)oz);
+                    int64_t c[3] = {a[3 * i] + ox, a[3 * i + 1] + oy, a[3 * i + 2] + oz};
+                    present[t] = cnt[i] > 2 ? (unsigned char)on_plane(in, i, c) : 1;
+                }
+    }
+    int64_t n = t;
+    for (t = 0; t < n; t++) sheet[t] = t;  /* the union-find's parents */
+    for (int64_t k = 0; k < in->e; k++) {  /* the joins across each manifold edge */
+        int64_t g1 = in->f1[k], g2 = in->f2[k];
+        if (!cnt[g1] || !cnt[g2]) continue;
+        if (cnt[g1] == 1 && cnt[g2] == 1) {
+            if (ckey[start[g1]] == ckey[start[g2]] && present[start[g1]] && present[start[g2]])
+                join(sheet, start[g1], start[g2]);
+            continue;
+        }
+        for (int64_t u = start[g1]; u < start[g1] + cnt[g1]; u++) {  /* each cell of g1 that g2's box touches */
+            uint64_t key = (uint64_t)ckey[u];
+            int64_t rel[3] = {(int64_t)(key / (d1 * d2)) - a[3 * g2], (int64_t)(key % (d1 * d2) / d2) - a[3 * g2 + 1],
+                              (int64_t)(key % d2) - a[3 * g2 + 2]};
+            if (rel[0] < 0 || rel[1] < 0 || rel[2] < 0 || rel[0] >= span[3 * g2] || rel[1] >= span[3 * g2 + 1]
+                || rel[2] >= span[3 * g2 + 2])
+                continue;
+            int64_t w = start[g2] + (rel[0] * span[3 * g2 + 1] + rel[1]) * span[3 * g2 + 2] + rel[2];
+            if (present[u] && present[w]) join(sheet, u, w);
+        }
+    }
+    /* labels in the order of each component's first instance (scipy's connected_components' order) */
+    for (t = 0; t < n; t++) sheet[t] = find(sheet, t);  /* each instance's root: its component's first */
+    int64_t labels = 0;
+    for (t = 0; t < n; t++)  /* entries before t hold labels, from t on roots; a root precedes its members */
+        sheet[t] = sheet[t] == t ? labels++ : sheet[sheet[t]];
+    *n_sheets = labels;
+    return 0;
+}
+
+static int get_buffer(PyObject *obj, Py_buffer *view, const char *fmt, Py_ssize_t n, const char *name) {
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return -1;
+    int ok = view->format && (strcmp(view->format, fmt) == 0
+                              || (fmt[0] == 'q' && strcmp(view->format, "l") == 0 && view->itemsize == 8));
+    if (!ok || (n >= 0 && view->len != n * view->itemsize)) {
+        PyErr_Format(PyExc_TypeError, "sheets: %s has the wrong type or length", name);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    return 0;
+}
+
+static PyObject *sheets(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *o[7];
+    SheetInput in;
+    if (!PyArg_ParseTuple(args, "OOOOOOO(LLL)(LLL)(ddd)d", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6],
+                          &in.dims[0], &in.dims[1], &in.dims[2], &in.base[0], &in.base[1], &in.base[2],
+                          &in.org[0], &in.org[1], &in.org[2], &in.cell))
+        return NULL;
+    Py_buffer b[7];
+    const char *names[7] = {"a", "span", "cnt", "nrm", "p0", "f1", "f2"};
+    const char *fmts[7] = {"q", "q", "q", "d", "d", "q", "q"};
+    int got = 0;
+    PyObject *result = NULL;
+    for (; got < 7; got++) {
+        Py_ssize_t n = -1;
+        if (got == 2) n = b[0].len / 24;
+        if (got == 1 || got == 3 || got == 4) n = 3 * (b[0].len / 24);
+        if (got == 6) n = b[5].len / 8;
+        if (get_buffer(o[got], &b[got], fmts[got], n, names[got]) < 0) goto out;
+    }
+    in.a = b[0].buf; in.span = b[1].buf; in.cnt = b[2].buf; in.nrm = b[3].buf; in.p0 = b[4].buf;
+    in.f1 = b[5].buf; in.f2 = b[6].buf;
+    in.m = b[0].len / 24;
+    in.e = b[5].len / 8;
+    int64_t n = 0;
+    for (int64_t i = 0; i < in.m; i++) n += in.cnt[i];
+    for (int64_t k = 0; k < in.e; k++)
+        if (in.f1[k] < 0 || in.f1[k] >= in.m || in.f2[k] < 0 || in.f2[k] >= in.m) {
+            PyErr_SetString(PyExc_ValueError, "sheets: f1, f2 out of range");
+            goto out;
+        }
+    PyObject *face = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(n * 8));
+    PyObject *ckey = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(n * 8));
+    PyObject *present = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)n);
+    PyObject *sheet = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(n * 8));
+    int64_t *start = malloc((size_t)(in.m ? in.m : 1) * sizeof(int64_t));
+    int64_t n_sheets = 0;
+    if (face && ckey && present && sheet && start) {
+        Py_BEGIN_ALLOW_THREADS
+        sheets_run(&in, start, (int64_t *)PyByteArray_AS_STRING(face), (int64_t *)PyByteArray_AS_STRING(ckey),
+                   (unsigned char *)PyByteArray_AS_STRING(present), (int64_t *)PyByteArray_AS_STRING(sheet),
+                   &n_sheets);
+        Py_END_ALLOW_THREADS
+        result = Py_BuildValue("(OOOOL)", face, ckey, present, sheet, (long long)n_sheets);
+    } else if (!PyErr_Occurred()) {
+        PyErr_NoMemory();
+    }
+    free(start);
+    Py_XDECREF(face);
+    Py_XDECREF(ckey);
+    Py_XDECREF(present);
+    Py_XDECREF(sheet);
+out:
+    for (int k = 0; k < got; k++) PyBuffer_Release(&b[k]);
+    return result;
+}
+
+static int rows3(PyObject *obj, Py_buffer *view, const char *name) {
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return -1;
+    if (view->itemsize != 8 || !view->format || strcmp(view->format, "d") != 0 || view->len % 24) {
+        PyErr_Format(PyExc_TypeError, "box_pairs: %s must be C-contiguous float64 rows of 3", name);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    return 0;
+}
+
+static PyObject *box_pairs(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *lo_obj, *hi_obj, *among_obj;
+    double base;
+    if (!PyArg_ParseTuple(args, "OOOd", &lo_obj, &hi_obj, &among_obj, &base)) return NULL;
+    Py_buffer lo, hi, among = {0};
+    if (rows3(lo_obj, &lo, "lo") < 0) return NULL;
+    if (rows3(hi_obj, &hi, "hi") < 0) { PyBuffer_Release(&lo); return NULL; }
+    int64_t m = lo.len / 24;
+    PyObject *result = NULL;
+    if (hi.len != lo.len) {
+        PyErr_SetString(PyExc_ValueError, "box_pairs: lo and hi differ in length");
+        goto out;
+    }
+    if (among_obj != Py_None) {
+        if (PyObject_GetBuffer(among_obj, &among, PyBUF_C_CONTIGUOUS) < 0) goto out;
+        if (among.len != m) {
+            PyErr_SetString(PyExc_ValueError, "box_pairs: among needs one byte per box");
+            goto out;
+        }
+    }
+    Pairs pairs = {0};
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = box_pairs_run(lo.buf, hi.buf, m, among.buf, base, &pairs);
+    Py_END_ALLOW_THREADS
+    if (rc) PyErr_NoMemory();
+    else result = PyByteArray_FromStringAndSize((const char *)pairs.data,
+                                                (Py_ssize_t)(pairs.n * 2 * (int64_t)sizeof(int64_t)));
+    free(pairs.data);
+out:
+    if (among.obj) PyBuffer_Release(&among);
+    PyBuffer_Release(&lo);
+    PyBuffer_Release(&hi);
+    return result;
+}
+
+static PyMethodDef methods[] = {
+    {"box_pairs", box_pairs, METH_VARARGS, "box_pairs(lo, hi, among, base) -> bytearray of int64 (i, j) rows"},
+    {"sheets", sheets, METH_VARARGS,
+     "sheets(a, span, cnt, nrm, p0, f1, f2, dims, base, org, cell) -> (face, ckey, present, sheet, n_sheets)"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native", "scanreg's compiled mesh kernels", -1,
+                                    methods, NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__native(void) { return PyModule_Create(&module); }
