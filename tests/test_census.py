@@ -8,7 +8,8 @@ import pytest
 
 from scanreg.geometry import Mesh
 from scanreg.io import read_mesh
-from scanreg.mesh.census import census, fold_vertices, intersection_candidates
+from scanreg.mesh.broad_phase import fold_vertices, intersection_candidates
+from scanreg.mesh.census import census
 from scanreg.mesh.topology import audit_mesh, intersections
 from tests.conftest import shared
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import scanreg.mesh.census as census_module
+import scanreg.mesh.broad_phase as broad_phase
 from scanreg.io import read_mesh
 from scanreg.mesh import native
 from scanreg.mesh.census import census
@@ -100,27 +100,94 @@ def meshes():
     yield "bunny", m.vertices, m.faces
 
 
-def test_sheets_are_numpy_s_bit_for_bit(monkeypatch):
-    """Every level of the broad phase on each mesh: the kernel's instances, cell keys, plane tests and sheet labels
-    equal the NumPy version's, and so do the census's candidates and fold vertices."""
-    calls = []
+def test_the_broad_phase_is_numpy_s_bit_for_bit(monkeypatch):
+    """Every call of each kernel of the census's broad phase on each mesh gives the NumPy version's answer: the same
+    instances, cell keys, plane tests and sheet labels (arrays equal), the same cross-sheet pairs (as a set), the
+    same filtered candidates (arrays equal), the same fold vertices; and so the census's candidates and fold
+    vertices are the same."""
+    calls = {"sheets": 0, "cross": 0, "filter": 0}
 
-    def both(*args):
-        got = census_module._sheets_kernel(*args)
-        want = census_module._sheets_numpy(*args)
+    def sheets(*args):
+        got, want = broad_phase._sheets_kernel(*args), broad_phase._sheets_numpy(*args)
         for g, w in zip(got[:4], want[:4]):
             np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
         assert got[4] == want[4]
-        calls.append(len(got[0]))
+        calls["sheets"] += len(got[0]) > 0
         return got
 
+    def cross(*args):
+        with monkeypatch.context() as m:
+            m.setattr(native, "kernels", None)
+            want = broad_phase._cross_sheet_pairs_numpy(*args)
+        got = cross_kernel(*args)
+        n = len(args[0])
+        np.testing.assert_array_equal(np.unique(got[0] * n + got[1]), np.unique(want[0] * n + want[1]))
+        assert len(got[0]) == len(want[0])  # the same pairs, repeats included
+        calls["cross"] += len(got[0]) > 0
+        return got
+
+    def among(*args):
+        got, want = among_kernel(*args), broad_phase._candidates_among_numpy(*args)
+        np.testing.assert_array_equal(np.stack(got), np.stack(want))
+        calls["filter"] += len(got[0]) > 0
+        return got
+
+    cross_kernel, among_kernel = broad_phase._cross_sheet_pairs, broad_phase._candidates_among
     for name, v, f in meshes():
-        monkeypatch.setattr(native, "kernels", None)
-        plain = census(v, f)
-        monkeypatch.undo()
-        monkeypatch.setattr(census_module, "_sheets", both)
-        fast = census(v, f)
-        monkeypatch.undo()
+        with monkeypatch.context() as m:
+            m.setattr(native, "kernels", None)
+            plain = census(v, f)
+            folds = broad_phase.fold_vertices(v, f)
+        with monkeypatch.context() as m:
+            m.setattr(broad_phase, "_sheets", sheets)
+            m.setattr(broad_phase, "_cross_sheet_pairs", cross)
+            m.setattr(broad_phase, "_candidates_among", among)
+            fast = census(v, f)
         np.testing.assert_array_equal(fast.intersection_candidates, plain.intersection_candidates, err_msg=name)
         np.testing.assert_array_equal(fast.fold_vertices, plain.fold_vertices, err_msg=name)
-    assert len(calls) >= 4 and min(calls) > 0
+        np.testing.assert_array_equal(broad_phase.fold_vertices(v, f), folds, err_msg=name)
+    assert min(calls.values()) >= 3, calls
+
+
+def test_fold_vertices_of_a_fan_that_covers_itself_and_of_a_crease():
+    """Known answers: a flat fan around a vertex that turns more than twice (800 degrees), and two faces folded
+    onto each other across their edge, are fold vertices; a flat fan turning once and two flat faces are not."""
+    def fan(total_deg, n):
+        a = np.radians(np.linspace(0, total_deg, n + 1))
+        v = np.vstack([[0, 0, 0], np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1)])
+        f = np.stack([np.zeros(n, int), np.arange(1, n + 1), np.arange(2, n + 2)], 1)
+        return v, f
+
+    v, f = fan(800, 10)
+    assert 0 in broad_phase.fold_vertices(v, f)
+    v, f = fan(300, 5)
+    assert 0 not in broad_phase.fold_vertices(v, f)
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0.05]], float)  # two faces side by side, flat
+    assert len(broad_phase.fold_vertices(v, np.array([[0, 1, 2], [1, 0, 3]]))) == 0
+    v[3] = [0.3, 0.5, 0.05]  # the second folded over onto the first across their edge
+    assert set(broad_phase.fold_vertices(v, np.array([[0, 1, 2], [1, 0, 3]]))) == {0, 1}
+
+
+def test_candidate_filter_decides_as_numpy_at_the_filters_bound():
+    """Pairs of triangles whose second face lies within a few rounding errors of the first's plane, where the
+    floating-point filter of orient3d (Shewchuk's bound) decides between 'certainly on one side' and 'unsure':
+    the kernel keeps exactly the pairs the NumPy version keeps, and both keep some and drop some."""
+    rng = np.random.default_rng(7)
+    n = 4000
+    a, b, c = (rng.random((n, 3)) for _ in range(3))
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    offset = np.ldexp(1.0, -rng.integers(46, 56, n))[:, None] * rng.choice([-1.0, 1.0], (n, 1))
+    # the second face: three points in the first's box, lifted off its plane by about ``offset``
+    w = rng.dirichlet(np.ones(3), (n, 3))
+    p = [w[:, k, :1] * a + w[:, k, 1:2] * b + w[:, k, 2:] * c + offset for k in range(3)]
+    v = np.concatenate([a, b, c, *p])
+    idx = np.arange(n)
+    fl = np.stack([np.stack([idx, idx + n, idx + 2 * n], 1), np.stack([idx + 3 * n, idx + 4 * n, idx + 5 * n], 1)])
+    fl = fl.reshape(-1, 3)
+    lo, hi = face_boxes(v[fl])
+    i, j = np.arange(n), np.arange(n) + n
+    got = broad_phase._candidates_among(i, j, lo, hi, fl, v)
+    want = broad_phase._candidates_among_numpy(i, j, lo, hi, fl, v)
+    np.testing.assert_array_equal(np.stack(got), np.stack(want))
+    assert 0.1 * n < len(got[0]) < 0.9 * n

@@ -330,7 +330,7 @@ static int get_buffer(PyObject *obj, Py_buffer *view, const char *fmt, Py_ssize_
     int ok = view->format && (strcmp(view->format, fmt) == 0
                               || (fmt[0] == 'q' && strcmp(view->format, "l") == 0 && view->itemsize == 8));
     if (!ok || (n >= 0 && view->len != n * view->itemsize)) {
-        PyErr_Format(PyExc_TypeError, "sheets: %s has the wrong type or length", name);
+        PyErr_Format(PyExc_TypeError, "scanreg.mesh._native: %s has the wrong type or length", name);
         PyBuffer_Release(view);
         return -1;
     }
@@ -394,6 +394,194 @@ out:
     return result;
 }
 
+
+/* ---- cross_sheet_pairs ---- */
+
+/* Stable LSD radix sort of positions pos[0:n] by key[pos] (keys >= 0). */
+static int sort_by_key(int64_t *pos, int64_t n, const int64_t *key) {
+    uint64_t most = 0;
+    for (int64_t t = 0; t < n; t++) most |= (uint64_t)key[pos[t]];
+    int64_t *tmp = malloc((size_t)(n ? n : 1) * sizeof(int64_t));
+    if (!tmp) return -1;
+    int64_t *src = pos, *dst = tmp;
+    for (int shift = 0; shift < 64 && (most >> shift); shift += 8) {
+        int64_t count[257] = {0};
+        for (int64_t t = 0; t < n; t++) count[(((uint64_t)key[src[t]] >> shift) & 255) + 1]++;
+        for (int b = 0; b < 256; b++) count[b + 1] += count[b];
+        for (int64_t t = 0; t < n; t++) dst[count[((uint64_t)key[src[t]] >> shift) & 255]++] = src[t];
+        int64_t *x = src; src = dst; dst = x;
+    }
+    if (src != pos) memcpy(pos, src, (size_t)n * sizeof(int64_t));
+    free(tmp);
+    return 0;
+}
+
+/* census._cross_sheet_pairs: in each cell, its main sheet is its largest (ties: the lowest label); the instances of
+ * a cell's other sheets (and, on the last level, of a sheet that is not a graph) are paired with every instance of
+ * the cell of another sheet (of a bad sheet on the last level: with every other instance). Pairs of faces. */
+static int cross_run(int64_t n, const int64_t *face, const int64_t *ckey, const unsigned char *present,
+                     const int64_t *sheet, int64_t n_sheets, const unsigned char *bad, int last, Pairs *out) {
+    int64_t *size = calloc((size_t)(n_sheets ? n_sheets : 1), sizeof(int64_t));
+    unsigned char *source = calloc((size_t)(n_sheets ? n_sheets : 1), 1);
+    int64_t *pos = malloc((size_t)(n ? n : 1) * sizeof(int64_t));
+    int rc = -1;
+    if (!size || !source || !pos) goto done;
+    for (int64_t t = 0; t < n; t++) size[sheet[t]]++;
+    int64_t k = 0;
+    for (int64_t t = 0; t < n; t++)
+        if (present[t]) pos[k++] = t;
+    if (sort_by_key(pos, k, ckey)) goto done;  /* the present instances by cell, each cell's in index order */
+    for (int64_t a = 0; a < k;) {
+        int64_t b = a, main = -1;
+        while (b < k && ckey[pos[b]] == ckey[pos[a]]) {
+            int64_t s = sheet[pos[b]];
+            if (main < 0 || size[s] > size[main] || (size[s] == size[main] && s < main)) main = s;
+            b++;
+        }
+        int hot = 0;
+        for (int64_t t = a; t < b; t++) {
+            int64_t s = sheet[pos[t]];
+            source[s] = s != main || (bad[s] && last);
+            hot |= source[s];
+        }
+        for (int64_t x = a; x < b && hot; x++) {
+            int64_t I = pos[x], si = sheet[I];
+            if (!source[si]) continue;
+            for (int64_t y = a; y < b; y++) {
+                int64_t J = pos[y], sj = sheet[J];
+                if ((si != sj || (bad[si] && I != J && last)) && push(out, face[I], face[J])) goto done;
+            }
+        }
+        a = b;
+    }
+    rc = 0;
+done:
+    free(size);
+    free(source);
+    free(pos);
+    return rc;
+}
+
+/* ---- candidate_filter ---- */
+
+#define O3_BOUND ((7.0 + 56.0 * 0x1p-53) * 0x1p-53)  /* predicates._O3_BOUND: Shewchuk's orient3d bound */
+
+/* predicates.orient3d_filter: the sign of orient3d(a, b, c, d) where the floating-point filter certifies it, else 0
+ * (the same operations in the same order). */
+static int orient3d_filter(const double *a, const double *b, const double *c, const double *d) {
+    double adx = a[0] - d[0], ady = a[1] - d[1], adz = a[2] - d[2];
+    double bdx = b[0] - d[0], bdy = b[1] - d[1], bdz = b[2] - d[2];
+    double cdx = c[0] - d[0], cdy = c[1] - d[1], cdz = c[2] - d[2];
+    double bc = bdx * cdy, cb = cdx * bdy, ca = cdx * ady, ac = adx * cdy, ab = adx * bdy, ba = bdx * ady;
+    double det = adz * (bc - cb) + bdz * (ca - ac) + cdz * (ab - ba);
+    double perm = (fabs(bc) + fabs(cb)) * fabs(adz) + (fabs(ca) + fabs(ac)) * fabs(bdz)
+                  + (fabs(ab) + fabs(ba)) * fabs(cdz);
+    if (fabs(det) <= O3_BOUND * perm) return 0;
+    return det > 0 ? 1 : det < 0 ? -1 : 0;
+}
+
+/* Whether every corner of face q lies certainly on one side of face p's plane. */
+static int separated(const double *v, const int64_t *fl, int64_t p, int64_t q) {
+    const double *a = v + 3 * fl[3 * p], *b = v + 3 * fl[3 * p + 1], *c = v + 3 * fl[3 * p + 2];
+    int s0 = orient3d_filter(a, b, c, v + 3 * fl[3 * q]);
+    int s1 = orient3d_filter(a, b, c, v + 3 * fl[3 * q + 1]);
+    int s2 = orient3d_filter(a, b, c, v + 3 * fl[3 * q + 2]);
+    return (s0 > 0 && s1 > 0 && s2 > 0) || (s0 < 0 && s1 < 0 && s2 < 0);
+}
+
+/* The end of census.intersection_candidates: of the pairs (i, j) of faces fl (positions), those whose boxes
+ * overlap and that share no vertex index, each once, sorted by (min, max), that no face's plane separates. */
+static int filter_run(int64_t n, const int64_t *pi, const int64_t *pj, int64_t m, const double *lo,
+                      const double *hi, const int64_t *fl, const double *v, Pairs *out) {
+    int64_t *key = malloc((size_t)(n ? n : 1) * sizeof(int64_t));
+    int64_t *pos = malloc((size_t)(n ? n : 1) * sizeof(int64_t));
+    int rc = -1;
+    if (!key || !pos) goto done;
+    int64_t k = 0;
+    for (int64_t t = 0; t < n; t++) {
+        int64_t i = pi[t], j = pj[t];
+        if (!overlap(lo, hi, i, j)) continue;
+        int share = 0;
+        for (int x = 0; x < 3; x++)
+            for (int y = 0; y < 3; y++) share |= fl[3 * i + x] == fl[3 * j + y];
+        if (share) continue;
+        key[k] = (i < j ? i : j) * m + (i < j ? j : i);
+        pos[k] = k;
+        k++;
+    }
+    if (sort_by_key(pos, k, key)) goto done;
+    for (int64_t t = 0; t < k; t++) {
+        int64_t kk = key[pos[t]];
+        if (t && kk == key[pos[t - 1]]) continue;
+        int64_t i = kk / m, j = kk % m;
+        if (!separated(v, fl, i, j) && !separated(v, fl, j, i) && push(out, i, j)) goto done;
+    }
+    rc = 0;
+done:
+    free(key);
+    free(pos);
+    return rc;
+}
+
+/* ---- fold_vertices ---- */
+
+#define CONE_COS 0.1
+
+/* census.fold_vertices on live faces fl (m, 3) of nv vertices: folded[v] = 1 where the faces' normals leave the
+ * cone around their mean or their corners turn more than once around v. The sums run in NumPy's order (corner 0
+ * of every face, then corner 1, then corner 2); the angles are libm's atan2 (correctly rounded in glibc), which
+ * may differ from NumPy's in the last bit: only a turn within 1e-16 of the margin could tell them apart. */
+static int fold_run(const double *v, const int64_t *fl, int64_t m, int64_t nv, unsigned char *folded) {
+    double *mean = calloc((size_t)(nv ? nv : 1) * 3, sizeof(double));
+    double *turns = calloc((size_t)(nv ? nv : 1), sizeof(double));
+    double *nrm = malloc((size_t)(m ? m : 1) * 3 * sizeof(double));
+    double *edge = malloc((size_t)(m ? m : 1) * 9 * sizeof(double));
+    int rc = -1;
+    if (!mean || !turns || !nrm || !edge) goto done;
+    for (int64_t i = 0; i < m; i++) {
+        for (int c = 0; c < 3; c++)
+            for (int k = 0; k < 3; k++)
+                edge[9 * i + 3 * c + k] = v[3 * fl[3 * i + (c + 1) % 3] + k] - v[3 * fl[3 * i + c] + k];
+        const double *a = edge + 9 * i, *b = edge + 9 * i + 3;
+        nrm[3 * i] = a[1] * b[2] - a[2] * b[1];
+        nrm[3 * i + 1] = a[2] * b[0] - a[0] * b[2];
+        nrm[3 * i + 2] = a[0] * b[1] - a[1] * b[0];
+    }
+    for (int c = 0; c < 3; c++)
+        for (int64_t i = 0; i < m; i++)
+            for (int k = 0; k < 3; k++) mean[3 * fl[3 * i + c] + k] += nrm[3 * i + k];
+    for (int64_t x = 0; x < nv; x++) {
+        double *u = mean + 3 * x;
+        double length = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+        double d = length < 1e-300 ? 1e-300 : length;  /* np.maximum(length, 1e-300), NaN kept */
+        for (int k = 0; k < 3; k++) u[k] = u[k] / d;  /* the unit mean normal from here on */
+    }
+    for (int c = 0; c < 3; c++)
+        for (int64_t i = 0; i < m; i++) {
+            int64_t x = fl[3 * i + c];
+            const double *n = nrm + 3 * i, *u = mean + 3 * x;
+            const double *o = edge + 9 * i + 3 * c, *bk = edge + 9 * i + 3 * ((c + 2) % 3);
+            double fn = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+            /* Python's sum() starts from 0: 0.0 + x turns a -0.0 into +0.0, which atan2 tells apart */
+            double dot = 0.0 + n[0] * u[0] + n[1] * u[1] + n[2] * u[2];
+            if (dot <= CONE_COS * fn) folded[x] = 1;
+            double back[3] = {-bk[0], -bk[1], -bk[2]};
+            double cos = (0.0 + o[0] * back[0] + o[1] * back[1] + o[2] * back[2])
+                         - (0.0 + o[0] * u[0] + o[1] * u[1] + o[2] * u[2])
+                               * (0.0 + back[0] * u[0] + back[1] * u[1] + back[2] * u[2]);
+            turns[x] += atan2(dot, cos);
+        }
+    for (int64_t x = 0; x < nv; x++)
+        if (turns[x] > 2 * 3.141592653589793 + 1e-6) folded[x] = 1;
+    rc = 0;
+done:
+    free(mean);
+    free(turns);
+    free(nrm);
+    free(edge);
+    return rc;
+}
+
 static int rows3(PyObject *obj, Py_buffer *view, const char *name) {
     if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return -1;
     if (view->itemsize != 8 || !view->format || strcmp(view->format, "d") != 0 || view->len % 24) {
@@ -441,8 +629,131 @@ out:
     return result;
 }
 
+
+static PyObject *pairs_result(Pairs *pairs, int rc) {
+    PyObject *result = NULL;
+    if (rc) PyErr_NoMemory();
+    else result = PyByteArray_FromStringAndSize((const char *)pairs->data,
+                                                (Py_ssize_t)(pairs->n * 2 * (int64_t)sizeof(int64_t)));
+    free(pairs->data);
+    return result;
+}
+
+static PyObject *cross_sheet_pairs(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *o[5];
+    long long n_sheets;
+    int last;
+    if (!PyArg_ParseTuple(args, "OOOOLOp", &o[0], &o[1], &o[2], &o[3], &n_sheets, &o[4], &last)) return NULL;
+    Py_buffer b[5];
+    const char *names[5] = {"face", "ckey", "present", "sheet", "bad_sheet"};
+    const char *fmts[5] = {"q", "q", "B", "q", "B"};
+    int got = 0;
+    PyObject *result = NULL;
+    for (; got < 5; got++) {
+        Py_ssize_t n = got == 4 ? (Py_ssize_t)n_sheets : got ? b[0].len / 8 : -1;
+        if (get_buffer(o[got], &b[got], fmts[got], n, names[got]) < 0) goto out;
+    }
+    int64_t n = b[0].len / 8;
+    const int64_t *sheet = b[3].buf;
+    for (int64_t t = 0; t < n; t++)
+        if (sheet[t] < 0 || sheet[t] >= n_sheets) {
+            PyErr_SetString(PyExc_ValueError, "cross_sheet_pairs: a sheet label out of range");
+            goto out;
+        }
+    Pairs pairs = {0};
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = cross_run(n, b[0].buf, b[1].buf, b[2].buf, sheet, n_sheets, b[4].buf, last, &pairs);
+    Py_END_ALLOW_THREADS
+    result = pairs_result(&pairs, rc);
+out:
+    for (int k = 0; k < got; k++) PyBuffer_Release(&b[k]);
+    return result;
+}
+
+static PyObject *candidate_filter(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *o[6];
+    if (!PyArg_ParseTuple(args, "OOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5])) return NULL;
+    Py_buffer b[6];
+    const char *names[6] = {"i", "j", "lo", "hi", "fl", "v"};
+    const char *fmts[6] = {"q", "q", "d", "d", "q", "d"};
+    int got = 0;
+    PyObject *result = NULL;
+    for (; got < 6; got++) {
+        Py_ssize_t n = got == 1 ? b[0].len / 8 : got == 3 || got == 4 ? b[2].len / 8 : -1;
+        if (get_buffer(o[got], &b[got], fmts[got], n, names[got]) < 0) goto out;
+        if ((got == 2 || got == 5) && b[got].len % 24) {
+            PyErr_Format(PyExc_ValueError, "candidate_filter: %s must be rows of 3", names[got]);
+            got++;
+            goto out;
+        }
+    }
+    int64_t n = b[0].len / 8, m = b[2].len / 24, nv = b[5].len / 24;
+    const int64_t *pi = b[0].buf, *pj = b[1].buf, *fl = b[4].buf;
+    for (int64_t t = 0; t < n; t++)
+        if (pi[t] < 0 || pi[t] >= m || pj[t] < 0 || pj[t] >= m) {
+            PyErr_SetString(PyExc_ValueError, "candidate_filter: a face out of range");
+            goto out;
+        }
+    for (int64_t t = 0; t < 3 * m; t++)
+        if (fl[t] < 0 || fl[t] >= nv) {
+            PyErr_SetString(PyExc_ValueError, "candidate_filter: a vertex out of range");
+            goto out;
+        }
+    Pairs pairs = {0};
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = filter_run(n, pi, pj, m, b[2].buf, b[3].buf, fl, b[5].buf, &pairs);
+    Py_END_ALLOW_THREADS
+    result = pairs_result(&pairs, rc);
+out:
+    for (int k = 0; k < got; k++) PyBuffer_Release(&b[k]);
+    return result;
+}
+
+static PyObject *fold_vertices(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *vo, *fo;
+    long long nv;
+    if (!PyArg_ParseTuple(args, "OOL", &vo, &fo, &nv)) return NULL;
+    Py_buffer v, f;
+    if (get_buffer(vo, &v, "d", -1, "vertices") < 0) return NULL;
+    if (get_buffer(fo, &f, "q", -1, "faces") < 0) { PyBuffer_Release(&v); return NULL; }
+    PyObject *result = NULL;
+    int64_t m = f.len / 24;
+    const int64_t *fl = f.buf;
+    if (v.len % 24 || f.len % 24 || nv < 0 || nv > v.len / 24) {
+        PyErr_SetString(PyExc_ValueError, "fold_vertices: vertices and faces must be rows of 3, nv at most the vertices");
+        goto out;
+    }
+    for (int64_t t = 0; t < 3 * m; t++)
+        if (fl[t] < 0 || fl[t] >= nv) {
+            PyErr_SetString(PyExc_ValueError, "fold_vertices: a vertex out of range");
+            goto out;
+        }
+    result = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)nv);
+    if (!result) goto out;
+    memset(PyByteArray_AS_STRING(result), 0, (size_t)nv);
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = fold_run(v.buf, fl, m, nv, (unsigned char *)PyByteArray_AS_STRING(result));
+    Py_END_ALLOW_THREADS
+    if (rc) { Py_CLEAR(result); PyErr_NoMemory(); }
+out:
+    PyBuffer_Release(&v);
+    PyBuffer_Release(&f);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"box_pairs", box_pairs, METH_VARARGS, "box_pairs(lo, hi, among, base) -> bytearray of int64 (i, j) rows"},
+    {"cross_sheet_pairs", cross_sheet_pairs, METH_VARARGS,
+     "cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last) -> bytearray of int64 face pairs"},
+    {"candidate_filter", candidate_filter, METH_VARARGS,
+     "candidate_filter(i, j, lo, hi, fl, v) -> bytearray of int64 (i, j) rows, sorted"},
+    {"fold_vertices", fold_vertices, METH_VARARGS, "fold_vertices(vertices, faces, nv) -> bytearray mask"},
     {"sheets", sheets, METH_VARARGS,
      "sheets(a, span, cnt, nrm, p0, f1, f2, dims, base, org, cell) -> (face, ckey, present, sheet, n_sheets)"},
     {NULL, NULL, 0, NULL},

@@ -380,7 +380,7 @@ def census_intersections(mesh: Mesh, p: GuardParams) -> Intersections:
     """``scope: defects``: the input's self-intersection test decided on the pairs the defect census's broad
     phase cannot prove apart (:meth:`~scanreg.mesh.census.Census.pairs_to_test`), each pair by the exact test:
     the whole mesh's answer at a fraction of its cost (``experiments/benchmarks/census.md``), resting on the
-    broad phase's one assumption (:func:`~scanreg.mesh.census.intersection_candidates`). The repair's output
+    broad phase's one assumption (:func:`~scanreg.mesh.broad_phase.intersection_candidates`). The repair's output
     is tested exactly where it differs from the input (:func:`~scanreg.mesh.intersect.self_intersections`
     from this outcome), so no self-intersection the repair makes goes unreported."""
     c = mesh_census(mesh, sliver_angle_deg=p.sliver_angle_deg, min_component_share=p.min_component_share,
