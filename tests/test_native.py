@@ -74,6 +74,7 @@ def test_box_pairs_match_numpy_on_the_bunny():
                                       as_set(*candidate_pairs_numpy(lo, hi, mask), n))
 
 
+@pytest.mark.filterwarnings("ignore:invalid value encountered")  # NumPy's own, on the way to its error
 def test_a_non_finite_box_is_refused_as_numpy_refuses_it():
     """The kernel's grids need finite boxes: others go to the NumPy version, which refuses them (the readers
     refuse non-finite coordinates before)."""
@@ -191,3 +192,38 @@ def test_candidate_filter_decides_as_numpy_at_the_filters_bound():
     want = broad_phase._candidates_among_numpy(i, j, lo, hi, fl, v)
     np.testing.assert_array_equal(np.stack(got), np.stack(want))
     assert 0.1 * n < len(got[0]) < 0.9 * n
+
+
+def test_face_keys_and_same_corners_are_numpy_s():
+    """The incremental self-intersection test's face matching: the same 64-bit keys (coordinate bits hashed) and
+    the same verdicts on triangles with their corners permuted, moved by an ulp, one corner's -0.0 for 0.0
+    (equal as numbers) and a NaN (equal to nothing)."""
+    from scanreg.mesh.intersect import face_keys, face_keys_numpy, same_corners, same_corners_numpy
+
+    m = bunny()
+    np.testing.assert_array_equal(face_keys(m.vertices, m.faces), face_keys_numpy(m.vertices, m.faces))
+    rng = np.random.default_rng(3)
+    P = rng.integers(-2, 3, (3000, 3, 3)).astype(float)  # small integers: corners often repeat
+    Q = P[:, rng.permutation(3)].copy()
+    Q[rng.permutation(3000)[:300], rng.integers(0, 3, 300), rng.integers(0, 3, 300)] += 1e-12
+    Q[:500] = P[:500][:, [0, 0, 1]]  # a corner twice: not the same set
+    Q[500 + rng.permutation(2500)[:20], 1, 1] = np.nan
+    zero = 500 + np.flatnonzero(P[500:, 0, 0] == 0)[:50]
+    Q[zero] = P[zero]
+    Q[zero, 0, 0] = -0.0
+    got = same_corners(P, Q)
+    np.testing.assert_array_equal(got, same_corners_numpy(P, Q))
+    assert 0.2 < got.mean() < 0.9 and got[zero].all()
+
+
+def test_stable_order_is_numpys_stable_argsort():
+    """The radix sort of face keys: NumPy's stable argsort, equal keys in their order, on full-width keys, few
+    distinct keys, keys alike in most bytes, the extremes and nothing."""
+    from scanreg.mesh.intersect import stable_order
+
+    rng = np.random.default_rng(5)
+    for keys in (rng.integers(0, 2 ** 63, 5000, dtype=np.uint64) * np.uint64(2) + np.uint64(1),
+                 rng.integers(0, 7, 5000).astype(np.uint64),
+                 np.uint64(0xABCD000000000000) + rng.integers(0, 300, 5000).astype(np.uint64),
+                 np.array([2 ** 64 - 1, 0, 2 ** 63, 0, 2 ** 64 - 1], np.uint64), np.zeros(0, np.uint64)):
+        np.testing.assert_array_equal(stable_order(keys), np.argsort(keys, kind="stable"))

@@ -747,6 +747,157 @@ out:
     return result;
 }
 
+
+/* ---- face_keys, same_corners ---- */
+
+static uint64_t mix(uint64_t z) {  /* intersect._mix: SplitMix64's finaliser */
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    return z ^ (z >> 31);
+}
+
+/* intersect.face_keys: a hash of each face's set of corner coordinates (their bits). */
+static int keys_run(const double *v, int64_t nv, const int64_t *f, int64_t m, uint64_t *out) {
+    uint64_t *hv = malloc((size_t)(nv ? nv : 1) * sizeof(uint64_t));
+    if (!hv) return -1;
+    for (int64_t x = 0; x < nv; x++) {
+        uint64_t b[3];
+        memcpy(b, v + 3 * x, sizeof b);
+        hv[x] = mix(b[0] ^ mix(b[1] ^ mix(b[2] ^ 0x9E3779B97F4A7C15ull)));
+    }
+    for (int64_t i = 0; i < m; i++) {
+        uint64_t a = hv[f[3 * i]], b = hv[f[3 * i + 1]], c = hv[f[3 * i + 2]], t;
+        if (a > b) { t = a; a = b; b = t; }
+        if (b > c) { t = b; b = c; c = t; }
+        if (a > b) { t = a; a = b; b = t; }
+        out[i] = mix(a ^ mix(b ^ mix(c)));
+    }
+    free(hv);
+    return 0;
+}
+
+static int same_point(const double *p, const double *q) { return p[0] == q[0] && p[1] == q[1] && p[2] == q[2]; }
+
+/* intersect.same_corners: whether triangles P[i] and Q[i] (corners of 3 coordinates) have the same corners. */
+static void same_run(const double *P, const double *Q, int64_t m, unsigned char *out) {
+    for (int64_t i = 0; i < m; i++) {
+        const double *p = P + 9 * i, *q = Q + 9 * i;
+        int same = 1;
+        for (int k = 0; k < 3 && same; k++)
+            same = (same_point(p + 3 * k, q) || same_point(p + 3 * k, q + 3) || same_point(p + 3 * k, q + 6))
+                   && (same_point(q + 3 * k, p) || same_point(q + 3 * k, p + 3) || same_point(q + 3 * k, p + 6));
+        out[i] = (unsigned char)same;
+    }
+}
+
+static PyObject *face_keys(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *vo, *fo;
+    if (!PyArg_ParseTuple(args, "OO", &vo, &fo)) return NULL;
+    Py_buffer v, f;
+    if (get_buffer(vo, &v, "d", -1, "vertices") < 0) return NULL;
+    if (get_buffer(fo, &f, "q", -1, "faces") < 0) { PyBuffer_Release(&v); return NULL; }
+    PyObject *result = NULL;
+    int64_t nv = v.len / 24, m = f.len / 24;
+    const int64_t *fl = f.buf;
+    if (v.len % 24 || f.len % 24) {
+        PyErr_SetString(PyExc_ValueError, "face_keys: vertices and faces must be rows of 3");
+        goto out;
+    }
+    for (int64_t t = 0; t < 3 * m; t++)
+        if (fl[t] < 0 || fl[t] >= nv) {
+            PyErr_SetString(PyExc_ValueError, "face_keys: a vertex out of range");
+            goto out;
+        }
+    result = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(m * 8));
+    if (!result) goto out;
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = keys_run(v.buf, nv, fl, m, (uint64_t *)PyByteArray_AS_STRING(result));
+    Py_END_ALLOW_THREADS
+    if (rc) { Py_CLEAR(result); PyErr_NoMemory(); }
+out:
+    PyBuffer_Release(&v);
+    PyBuffer_Release(&f);
+    return result;
+}
+
+static PyObject *same_corners(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *po, *qo;
+    if (!PyArg_ParseTuple(args, "OO", &po, &qo)) return NULL;
+    Py_buffer P, Q;
+    if (get_buffer(po, &P, "d", -1, "P") < 0) return NULL;
+    if (get_buffer(qo, &Q, "d", P.len / 8, "Q") < 0) { PyBuffer_Release(&P); return NULL; }
+    PyObject *result = NULL;
+    int64_t m = P.len / 72;
+    if (P.len % 72) {
+        PyErr_SetString(PyExc_ValueError, "same_corners: P and Q must be triangles (m, 3, 3)");
+        goto out;
+    }
+    result = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)m);
+    if (!result) goto out;
+    Py_BEGIN_ALLOW_THREADS
+    same_run(P.buf, Q.buf, m, (unsigned char *)PyByteArray_AS_STRING(result));
+    Py_END_ALLOW_THREADS
+out:
+    PyBuffer_Release(&P);
+    PyBuffer_Release(&Q);
+    return result;
+}
+
+
+/* ---- stable_order ---- */
+
+/* np.argsort(keys, kind="stable") of uint64 keys: an LSD radix sort, a byte per pass (stable, so equal keys keep
+ * their order), skipping the bytes where every key agrees. */
+static int order_run(const uint64_t *key, int64_t n, int64_t *order) {
+    int64_t *tmp = malloc((size_t)(n ? n : 1) * sizeof(int64_t));
+    if (!tmp) return -1;
+    uint64_t all_or = 0, all_and = ~0ull;
+    for (int64_t t = 0; t < n; t++) {
+        order[t] = t;
+        all_or |= key[t];
+        all_and &= key[t];
+    }
+    int64_t *src = order, *dst = tmp;
+    for (int shift = 0; shift < 64; shift += 8) {
+        if ((((all_or ^ all_and) >> shift) & 255) == 0) continue;  /* this byte the same in every key */
+        int64_t count[257] = {0};
+        for (int64_t t = 0; t < n; t++) count[((key[src[t]] >> shift) & 255) + 1]++;
+        for (int b = 0; b < 256; b++) count[b + 1] += count[b];
+        for (int64_t t = 0; t < n; t++) dst[count[(key[src[t]] >> shift) & 255]++] = src[t];
+        int64_t *x = src; src = dst; dst = x;
+    }
+    if (src != order) memcpy(order, src, (size_t)n * sizeof(int64_t));
+    free(tmp);
+    return 0;
+}
+
+static PyObject *stable_order(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *ko;
+    if (!PyArg_ParseTuple(args, "O", &ko)) return NULL;
+    Py_buffer k;
+    if (PyObject_GetBuffer(ko, &k, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return NULL;
+    PyObject *result = NULL;
+    if (k.itemsize != 8 || !k.format || (strcmp(k.format, "Q") != 0 && strcmp(k.format, "L") != 0)) {
+        PyErr_SetString(PyExc_TypeError, "stable_order: keys must be C-contiguous uint64");
+        goto out;
+    }
+    int64_t n = k.len / 8;
+    result = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(n * 8));
+    if (!result) goto out;
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = order_run(k.buf, n, (int64_t *)PyByteArray_AS_STRING(result));
+    Py_END_ALLOW_THREADS
+    if (rc) { Py_CLEAR(result); PyErr_NoMemory(); }
+out:
+    PyBuffer_Release(&k);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"box_pairs", box_pairs, METH_VARARGS, "box_pairs(lo, hi, among, base) -> bytearray of int64 (i, j) rows"},
     {"cross_sheet_pairs", cross_sheet_pairs, METH_VARARGS,
@@ -754,6 +905,9 @@ static PyMethodDef methods[] = {
     {"candidate_filter", candidate_filter, METH_VARARGS,
      "candidate_filter(i, j, lo, hi, fl, v) -> bytearray of int64 (i, j) rows, sorted"},
     {"fold_vertices", fold_vertices, METH_VARARGS, "fold_vertices(vertices, faces, nv) -> bytearray mask"},
+    {"face_keys", face_keys, METH_VARARGS, "face_keys(vertices, faces) -> bytearray of uint64 keys"},
+    {"same_corners", same_corners, METH_VARARGS, "same_corners(P, Q) -> bytearray mask"},
+    {"stable_order", stable_order, METH_VARARGS, "stable_order(keys) -> bytearray of int64: a stable argsort"},
     {"sheets", sheets, METH_VARARGS,
      "sheets(a, span, cnt, nrm, p0, f1, f2, dims, base, org, cell) -> (face, ckey, present, sheet, n_sheets)"},
     {NULL, NULL, 0, NULL},

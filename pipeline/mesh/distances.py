@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from scanreg.geometry import Mesh, area_weighted_draws, barycentric_sample, in_cells_around, points_on_faces
-from scanreg.mesh.intersect import face_boxes, face_keys, largest_sides, same_corners
+from scanreg.mesh.intersect import face_boxes, face_keys, largest_sides, same_corners, stable_order
 from scanreg.mesh.topology import _face_areas
 
 
@@ -71,7 +71,7 @@ def shared_faces(a: Mesh, b: Mesh) -> tuple[np.ndarray, np.ndarray]:
     face ``b`` has twice, one copy is marked. (A repair's input and output: what it left as it was.)"""
     va, vb = (np.ascontiguousarray(m.vertices, dtype=np.float64) for m in (a, b))
     ka, kb = face_keys(va, a.faces), face_keys(vb, b.faces)
-    order = np.argsort(kb, kind="stable")
+    order = stable_order(kb)
     sk = kb[order]
     at = np.minimum(np.searchsorted(sk, ka), max(len(sk) - 1, 0))
     i = np.flatnonzero(sk[at] == ka) if len(sk) else np.zeros(0, np.int64)

@@ -61,7 +61,7 @@ class Intersections:
     def sorted_keys(self) -> tuple[np.ndarray, np.ndarray]:
         """``(order, keys[order])``, the keys sorted (stably), computed once."""
         if self._sorted is None:
-            order = np.argsort(self.keys, kind="stable")
+            order = stable_order(self.keys)
             self._sorted = (order, self.keys[order])
         return self._sorted
 
@@ -572,6 +572,14 @@ def largest_sides(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
     return side, float(np.quantile(side, NARROW_QUANTILE))
 
 
+def stable_order(keys: np.ndarray) -> np.ndarray:
+    """``np.argsort(keys, kind="stable")`` of uint64 keys (:func:`face_keys`), by the compiled kernel's radix sort
+    when there is one (the same order: a stable sort's is unique)."""
+    if native.kernels is None or keys.dtype != np.uint64:
+        return np.argsort(keys, kind="stable")
+    return np.frombuffer(native.kernels.stable_order(np.ascontiguousarray(keys)), np.int64)
+
+
 def _mix(z: np.ndarray) -> np.ndarray:
     """SplitMix64's finaliser on uint64 arrays (wrapping arithmetic)."""
     with np.errstate(over="ignore"):
@@ -582,7 +590,17 @@ def _mix(z: np.ndarray) -> np.ndarray:
 
 def face_keys(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     """A 64-bit hash of each face's set of corner coordinates (not of its indices or corner order); equal
-    keys are confirmed by comparing the coordinates before a face counts as the same."""
+    keys are confirmed by comparing the coordinates before a face counts as the same. By the compiled kernel
+    when there is one (:mod:`scanreg.mesh.native`: the same keys), else :func:`face_keys_numpy`."""
+    f = np.ascontiguousarray(f, dtype=np.int64)
+    if native.kernels is None or not len(f):
+        return face_keys_numpy(v, f)
+    return np.frombuffer(native.kernels.face_keys(np.ascontiguousarray(v, dtype=np.float64), f), np.uint64)
+
+
+def face_keys_numpy(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """:func:`face_keys` in NumPy: SplitMix64's finaliser (:func:`_mix`) over each vertex's coordinate bits, the
+    face's three vertex hashes sorted and mixed again."""
     bits = np.ascontiguousarray(v).view(np.uint64).reshape(-1, 3)
     hv = _mix(bits[:, 0] ^ _mix(bits[:, 1] ^ _mix(bits[:, 2] ^ np.uint64(0x9E3779B97F4A7C15))))
     c = np.sort(hv[f], axis=1)
@@ -592,7 +610,16 @@ def face_keys(v: np.ndarray, f: np.ndarray) -> np.ndarray:
 def same_corners(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """Whether the triangles ``P`` and ``Q`` (m, 3 corners, 3) have the same set of corners: every corner of each
     equals a corner of the other. (For faces with three distinct corners, the same as comparing the corners
-    sorted, at a fraction of its cost.)"""
+    sorted, at a fraction of its cost.) By the compiled kernel when there is one (the same answers), else
+    :func:`same_corners_numpy`."""
+    if native.kernels is None or not len(P):
+        return same_corners_numpy(P, Q)
+    return np.frombuffer(native.kernels.same_corners(np.ascontiguousarray(P, dtype=np.float64),
+                                                     np.ascontiguousarray(Q, dtype=np.float64)), np.bool_)
+
+
+def same_corners_numpy(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """:func:`same_corners` in NumPy, coordinate by coordinate."""
     pc = [[np.ascontiguousarray(P[:, k, x]) for x in range(3)] for k in range(3)]
     qc = [[np.ascontiguousarray(Q[:, k, x]) for x in range(3)] for k in range(3)]
     eq = [[(pc[k][0] == qc[m][0]) & (pc[k][1] == qc[m][1]) & (pc[k][2] == qc[m][2]) for m in range(3)]
