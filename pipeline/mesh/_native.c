@@ -898,6 +898,82 @@ out:
     return result;
 }
 
+
+/* ---- several_fans ---- */
+
+/* topology.non_manifold_vertex_mask's groups: the corners of each vertex joined across every edge with two faces
+ * (rows r1[k], r2[k] of the directed edge table: local edge j = r / nf of face r % nf runs from corner j to
+ * corner j + 1), corner to corner of the same vertex; out[v] = 1 where v's corners fall into more than one group. */
+static int fans_run(const int64_t *f, int64_t nf, const int64_t *r1, const int64_t *r2, int64_t e, int64_t nv,
+                    unsigned char *out) {
+    int64_t nc = 3 * nf;
+    int64_t *parent = malloc((size_t)(nc ? nc : 1) * sizeof(int64_t));
+    int64_t *first = malloc((size_t)(nv ? nv : 1) * sizeof(int64_t));
+    if (!parent || !first) { free(parent); free(first); return -1; }
+    for (int64_t c = 0; c < nc; c++) parent[c] = c;
+    for (int64_t k = 0; k < e; k++) {
+        int64_t j1 = r1[k] / nf, k1 = r1[k] % nf, j2 = r2[k] / nf, k2 = r2[k] % nf;
+        int64_t c1s = 3 * k1 + j1, c1e = 3 * k1 + (j1 + 1) % 3, c2s = 3 * k2 + j2, c2e = 3 * k2 + (j2 + 1) % 3;
+        if (f[c1s] == f[c2s]) {  /* traversed the same way (inconsistent orientation): start with start */
+            join(parent, c1s, c2s);
+            join(parent, c1e, c2e);
+        } else {
+            join(parent, c1s, c2e);
+            join(parent, c1e, c2s);
+        }
+    }
+    for (int64_t x = 0; x < nv; x++) first[x] = -1;
+    for (int64_t c = 0; c < nc; c++) {
+        int64_t r = find(parent, c), x = f[c];
+        if (first[x] < 0) first[x] = r;
+        else if (first[x] != r) out[x] = 1;
+    }
+    free(parent);
+    free(first);
+    return 0;
+}
+
+static PyObject *several_fans(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *fo, *ao, *bo;
+    long long nv;
+    if (!PyArg_ParseTuple(args, "OOOL", &fo, &ao, &bo, &nv)) return NULL;
+    Py_buffer f, a, b;
+    if (get_buffer(fo, &f, "q", -1, "faces") < 0) return NULL;
+    if (get_buffer(ao, &a, "q", -1, "r1") < 0) { PyBuffer_Release(&f); return NULL; }
+    if (get_buffer(bo, &b, "q", a.len / 8, "r2") < 0) { PyBuffer_Release(&f); PyBuffer_Release(&a); return NULL; }
+    PyObject *result = NULL;
+    int64_t nf = f.len / 24, e = a.len / 8;
+    const int64_t *fl = f.buf, *r1 = a.buf, *r2 = b.buf;
+    if (f.len % 24 || nv < 0) {
+        PyErr_SetString(PyExc_ValueError, "several_fans: faces must be rows of 3");
+        goto out;
+    }
+    for (int64_t t = 0; t < 3 * nf; t++)
+        if (fl[t] < 0 || fl[t] >= nv) {
+            PyErr_SetString(PyExc_ValueError, "several_fans: a vertex out of range");
+            goto out;
+        }
+    for (int64_t k = 0; k < e; k++)
+        if (r1[k] < 0 || r1[k] >= 3 * nf || r2[k] < 0 || r2[k] >= 3 * nf) {
+            PyErr_SetString(PyExc_ValueError, "several_fans: an edge row out of range");
+            goto out;
+        }
+    result = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)nv);
+    if (!result) goto out;
+    memset(PyByteArray_AS_STRING(result), 0, (size_t)nv);
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = fans_run(fl, nf, r1, r2, e, nv, (unsigned char *)PyByteArray_AS_STRING(result));
+    Py_END_ALLOW_THREADS
+    if (rc) { Py_CLEAR(result); PyErr_NoMemory(); }
+out:
+    PyBuffer_Release(&f);
+    PyBuffer_Release(&a);
+    PyBuffer_Release(&b);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"box_pairs", box_pairs, METH_VARARGS, "box_pairs(lo, hi, among, base) -> bytearray of int64 (i, j) rows"},
     {"cross_sheet_pairs", cross_sheet_pairs, METH_VARARGS,
@@ -907,6 +983,8 @@ static PyMethodDef methods[] = {
     {"fold_vertices", fold_vertices, METH_VARARGS, "fold_vertices(vertices, faces, nv) -> bytearray mask"},
     {"face_keys", face_keys, METH_VARARGS, "face_keys(vertices, faces) -> bytearray of uint64 keys"},
     {"same_corners", same_corners, METH_VARARGS, "same_corners(P, Q) -> bytearray mask"},
+    {"several_fans", several_fans, METH_VARARGS,
+     "several_fans(faces, r1, r2, nv) -> bytearray mask of the vertices whose corners form several fans"},
     {"stable_order", stable_order, METH_VARARGS, "stable_order(keys) -> bytearray of int64: a stable argsort"},
     {"sheets", sheets, METH_VARARGS,
      "sheets(a, span, cnt, nrm, p0, f1, f2, dims, base, org, cell) -> (face, ckey, present, sheet, n_sheets)"},

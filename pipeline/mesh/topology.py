@@ -14,6 +14,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from scanreg.geometry import Mesh, rows_any
+from scanreg.mesh import native
 from scanreg.mesh.intersect import Intersections, self_intersections
 
 
@@ -199,7 +200,9 @@ def non_manifold_vertex_mask(mesh: Mesh) -> np.ndarray:
     """Which vertices' faces do not form one fan (two cones meeting at a point), not counting the vertices of
     non-manifold edges: MeshLab's ``non_two_manifold_vertices`` (vcg's CountNonManifoldVertexFF), in NumPy.
     The corners of a vertex are joined across each edge with two faces; a vertex whose corners fall into
-    more than one group is non-manifold. One entry per vertex (at least ``len(mesh.vertices)``)."""
+    more than one group is non-manifold. One entry per vertex (at least ``len(mesh.vertices)``). The groups by
+    the compiled kernel when there is one (:mod:`scanreg.mesh.native`), else by pointer doubling
+    (:func:`_fans_turning`) or the graph's components."""
     f = mesh.faces
     nf = len(f)
     if not nf:
@@ -207,12 +210,19 @@ def non_manifold_vertex_mask(mesh: Mesh) -> np.ndarray:
     directed, edge, counts, order = _mesh_edges_sorted(mesh)
     rows = order[counts[edge[order]] == 2]  # grouped by edge (the pair's order does not matter: links are symmetric)
     r1, r2 = rows[0::2], rows[1::2]  # the two faces' directed copies of each two-face edge
+    vert = f.ravel()  # corner 3 * face + k is vertex f[face, k]
+    nv = max(len(mesh.vertices), int(vert.max()) + 1)
+    if native.kernels is not None:  # the same groups by a union of the corners (scanreg.mesh.native)
+        several = np.frombuffer(native.kernels.several_fans(np.ascontiguousarray(f, dtype=np.int64),
+                                                            np.ascontiguousarray(r1), np.ascontiguousarray(r2), nv),
+                                np.bool_).copy()
+        several[directed[counts[edge] > 2].ravel()] = False
+        return several
     nxt = np.array([1, 2, 0])
     j1, k1 = np.divmod(r1, nf)  # local edge j runs from corner j to corner j + 1 of face r % nf
     j2, k2 = np.divmod(r2, nf)
     c1s, c1e = 3 * k1 + j1, 3 * k1 + nxt[j1]
     c2s, c2e = 3 * k2 + j2, 3 * k2 + nxt[j2]
-    vert = f.ravel()  # corner 3 * face + k is vertex f[face, k]
     same = vert[c1s] == vert[c2s]  # traversed the same way (inconsistent orientation)
     if not same.any():
         fan = _fans_turning(nf, vert, c1s, c1e, c2s, c2e)
@@ -221,7 +231,6 @@ def non_manifold_vertex_mask(mesh: Mesh) -> np.ndarray:
         b = np.concatenate([np.where(same, c2s, c2e), np.where(same, c2e, c2s)])
         g = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(3 * nf, 3 * nf)).tocsr()
         fan = connected_components(g, directed=True, connection="weak")[1]  # weak: as undirected, no transpose
-    nv = max(len(mesh.vertices), int(vert.max()) + 1)
     one = np.empty(nv, fan.dtype)
     one[vert] = fan  # one of each vertex's groups; a corner in another group makes the vertex non-manifold
     several = np.zeros(nv, bool)
