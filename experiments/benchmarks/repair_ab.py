@@ -5,7 +5,8 @@
 The anchor is the same code before a change: ``BASE`` (a commit) is checked out in a temporary git worktree and
 imported in place of this tree (a folder of links that maps the package as ``pyproject.toml`` does:
 ``scanreg`` -> ``pipeline/``, ``scanreg.stages`` -> ``stages/``, ``scanreg.conf`` -> ``conf/``, put first on
-``PYTHONPATH``). Each round runs one fresh process per side, the two sides alternating which goes first (a slow
+``PYTHONPATH``), its compiled kernels built there as its install would build them (so that a base with kernels
+does not run their NumPy versions). Each round runs one fresh process per side, the two sides alternating which goes first (a slow
 spell of the shared machine hits both). A process imports Open3D, libigl and pymeshfix, repairs the first scan
 once to warm up, then repairs each scan once with ``repair=meshfix`` defaults (``RunContext(seed=0)``), each from
 its own freshly read mesh, and reports per scan the wall time and the CPU time of the process and its children
@@ -20,6 +21,7 @@ the rounds and the ratio of this tree's CPU time to the base's; the last row sum
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
@@ -75,6 +77,7 @@ def base_tree(commit: str, tmp: Path) -> Path:
     tree = tmp / "tree"
     subprocess.run(["git", "worktree", "add", "--detach", str(tree), commit], cwd=ROOT, check=True,
                    capture_output=True)
+    build_kernels(tree)
     pkg = tmp / "path" / "scanreg"
     pkg.mkdir(parents=True)
     for entry in (tree / "pipeline").iterdir():
@@ -82,6 +85,31 @@ def base_tree(commit: str, tmp: Path) -> Path:
     for name, folder in PACKAGE_DIRS.items():
         (pkg / name).symlink_to(tree / folder)
     return tmp / "path"
+
+
+def build_kernels(tree: Path) -> None:
+    """The compiled kernels of the commit checked out at ``tree`` (its ``pyproject.toml``'s ext-modules, as its
+    install would build them), built in place: without them the base would run their NumPy versions."""
+    import tomllib
+
+    from setuptools import Distribution, Extension
+
+    config = tomllib.loads((tree / "pyproject.toml").read_text()).get("tool", {}).get("setuptools", {})
+    mods = [Extension(**{k.replace("-", "_"): v for k, v in m.items() if k != "optional"})
+            for m in config.get("ext-modules", [])]
+    if not mods:
+        return
+    dist = Distribution({"ext_modules": mods, "package_dir": config.get("package-dir", {}),
+                         "script_name": "setup.py"})
+    cmd = dist.get_command_obj("build_ext")
+    cmd.inplace = True
+    cwd = os.getcwd()
+    os.chdir(tree)  # the sources are relative to the project
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            dist.run_command("build_ext")
+    finally:
+        os.chdir(cwd)
 
 
 def run_side(pythonpath: str | None) -> dict:
