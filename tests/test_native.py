@@ -256,3 +256,32 @@ def test_non_manifold_vertices_are_numpy_s():
         np.testing.assert_array_equal(got, want)
         found.append(int(got.sum()))
     assert found[2] >= 1 + found[0] and found[3] > 10
+
+
+def test_projection_axes_are_numpy_s_on_collinear_and_grid_triangles():
+    """The degenerate-face and projection choice of the exact tests: the kernel's filter, its exact cases (exact
+    differences and products, a zero permanent) and the rows it leaves to exact arithmetic give the NumPy
+    version's axes and verdicts on triangles exactly collinear on a grid, nearly collinear in float32, partly
+    axis-aligned, at scales from 1e-140 to 1e150 (where products underflow or the filter cannot decide)."""
+    from scanreg.mesh.predicates import projection_axes, projection_axes_numpy
+
+    rng = np.random.default_rng(11)
+    unsure = []
+    for trial in range(12):
+        n = 3000
+        p, q, t = rng.random((n, 3)), rng.random((n, 3)), rng.random((n, 1))
+        r = p + t * (q - p)
+        if trial % 3 == 0:
+            p, q, r = (x.astype(np.float32).astype(float) for x in (p, q, r))
+        elif trial % 3 == 1:
+            g = rng.integers(-1000, 1000, (n, 3, 3)) / 1024.0
+            p, q, r = g[:, 0], g[:, 1], g[:, 2]
+            r[::2] = p[::2] + 2 * (q[::2] - p[::2])  # exactly collinear
+            r[1::4, 2] = p[1::4, 2]
+        scale, off = [1e-140, 1e-3, 1.0, 1e5, 1e150][trial % 5], [0.0, 1.0, 1e3][trial % 3]
+        p, q, r = (x * scale + off for x in (p, q, r))
+        got, want = projection_axes(p, q, r), projection_axes_numpy(p, q, r)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        unsure.append((np.frombuffer(native.kernels.orient2d_projections(p, q, r)[1], np.int8) < 0).mean())
+    assert max(unsure) > 0.3 and min(unsure) == 0  # both paths taken

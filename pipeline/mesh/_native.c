@@ -974,6 +974,98 @@ out:
     return result;
 }
 
+
+/* ---- orient2d_projections ---- */
+
+#define O2_BOUND ((3.0 + 16.0 * 0x1p-53) * 0x1p-53)  /* predicates._O2_BOUND: Shewchuk's orient2d bound */
+
+/* predicates.projection_axes: per triangle p, q, r and per dropped axis k, the sign of det[a - c; b - c] of the
+ * corners projected on the other two axes where Shewchuk's bound certifies it (the same operations in the same
+ * order as predicates.orient2d), 2 where it cannot (the caller decides those rows exactly); and where all three
+ * are certain, the axis projection_axes drops. */
+/* Shewchuk's Two_Diff: whether a - b is exact in floating point (its rounding error zero). */
+static int exact_diff(double a, double b) {
+    double x = a - b, bvirt = a - x, avirt = x + bvirt, bround = bvirt - b, around = a - avirt;
+    return around + bround == 0;
+}
+
+/* The exact sign of an orient2d the filter left unsure, where it is cheap: no difference from c below 1e-150 but
+ * zeros (so no product underflows: a zero permanent is a zero determinant, as predicates.orient2d decides), and
+ * every difference and both products exact in floating point (then det = left - right exactly, and its sign is
+ * the comparison of the two). 2 otherwise: the caller's exact arithmetic decides. Scans read from float32 files
+ * (24-bit mantissas) mostly fall in the second case. */
+static signed char orient2d_exact_cases(const double *a, const double *b, const double *c, int x, int y,
+                                        double left, double right) {
+    double d[4] = {a[x] - c[x], b[y] - c[y], a[y] - c[y], b[x] - c[x]};
+    for (int t = 0; t < 4; t++)
+        if (!(d[t] == 0 || fabs(d[t]) > 1e-150)) return 2;
+    if (left == 0 && right == 0) return 0;  /* (the permanent is zero: orient2d's zero case) */
+    if (!exact_diff(a[x], c[x]) || !exact_diff(b[y], c[y]) || !exact_diff(a[y], c[y]) || !exact_diff(b[x], c[x]))
+        return 2;
+    if (fma(d[0], d[1], -left) != 0 || fma(d[2], d[3], -right) != 0) return 2;
+    return left > right ? 1 : left < right ? -1 : 0;
+}
+
+static void proj_run(const double *p, const double *q, const double *r, int64_t m, signed char *out,
+                     signed char *drop) {
+    static const int keep[3][2] = {{1, 2}, {0, 2}, {0, 1}};
+    for (int64_t i = 0; i < m; i++) {
+        const double *a = p + 3 * i, *b = q + 3 * i, *c = r + 3 * i;
+        int unsure = 0;
+        for (int k = 0; k < 3; k++) {
+            int x = keep[k][0], y = keep[k][1];
+            double left = (a[x] - c[x]) * (b[y] - c[y]);
+            double right = (a[y] - c[y]) * (b[x] - c[x]);
+            double det = left - right, perm = fabs(left) + fabs(right);
+            out[3 * i + k] = fabs(det) <= O2_BOUND * perm ? 2 : det > 0 ? 1 : det < 0 ? -1 : 0;
+            if (out[3 * i + k] == 2) out[3 * i + k] = orient2d_exact_cases(a, b, c, x, y, left, right);
+            unsure |= out[3 * i + k] == 2;
+        }
+        /* the axis dropped: the normal's largest component among the projections that are nonzero (np.cross's
+         * arithmetic, np.argmax's first maximum; score -1 for the others); -1 where a sign is unsure */
+        drop[i] = -1;
+        if (unsure) continue;
+        double u[3] = {b[0] - a[0], b[1] - a[1], b[2] - a[2]}, w[3] = {c[0] - a[0], c[1] - a[1], c[2] - a[2]};
+        double n[3] = {u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]};
+        double best = 0;
+        for (int k = 0; k < 3; k++) {
+            double score = out[3 * i + k] ? fabs(n[k]) : -1.0;
+            if (k == 0 || score > best) { best = score; drop[i] = (signed char)k; }
+        }
+    }
+}
+
+static PyObject *orient2d_projections(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *o[3];
+    if (!PyArg_ParseTuple(args, "OOO", &o[0], &o[1], &o[2])) return NULL;
+    Py_buffer b[3];
+    const char *names[3] = {"p", "q", "r"};
+    int got = 0;
+    PyObject *result = NULL;
+    for (; got < 3; got++)
+        if (get_buffer(o[got], &b[got], "d", got ? b[0].len / 8 : -1, names[got]) < 0) goto out;
+    if (b[0].len % 24) {
+        PyErr_SetString(PyExc_ValueError, "orient2d_projections: p, q, r must be rows of 3");
+        goto out;
+    }
+    int64_t m = b[0].len / 24;
+    PyObject *sign = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(3 * m));
+    PyObject *drop = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)m);
+    if (sign && drop) {
+        Py_BEGIN_ALLOW_THREADS
+        proj_run(b[0].buf, b[1].buf, b[2].buf, m, (signed char *)PyByteArray_AS_STRING(sign),
+                 (signed char *)PyByteArray_AS_STRING(drop));
+        Py_END_ALLOW_THREADS
+        result = PyTuple_Pack(2, sign, drop);
+    }
+    Py_XDECREF(sign);
+    Py_XDECREF(drop);
+out:
+    for (int k = 0; k < got; k++) PyBuffer_Release(&b[k]);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"box_pairs", box_pairs, METH_VARARGS, "box_pairs(lo, hi, among, base) -> bytearray of int64 (i, j) rows"},
     {"cross_sheet_pairs", cross_sheet_pairs, METH_VARARGS,
@@ -983,6 +1075,8 @@ static PyMethodDef methods[] = {
     {"fold_vertices", fold_vertices, METH_VARARGS, "fold_vertices(vertices, faces, nv) -> bytearray mask"},
     {"face_keys", face_keys, METH_VARARGS, "face_keys(vertices, faces) -> bytearray of uint64 keys"},
     {"same_corners", same_corners, METH_VARARGS, "same_corners(P, Q) -> bytearray mask"},
+    {"orient2d_projections", orient2d_projections, METH_VARARGS,
+     "orient2d_projections(p, q, r) -> (signs: int8 (m, 3), 2 where unsure; dropped axis: int8 (m), -1 there)"},
     {"several_fans", several_fans, METH_VARARGS,
      "several_fans(faces, r1, r2, nv) -> bytearray mask of the vertices whose corners form several fans"},
     {"stable_order", stable_order, METH_VARARGS, "stable_order(keys) -> bytearray of int64: a stable argsort"},

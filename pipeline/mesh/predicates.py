@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from scanreg.geometry import rows_all, rows_any
+from scanreg.mesh import native
 
 EPS = np.ldexp(1.0, -53)  # half an ulp of 1.0: Shewchuk's epsilon
 _O3_BOUND = (7.0 + 56.0 * EPS) * EPS
@@ -121,7 +122,24 @@ def orient2d(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 def projection_axes(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per triangle, the two coordinates kept by a projection along one axis that keeps it non-degenerate (the
-    axis of the normal's largest component among those that are exactly nonzero), and whether it has one."""
+    axis of the normal's largest component among those that are exactly nonzero), and whether it has one. By
+    the compiled kernel when there is one (:mod:`scanreg.mesh.native`: the same filter and arithmetic), the rows
+    its filter cannot certify by :func:`projection_axes_numpy`: the same answers."""
+    if native.kernels is None or not len(p):
+        return projection_axes_numpy(p, q, r)
+    p, q, r = (np.ascontiguousarray(x, dtype=np.float64) for x in (p, q, r))
+    sign, drop = native.kernels.orient2d_projections(p, q, r)
+    ok = rows_any(np.frombuffer(sign, np.int8).reshape(-1, 3) != 0)
+    drop = np.frombuffer(drop, np.int8).astype(np.int64)
+    unsure = np.flatnonzero(drop < 0)
+    if len(unsure):
+        keep_u, ok[unsure] = projection_axes_numpy(p[unsure], q[unsure], r[unsure])
+        drop[unsure] = 3 - keep_u.sum(axis=1)  # the axis not kept
+    return np.array([[1, 2], [0, 2], [0, 1]])[drop], ok
+
+
+def projection_axes_numpy(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`projection_axes` in NumPy."""
     n = np.cross(q - p, r - p)
     ok = np.zeros((len(p), 3), bool)
     for k in range(3):
