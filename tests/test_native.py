@@ -87,8 +87,56 @@ def test_box_pairs_refuse_other_types():
     lo = np.zeros((4, 3), np.float32)
     with pytest.raises(TypeError, match="float64"):
         native.kernels.box_pairs(lo, lo, None, 1.0)
-    with pytest.raises(ValueError, match="among"):
+    with pytest.raises(TypeError, match="among"):
         native.kernels.box_pairs(lo.astype(float), lo.astype(float), np.zeros(3, np.uint8), 1.0)
+    with pytest.raises(TypeError, match="rows of 3"):
+        native.kernels.box_pairs(np.zeros(6), np.zeros(6), None, 1.0)
+    with pytest.raises(ValueError, match="not finite"):
+        native.kernels.box_pairs(np.array([[-1.7e308, 0, 0], [0, 0, 0]]), np.array([[0, 1, 1], [1e308, 1, 1]]),
+                                 None, 1.0)
+
+
+def test_the_kernels_refuse_inconsistent_input_before_writing():
+    """From a review: a level's cells that do not add up, a grid too large to number, indices out of range or
+    arrays of the wrong shape are refused with a Python exception (no write out of bounds, no crash)."""
+    one, f = np.zeros((1, 3), np.int64), np.zeros((1, 3))
+    empty = np.zeros(0, np.int64)
+    good = dict(a=one, span=np.ones((1, 3), np.int64), cnt=np.ones(1, np.int64))
+    cases = [dict(good, span=np.full((1, 3), 2, np.int64)),  # 8 cells, cnt says 1
+             dict(good, cnt=np.full(1, -1, np.int64)), dict(good, a=np.full((1, 3), -1, np.int64))]
+    for case in cases:
+        with pytest.raises(ValueError, match="sheets"):
+            native.kernels.sheets(case["a"], case["span"], case["cnt"], f, f, empty, empty, (3, 3, 3), (0, 0, 0),
+                                  (0.0, 0.0, 0.0), 1.0)
+    for dims in ((1, 0, 1), (2 ** 32, 2 ** 32, 1)):
+        with pytest.raises(ValueError, match="dims"):
+            native.kernels.sheets(one, good["span"], good["cnt"], f, f, empty, empty, dims, (0, 0, 0),
+                                  (0.0, 0.0, 0.0), 1.0)
+    with pytest.raises(ValueError, match="out of range"):
+        native.kernels.face_keys(np.zeros((2, 3)), np.array([[0, 1, 2]]))
+    with pytest.raises(TypeError, match="n, 3, 3"):
+        native.kernels.same_corners(np.zeros((2, 9)), np.zeros((2, 9)))
+    with pytest.raises(ValueError, match="n_sheets"):
+        native.kernels.cross_sheet_pairs(empty, empty, np.zeros(0, np.uint8), empty, -1, np.zeros(0, np.uint8), True)
+
+
+def test_meshes_spanning_more_cells_than_int64_numbers_agree():
+    """From a review: faces 2^22 to 2^64 cells apart made the cell keys (and, in the kernel, the buffers) overflow;
+    the grid is now made coarser there, and both versions find the same candidates, the crossing pair among
+    them."""
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float) * 0.25
+    cross = [[0.8, 0.8, 0.5], [1.3, 0.8, 0.5], [0.8, 1.3, 0.5]], [[0.9, 0.9, 0.3], [1.2, 1, 0.7], [0.9, 1.2, 0.7]]
+    far = np.vstack([tri, np.add(cross[0], 2.0 ** 22), np.add(cross[1], 2.0 ** 22)])
+    row = np.concatenate([tri * 4 + [2.0 * k, 0, 0] for k in range(100)] + [[[0, 0, 0], [2.0 ** 64, 0, 0], [0, 12, 0]]])
+    for v, want in ((far, [[1, 2]]), (row, None)):
+        f = np.arange(len(v)).reshape(-1, 3)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(native, "kernels", None)
+            plain = census(v, f)
+        fast = census(v, f)
+        np.testing.assert_array_equal(fast.intersection_candidates, plain.intersection_candidates)
+        if want is not None:
+            assert fast.intersection_candidates.tolist() == want
 
 
 def meshes():

@@ -1,26 +1,40 @@
-/* scanreg.mesh._native: compiled kernels of the mesh layer, each the same function as a NumPy reference in
- * scanreg.mesh (tests/test_native.py compares them) and used in its place when this module was built.
+/* scanreg.mesh._native: the compiled kernels of the mesh layer (docs/repair.md, "Compiled kernels").
  *
- * box_pairs(lo, hi, among, base) -> bytearray
- *     The pairs (i, j), i < j, of the closed axis-aligned boxes [lo[i], hi[i]] that overlap, each once; with
- *     among (a bytes-like mask, one byte per box, or None) only the pairs with at least one box in it.
- *     lo, hi: C-contiguous float64 buffers of m rows of 3, finite. base: the cell side of the first level.
- *     Returned as native int64 (i, j) rows, in a deterministic order (by the querying box, then by cell).
+ * Each kernel computes what a NumPy function of scanreg.mesh computes, with the same result, and is used in its
+ * place when this module was built (scanreg.mesh.native.kernels); the NumPy function stays as the reference and
+ * the fallback, and tests/test_native.py compares the two. The kernels, by section of this file:
  *
- * sheets(a, span, cnt, nrm, p0, f1, f2, dims, base, org, cell) -> (face, ckey, present, sheet, n_sheets)
- *     One level of the census's broad phase up to its sheets: the instances (face, cell its box touches) with
- *     their cell keys, whether the face's plane passes through the cell, and the sheets (connected components of
- *     the instances joined across manifold edges within a cell), labelled as scipy's connected_components
- *     labels them (in the order of each sheet's first instance). What scanreg.mesh.census._sheets_numpy
- *     computes, bit for bit (the plane test with the same operations in the same order, no contraction).
+ *   box_pairs             intersect.candidate_pairs_numpy      overlapping pairs of boxes (a set; another order)
+ *   sheets                broad_phase._sheets_numpy            one broad-phase level's instances and sheets
+ *   cross_sheet_pairs     broad_phase._cross_sheet_pairs_numpy the face pairs a level looks at (a multiset)
+ *   candidate_filter      broad_phase._candidates_among_numpy  the broad phase's end: box, shared vertex, planes
+ *   fold_vertices         broad_phase.fold_vertices_numpy      fans leaving the normal cone or turning twice
+ *   face_keys             intersect.face_keys_numpy            a hash of each face's corner coordinates
+ *   same_corners          intersect.same_corners_numpy         triangles with the same corners
+ *   stable_order          np.argsort(kind="stable")            of uint64 keys, by a radix sort
+ *   several_fans          topology.non_manifold_vertex_mask    vertices whose corners form several fans
+ *   orient2d_projections  predicates.projection_axes_numpy     non-degenerate projections, the axis dropped
  *
- * box_pairs: the boxes are put in levels by their largest side (level l: side <= base * 2^l) and each level in a grid of
+ * Floating-point kernels repeat the NumPy version's operations in its order and the file is compiled without
+ * fused multiply-adds (pyproject.toml: -ffp-contract=off), so that they give the same bits; fold_vertices'
+ * angles are glibc's atan2, which NumPy's arctan2 may differ from in the last bit (see its section).
+ *
+ * Every kernel checks its arguments (types, shapes, index ranges, a level's cells) before it allocates or writes
+ * and raises a Python exception otherwise; the checks run before the interpreter lock is released, so the arrays
+ * must not change during a call (scanreg's callers pass arrays they made). Results come back as bytearrays that
+ * the Python side views with np.frombuffer. A new kernel: a section here (its loop in a *_run function, its
+ * wrapper with the argument checks, a line in methods[]), the NumPy version beside its caller, and a test that
+ * compares the two.
+ *
+ * ---- box_pairs ----
+ *
+ * The boxes are put in levels by their largest side (level l: side <= base * 2^l) and each level in a grid of
  * that side, keyed by the cell of each box's lower corner. Two boxes that overlap, q of level b, have
  * lo_q >= lo_p - side_q >= lo_p - w_b and lo_q <= hi_p on every axis, so q's cell lies in the block of level
  * b's grid between those bounds (taken a rounding margin wider): a box queries that block on its own level and
  * the levels below (with among, on every level), a block with more cells than its level has boxes being every
  * box of the level, and keeps the boxes that overlap it, each pair once (keep()). A level's rows of cells are
- * found by hashing.
+ * found by hashing. The boxes' extent must be finite (the grids number their cells in 64 bits).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -190,6 +204,7 @@ static int box_pairs_run(const double *lo, const double *hi, int64_t m, const un
         org[k] = a;
         if (b - a > ext) ext = b - a;
     }
+    if (!isfinite(ext)) return -2;  /* an extent beyond the doubles (or a non-finite box): the caller refuses it */
     if (!(base >= ldexp(ext, -20))) base = ldexp(ext, -20);  /* at most 2^20 + 1 cells per axis: keys fit */
     if (!(base > 0)) base = 1.0;
     int *level = malloc((size_t)(m ? m : 1) * sizeof(int));
@@ -265,7 +280,7 @@ typedef struct {
     double org[3], cell;
 } SheetInput;
 
-/* Whether the plane of face i passes through the cell (x, y, z): census._on_plane's operations, in its order. */
+/* Whether the plane of face i passes through the cell (x, y, z): broad_phase._on_plane's operations, in its order. */
 static int on_plane(const SheetInput *in, int64_t i, const int64_t c[3]) {
     double d = 0.0, reach = 0.0, size = 0.0;
     for (int k = 0; k < 3; k++) {
@@ -325,12 +340,45 @@ static int sheets_run(const SheetInput *in, int64_t *start, int64_t *face, int64
     return 0;
 }
 
-static int get_buffer(PyObject *obj, Py_buffer *view, const char *fmt, Py_ssize_t n, const char *name) {
+/* A C-contiguous buffer of format fmt ("q": int64, "d": float64, "B": bytes) and shape (n,) for width 0, (n, 3)
+ * for width 3, (n, 3, 3) for width 9, holding `items` elements unless that is -1; else a TypeError naming it. */
+/* Why sheets' input is not a level of the broad phase (NULL when it is), and its instances in all (*n): every
+ * dims >= 1 with their product below 2^63; each face in it (cnt != 0) with cnt its cells in all, its block of
+ * cells inside the grid; the edges' faces in range. Checked before anything is allocated or written. */
+static const char *sheet_input_error(const SheetInput *in, int64_t *n) {
+    uint64_t cells = 1, total = 0;
+    for (int k = 0; k < 3; k++)
+        if (in->dims[k] < 1 || __builtin_mul_overflow(cells, (uint64_t)in->dims[k], &cells) || cells >> 63)
+            return "dims must be >= 1 with a product below 2^63";
+    for (int64_t i = 0; i < in->m; i++) {
+        if (in->cnt[i] == 0) continue;
+        uint64_t c = 1;
+        for (int k = 0; k < 3; k++) {
+            int64_t a = in->a[3 * i + k], w = in->span[3 * i + k];
+            if (a < 0 || w < 1 || w > in->dims[k] - a || __builtin_mul_overflow(c, (uint64_t)w, &c))
+                return "a face's cells lie outside the grid";
+        }
+        if (in->cnt[i] < 0 || (uint64_t)in->cnt[i] != c) return "cnt is not each face's cells in all";
+        if (__builtin_add_overflow(total, c, &total) || total >> 59) return "too many instances";
+    }
+    for (int64_t k = 0; k < in->e; k++)
+        if (in->f1[k] < 0 || in->f1[k] >= in->m || in->f2[k] < 0 || in->f2[k] >= in->m) return "f1, f2 out of range";
+    *n = (int64_t)total;
+    return NULL;
+}
+
+static int get_buffer(PyObject *obj, Py_buffer *view, const char *fmt, Py_ssize_t items, const char *name,
+                      int width) {
     if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return -1;
-    int ok = view->format && (strcmp(view->format, fmt) == 0
-                              || (fmt[0] == 'q' && strcmp(view->format, "l") == 0 && view->itemsize == 8));
-    if (!ok || (n >= 0 && view->len != n * view->itemsize)) {
-        PyErr_Format(PyExc_TypeError, "scanreg.mesh._native: %s has the wrong type or length", name);
+    const char *f = view->format ? view->format : "B";
+    int ok = strcmp(f, fmt) == 0 || (fmt[0] == 'q' && strcmp(f, "l") == 0 && view->itemsize == 8)
+             || (fmt[0] == 'B' && strcmp(f, "?") == 0);
+    int nd = width == 0 ? 1 : width == 3 ? 2 : 3;
+    ok = ok && view->ndim == nd && (nd < 2 || view->shape[1] == 3) && (nd < 3 || view->shape[2] == 3);
+    if (!ok || (items >= 0 && view->len != items * view->itemsize)) {
+        PyErr_Format(PyExc_TypeError, "scanreg.mesh._native: %s has the wrong type, shape or length (%s, %s)", name,
+                     fmt[0] == 'q' ? "int64" : fmt[0] == 'd' ? "float64" : "bytes",
+                     width == 0 ? "1-D" : width == 3 ? "rows of 3" : "(n, 3, 3)");
         PyBuffer_Release(view);
         return -1;
     }
@@ -348,6 +396,7 @@ static PyObject *sheets(PyObject *self, PyObject *args) {
     Py_buffer b[7];
     const char *names[7] = {"a", "span", "cnt", "nrm", "p0", "f1", "f2"};
     const char *fmts[7] = {"q", "q", "q", "d", "d", "q", "q"};
+    const int widths[7] = {3, 3, 0, 3, 3, 0, 0};
     int got = 0;
     PyObject *result = NULL;
     for (; got < 7; got++) {
@@ -355,19 +404,18 @@ static PyObject *sheets(PyObject *self, PyObject *args) {
         if (got == 2) n = b[0].len / 24;
         if (got == 1 || got == 3 || got == 4) n = 3 * (b[0].len / 24);
         if (got == 6) n = b[5].len / 8;
-        if (get_buffer(o[got], &b[got], fmts[got], n, names[got]) < 0) goto out;
+        if (get_buffer(o[got], &b[got], fmts[got], n, names[got], widths[got]) < 0) goto out;
     }
     in.a = b[0].buf; in.span = b[1].buf; in.cnt = b[2].buf; in.nrm = b[3].buf; in.p0 = b[4].buf;
     in.f1 = b[5].buf; in.f2 = b[6].buf;
     in.m = b[0].len / 24;
     in.e = b[5].len / 8;
     int64_t n = 0;
-    for (int64_t i = 0; i < in.m; i++) n += in.cnt[i];
-    for (int64_t k = 0; k < in.e; k++)
-        if (in.f1[k] < 0 || in.f1[k] >= in.m || in.f2[k] < 0 || in.f2[k] >= in.m) {
-            PyErr_SetString(PyExc_ValueError, "sheets: f1, f2 out of range");
-            goto out;
-        }
+    const char *bad = sheet_input_error(&in, &n);
+    if (bad) {
+        PyErr_Format(PyExc_ValueError, "sheets: %s", bad);
+        goto out;
+    }
     PyObject *face = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(n * 8));
     PyObject *ckey = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(n * 8));
     PyObject *present = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)n);
@@ -416,7 +464,7 @@ static int sort_by_key(int64_t *pos, int64_t n, const int64_t *key) {
     return 0;
 }
 
-/* census._cross_sheet_pairs: in each cell, its main sheet is its largest (ties: the lowest label); the instances of
+/* broad_phase._cross_sheet_pairs: in each cell, its main sheet is its largest (ties: the lowest label); the instances of
  * a cell's other sheets (and, on the last level, of a sheet that is not a graph) are paired with every instance of
  * the cell of another sheet (of a bad sheet on the last level: with every other instance). Pairs of faces. */
 static int cross_run(int64_t n, const int64_t *face, const int64_t *ckey, const unsigned char *present,
@@ -489,7 +537,7 @@ static int separated(const double *v, const int64_t *fl, int64_t p, int64_t q) {
     return (s0 > 0 && s1 > 0 && s2 > 0) || (s0 < 0 && s1 < 0 && s2 < 0);
 }
 
-/* The end of census.intersection_candidates: of the pairs (i, j) of faces fl (positions), those whose boxes
+/* The end of broad_phase.intersection_candidates: of the pairs (i, j) of faces fl (positions), those whose boxes
  * overlap and that share no vertex index, each once, sorted by (min, max), that no face's plane separates. */
 static int filter_run(int64_t n, const int64_t *pi, const int64_t *pj, int64_t m, const double *lo,
                       const double *hi, const int64_t *fl, const double *v, Pairs *out) {
@@ -527,10 +575,11 @@ done:
 
 #define CONE_COS 0.1
 
-/* census.fold_vertices on live faces fl (m, 3) of nv vertices: folded[v] = 1 where the faces' normals leave the
- * cone around their mean or their corners turn more than once around v. The sums run in NumPy's order (corner 0
- * of every face, then corner 1, then corner 2); the angles are libm's atan2 (correctly rounded in glibc), which
- * may differ from NumPy's in the last bit: only a turn within 1e-16 of the margin could tell them apart. */
+/* broad_phase.fold_vertices on live faces fl (m, 3) of nv vertices: folded[v] = 1 where the faces' normals leave
+ * the cone around their mean or their corners turn more than once around v. The sums run in NumPy's order
+ * (corner 0 of every face, then corner 1, then corner 2); the angles are libm's atan2 (correctly rounded in
+ * glibc), which NumPy's arctan2 differs from in the last bit for some arguments (its vectorised version on
+ * AVX-512 machines): only a fan whose turning lies within rounding of the margin can tell them apart. */
 static int fold_run(const double *v, const int64_t *fl, int64_t m, int64_t nv, unsigned char *folded) {
     double *mean = calloc((size_t)(nv ? nv : 1) * 3, sizeof(double));
     double *turns = calloc((size_t)(nv ? nv : 1), sizeof(double));
@@ -582,15 +631,6 @@ done:
     return rc;
 }
 
-static int rows3(PyObject *obj, Py_buffer *view, const char *name) {
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return -1;
-    if (view->itemsize != 8 || !view->format || strcmp(view->format, "d") != 0 || view->len % 24) {
-        PyErr_Format(PyExc_TypeError, "box_pairs: %s must be C-contiguous float64 rows of 3", name);
-        PyBuffer_Release(view);
-        return -1;
-    }
-    return 0;
-}
 
 static PyObject *box_pairs(PyObject *self, PyObject *args) {
     (void)self;
@@ -598,27 +638,25 @@ static PyObject *box_pairs(PyObject *self, PyObject *args) {
     double base;
     if (!PyArg_ParseTuple(args, "OOOd", &lo_obj, &hi_obj, &among_obj, &base)) return NULL;
     Py_buffer lo, hi, among = {0};
-    if (rows3(lo_obj, &lo, "lo") < 0) return NULL;
-    if (rows3(hi_obj, &hi, "hi") < 0) { PyBuffer_Release(&lo); return NULL; }
+    if (get_buffer(lo_obj, &lo, "d", -1, "lo", 3) < 0) return NULL;
+    if (get_buffer(hi_obj, &hi, "d", lo.len / 8, "hi", 3) < 0) { PyBuffer_Release(&lo); return NULL; }
     int64_t m = lo.len / 24;
     PyObject *result = NULL;
     if (hi.len != lo.len) {
         PyErr_SetString(PyExc_ValueError, "box_pairs: lo and hi differ in length");
         goto out;
     }
-    if (among_obj != Py_None) {
-        if (PyObject_GetBuffer(among_obj, &among, PyBUF_C_CONTIGUOUS) < 0) goto out;
-        if (among.len != m) {
-            PyErr_SetString(PyExc_ValueError, "box_pairs: among needs one byte per box");
-            goto out;
-        }
+    if (among_obj != Py_None && get_buffer(among_obj, &among, "B", m, "among", 0) < 0) {
+        among.obj = NULL;  /* released by get_buffer */
+        goto out;
     }
     Pairs pairs = {0};
     int rc;
     Py_BEGIN_ALLOW_THREADS
     rc = box_pairs_run(lo.buf, hi.buf, m, among.buf, base, &pairs);
     Py_END_ALLOW_THREADS
-    if (rc) PyErr_NoMemory();
+    if (rc == -2) PyErr_SetString(PyExc_ValueError, "box_pairs: the boxes' extent is not finite");
+    else if (rc) PyErr_NoMemory();
     else result = PyByteArray_FromStringAndSize((const char *)pairs.data,
                                                 (Py_ssize_t)(pairs.n * 2 * (int64_t)sizeof(int64_t)));
     free(pairs.data);
@@ -645,6 +683,10 @@ static PyObject *cross_sheet_pairs(PyObject *self, PyObject *args) {
     long long n_sheets;
     int last;
     if (!PyArg_ParseTuple(args, "OOOOLOp", &o[0], &o[1], &o[2], &o[3], &n_sheets, &o[4], &last)) return NULL;
+    if (n_sheets < 0) {
+        PyErr_SetString(PyExc_ValueError, "cross_sheet_pairs: n_sheets < 0");
+        return NULL;
+    }
     Py_buffer b[5];
     const char *names[5] = {"face", "ckey", "present", "sheet", "bad_sheet"};
     const char *fmts[5] = {"q", "q", "B", "q", "B"};
@@ -652,7 +694,7 @@ static PyObject *cross_sheet_pairs(PyObject *self, PyObject *args) {
     PyObject *result = NULL;
     for (; got < 5; got++) {
         Py_ssize_t n = got == 4 ? (Py_ssize_t)n_sheets : got ? b[0].len / 8 : -1;
-        if (get_buffer(o[got], &b[got], fmts[got], n, names[got]) < 0) goto out;
+        if (get_buffer(o[got], &b[got], fmts[got], n, names[got], 0) < 0) goto out;
     }
     int64_t n = b[0].len / 8;
     const int64_t *sheet = b[3].buf;
@@ -683,7 +725,7 @@ static PyObject *candidate_filter(PyObject *self, PyObject *args) {
     PyObject *result = NULL;
     for (; got < 6; got++) {
         Py_ssize_t n = got == 1 ? b[0].len / 8 : got == 3 || got == 4 ? b[2].len / 8 : -1;
-        if (get_buffer(o[got], &b[got], fmts[got], n, names[got]) < 0) goto out;
+        if (get_buffer(o[got], &b[got], fmts[got], n, names[got], got < 2 ? 0 : 3) < 0) goto out;
         if ((got == 2 || got == 5) && b[got].len % 24) {
             PyErr_Format(PyExc_ValueError, "candidate_filter: %s must be rows of 3", names[got]);
             got++;
@@ -719,8 +761,8 @@ static PyObject *fold_vertices(PyObject *self, PyObject *args) {
     long long nv;
     if (!PyArg_ParseTuple(args, "OOL", &vo, &fo, &nv)) return NULL;
     Py_buffer v, f;
-    if (get_buffer(vo, &v, "d", -1, "vertices") < 0) return NULL;
-    if (get_buffer(fo, &f, "q", -1, "faces") < 0) { PyBuffer_Release(&v); return NULL; }
+    if (get_buffer(vo, &v, "d", -1, "vertices", 3) < 0) return NULL;
+    if (get_buffer(fo, &f, "q", -1, "faces", 3) < 0) { PyBuffer_Release(&v); return NULL; }
     PyObject *result = NULL;
     int64_t m = f.len / 24;
     const int64_t *fl = f.buf;
@@ -795,8 +837,8 @@ static PyObject *face_keys(PyObject *self, PyObject *args) {
     PyObject *vo, *fo;
     if (!PyArg_ParseTuple(args, "OO", &vo, &fo)) return NULL;
     Py_buffer v, f;
-    if (get_buffer(vo, &v, "d", -1, "vertices") < 0) return NULL;
-    if (get_buffer(fo, &f, "q", -1, "faces") < 0) { PyBuffer_Release(&v); return NULL; }
+    if (get_buffer(vo, &v, "d", -1, "vertices", 3) < 0) return NULL;
+    if (get_buffer(fo, &f, "q", -1, "faces", 3) < 0) { PyBuffer_Release(&v); return NULL; }
     PyObject *result = NULL;
     int64_t nv = v.len / 24, m = f.len / 24;
     const int64_t *fl = f.buf;
@@ -827,8 +869,8 @@ static PyObject *same_corners(PyObject *self, PyObject *args) {
     PyObject *po, *qo;
     if (!PyArg_ParseTuple(args, "OO", &po, &qo)) return NULL;
     Py_buffer P, Q;
-    if (get_buffer(po, &P, "d", -1, "P") < 0) return NULL;
-    if (get_buffer(qo, &Q, "d", P.len / 8, "Q") < 0) { PyBuffer_Release(&P); return NULL; }
+    if (get_buffer(po, &P, "d", -1, "P", 9) < 0) return NULL;
+    if (get_buffer(qo, &Q, "d", P.len / 8, "Q", 9) < 0) { PyBuffer_Release(&P); return NULL; }
     PyObject *result = NULL;
     int64_t m = P.len / 72;
     if (P.len % 72) {
@@ -881,8 +923,8 @@ static PyObject *stable_order(PyObject *self, PyObject *args) {
     Py_buffer k;
     if (PyObject_GetBuffer(ko, &k, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return NULL;
     PyObject *result = NULL;
-    if (k.itemsize != 8 || !k.format || (strcmp(k.format, "Q") != 0 && strcmp(k.format, "L") != 0)) {
-        PyErr_SetString(PyExc_TypeError, "stable_order: keys must be C-contiguous uint64");
+    if (k.itemsize != 8 || !k.format || (strcmp(k.format, "Q") != 0 && strcmp(k.format, "L") != 0) || k.ndim != 1) {
+        PyErr_SetString(PyExc_TypeError, "stable_order: keys must be 1-D C-contiguous uint64");
         goto out;
     }
     int64_t n = k.len / 8;
@@ -939,9 +981,9 @@ static PyObject *several_fans(PyObject *self, PyObject *args) {
     long long nv;
     if (!PyArg_ParseTuple(args, "OOOL", &fo, &ao, &bo, &nv)) return NULL;
     Py_buffer f, a, b;
-    if (get_buffer(fo, &f, "q", -1, "faces") < 0) return NULL;
-    if (get_buffer(ao, &a, "q", -1, "r1") < 0) { PyBuffer_Release(&f); return NULL; }
-    if (get_buffer(bo, &b, "q", a.len / 8, "r2") < 0) { PyBuffer_Release(&f); PyBuffer_Release(&a); return NULL; }
+    if (get_buffer(fo, &f, "q", -1, "faces", 3) < 0) return NULL;
+    if (get_buffer(ao, &a, "q", -1, "r1", 0) < 0) { PyBuffer_Release(&f); return NULL; }
+    if (get_buffer(bo, &b, "q", a.len / 8, "r2", 0) < 0) { PyBuffer_Release(&f); PyBuffer_Release(&a); return NULL; }
     PyObject *result = NULL;
     int64_t nf = f.len / 24, e = a.len / 8;
     const int64_t *fl = f.buf, *r1 = a.buf, *r2 = b.buf;
@@ -1044,7 +1086,7 @@ static PyObject *orient2d_projections(PyObject *self, PyObject *args) {
     int got = 0;
     PyObject *result = NULL;
     for (; got < 3; got++)
-        if (get_buffer(o[got], &b[got], "d", got ? b[0].len / 8 : -1, names[got]) < 0) goto out;
+        if (get_buffer(o[got], &b[got], "d", got ? b[0].len / 8 : -1, names[got], 3) < 0) goto out;
     if (b[0].len % 24) {
         PyErr_SetString(PyExc_ValueError, "orient2d_projections: p, q, r must be rows of 3");
         goto out;

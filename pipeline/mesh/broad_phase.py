@@ -5,8 +5,9 @@ beyond it (:func:`fold_vertices`). The exact test (:mod:`scanreg.mesh.intersect`
 (:meth:`scanreg.mesh.census.Census.pairs_to_test`).
 
 The loops (the sheets of each level, the pairs a level looks at, their filter, the fold vertices) run in the
-compiled kernels of :mod:`scanreg.mesh.native` when they were built, with the same result; their NumPy versions
-stay here as the reference (tests/test_native.py compares them). A pure function of the arrays: no processes,
+compiled kernels of :mod:`scanreg.mesh.native` when they were built, with the same result (the fold vertices:
+up to a fan turning within rounding of the margin, :func:`fold_vertices`); their NumPy versions stay here as
+the reference (tests/test_native.py compares them). A pure function of the arrays: no processes,
 threads or files.
 """
 
@@ -34,8 +35,10 @@ exceeds this (84 degrees): the sheet is then a graph over its mean plane."""
 def fold_vertices(vertices: np.ndarray, faces: np.ndarray, live: np.ndarray | None = None,
                   geometry: tuple | None = None) -> np.ndarray:
     """Vertices around which two faces sharing the vertex may intersect (:func:`fold_vertices_numpy`), by the
-    compiled kernel when there is one (:mod:`scanreg.mesh.native`: the same vertices; its angles are libm's
-    ``atan2``, which may differ from NumPy's in the last bit)."""
+    compiled kernel when there is one (:mod:`scanreg.mesh.native`): the same vertices, but for a fan whose turning
+    lies within rounding of the margin (its angles are glibc's ``atan2``, NumPy's ``arctan2`` differs from it in
+    the last bit for some arguments, and between machines), which a fan built for it shows and no scanned mesh
+    tried has."""
     if native.kernels is None:
         return fold_vertices_numpy(vertices, faces, live, geometry)
     v = np.ascontiguousarray(vertices, dtype=np.float64)
@@ -151,12 +154,9 @@ def intersection_candidates(vertices: np.ndarray, faces: np.ndarray, live: np.nd
     ii, jj = [], []
     sel = np.arange(len(fl))
     for level in range(REFINE + 1):
-        a = np.floor((lo[sel] - org) / cell).astype(np.int64)
-        span = np.floor((hi[sel] - org) / cell).astype(np.int64) - a + 1
-        cnt = span[:, 0] * span[:, 1] * span[:, 2]
-        huge = cnt > MAX_CELLS
+        a, span, cnt, cell = _cells(lo[sel], hi[sel], org, cell)
+        huge = cnt == 0
         if huge.any():  # paired by their boxes with every face of this level
-            cnt[huge] = 0
             i, j = candidate_pairs(lo[sel], hi[sel], huge)
             ii.append(sel[i])
             jj.append(sel[j])
@@ -213,6 +213,34 @@ def _candidates_among_numpy(i: np.ndarray, j: np.ndarray, lo: np.ndarray, hi: np
 
 MAX_CELLS = 4096
 """A face whose bounding box touches more cells than this is paired by boxes instead of cells."""
+MAX_KEYS = 2.0 ** 62
+"""The cells of one level are numbered in int64: a grid with more cells than this is made coarser."""
+
+
+def _cells(lo: np.ndarray, hi: np.ndarray, org: np.ndarray, cell: float) -> tuple:
+    """The cells of the boxes ``[lo, hi]`` on a grid of side ``cell`` from ``org``: each box's first cell, its cells
+    per axis and its cells in all (int64; 0 for a box touching more than :data:`MAX_CELLS`, paired by boxes
+    instead, whose first cell and cells per axis are then placeholders within the others'), and the side used.
+    The side is doubled until the block of cells the other boxes touch can be numbered in int64 (a mesh spanning
+    more than about 2^20 of its cells per axis: faces far apart); counted in floating point, so that no product
+    overflows."""
+    while True:
+        a = np.floor((lo - org) / cell)
+        span = np.floor((hi - org) / cell) - a + 1
+        kept = span[:, 0] * span[:, 1] * span[:, 2] <= MAX_CELLS
+        if not kept.any():
+            break
+        first = col_min(a[kept])
+        top = col_max(a[kept] + span[kept]) - first + 1
+        if float(top[0]) * float(top[1]) * float(top[2]) < MAX_KEYS:
+            break
+        cell *= 2.0
+    if not kept.all():  # the huge boxes' placeholders: a cell of the others, one cell per axis (cnt is 0)
+        a[~kept] = first if kept.any() else 0.0
+        span[~kept] = 1.0
+    a, span = a.astype(np.int64), span.astype(np.int64)
+    cnt = np.where(kept, span[:, 0] * span[:, 1] * span[:, 2], 0)
+    return a, span, cnt, cell
 
 
 REFINE = 2

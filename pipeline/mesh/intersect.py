@@ -140,7 +140,8 @@ def candidate_pairs(lo: np.ndarray, hi: np.ndarray,
     The compiled kernel's grids (``box_pairs`` of :mod:`scanreg.mesh.native`) when it was built and the boxes are finite,
     else :func:`candidate_pairs_numpy`: the same pairs, in another order."""
     m = len(lo)
-    if native.kernels is None or m < 2 or not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+    if native.kernels is None or m < 2 or not (np.isfinite(lo).all() and np.isfinite(hi).all()) \
+            or not np.isfinite(col_max(hi) - col_min(lo)).all():  # (the grids need a finite extent)
         return candidate_pairs_numpy(lo, hi, among)
     lo = np.ascontiguousarray(lo, dtype=np.float64)
     hi = np.ascontiguousarray(hi, dtype=np.float64)
