@@ -262,6 +262,16 @@ def test_face_keys_and_same_corners_are_numpy_s():
     got = same_corners(P, Q)
     np.testing.assert_array_equal(got, same_corners_numpy(P, Q))
     assert 0.2 < got.mean() < 0.9 and got[zero].all()
+    # by index, without gathering: the faces of two meshes made of those triangles, paired in a shuffled order
+    from scanreg.mesh.intersect import same_faces
+
+    order = rng.permutation(3000)
+    va, vb = P.reshape(-1, 3), Q[order].reshape(-1, 3)
+    fa = np.arange(9000).reshape(-1, 3)
+    back = np.argsort(order)
+    np.testing.assert_array_equal(same_faces(va, fa, np.arange(3000), vb, fa, back), got)
+    with pytest.raises(ValueError, match="out of range"):
+        native.kernels.same_corners_at(va, fa, np.array([3000]), vb, fa, np.array([0]))
 
 
 def test_stable_order_is_numpys_stable_argsort():

@@ -10,7 +10,7 @@
  *   candidate_filter      broad_phase._candidates_among_numpy  the broad phase's end: box, shared vertex, planes
  *   fold_vertices         broad_phase.fold_vertices_numpy      fans leaving the normal cone or turning twice
  *   face_keys             intersect.face_keys_numpy            a hash of each face's corner coordinates
- *   same_corners          intersect.same_corners_numpy         triangles with the same corners
+ *   same_corners(_at)     intersect.same_corners_numpy         triangles with the same corners (by index)
  *   stable_order          np.argsort(kind="stable")            of uint64 keys, by a radix sort
  *   several_fans          topology.non_manifold_vertex_mask    vertices whose corners form several fans
  *   orient2d_projections  predicates.projection_axes_numpy     non-degenerate projections, the axis dropped
@@ -889,6 +889,63 @@ out:
 }
 
 
+
+/* same_corners of faces given by index: face fa[ia[t]] of the vertices va against face fb[ib[t]] of vb (the
+ * triangles are not gathered first: the gathers cost ten times the comparison). */
+static void same_at_run(const double *va, const int64_t *fa, const int64_t *ia, const double *vb, const int64_t *fb,
+                        const int64_t *ib, int64_t n, unsigned char *out) {
+    for (int64_t t = 0; t < n; t++) {
+        const int64_t *x = fa + 3 * ia[t], *y = fb + 3 * ib[t];
+        const double *p[3] = {va + 3 * x[0], va + 3 * x[1], va + 3 * x[2]};
+        const double *q[3] = {vb + 3 * y[0], vb + 3 * y[1], vb + 3 * y[2]};
+        int same = 1;
+        for (int k = 0; k < 3 && same; k++)
+            same = (same_point(p[k], q[0]) || same_point(p[k], q[1]) || same_point(p[k], q[2]))
+                   && (same_point(q[k], p[0]) || same_point(q[k], p[1]) || same_point(q[k], p[2]));
+        out[t] = (unsigned char)same;
+    }
+}
+
+/* Whether every index[t] is a face of f (m rows) whose corners are vertices of v (nv rows). */
+static int faces_in_range(const int64_t *f, int64_t m, int64_t nv, const int64_t *index, int64_t n) {
+    for (int64_t t = 0; t < n; t++) {
+        if (index[t] < 0 || index[t] >= m) return 0;
+        for (int k = 0; k < 3; k++)
+            if (f[3 * index[t] + k] < 0 || f[3 * index[t] + k] >= nv) return 0;
+    }
+    return 1;
+}
+
+static PyObject *same_corners_at(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *o[6];
+    if (!PyArg_ParseTuple(args, "OOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5])) return NULL;
+    Py_buffer b[6];
+    const char *names[6] = {"va", "fa", "ia", "vb", "fb", "ib"};
+    const char *fmts[6] = {"d", "q", "q", "d", "q", "q"};
+    const int widths[6] = {3, 3, 0, 3, 3, 0};
+    int got = 0;
+    PyObject *result = NULL;
+    for (; got < 6; got++)
+        if (get_buffer(o[got], &b[got], fmts[got], got == 5 ? b[2].len / 8 : -1, names[got], widths[got]) < 0)
+            goto out;
+    int64_t n = b[2].len / 8;
+    if (!faces_in_range(b[1].buf, b[1].len / 24, b[0].len / 24, b[2].buf, n)
+        || !faces_in_range(b[4].buf, b[4].len / 24, b[3].len / 24, b[5].buf, n)) {
+        PyErr_SetString(PyExc_ValueError, "same_corners_at: a face or vertex out of range");
+        goto out;
+    }
+    result = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)n);
+    if (!result) goto out;
+    Py_BEGIN_ALLOW_THREADS
+    same_at_run(b[0].buf, b[1].buf, b[2].buf, b[3].buf, b[4].buf, b[5].buf, n,
+                (unsigned char *)PyByteArray_AS_STRING(result));
+    Py_END_ALLOW_THREADS
+out:
+    for (int k = 0; k < got; k++) PyBuffer_Release(&b[k]);
+    return result;
+}
+
 /* ---- stable_order ---- */
 
 /* np.argsort(keys, kind="stable") of uint64 keys: an LSD radix sort, a byte per pass (stable, so equal keys keep
@@ -1117,6 +1174,8 @@ static PyMethodDef methods[] = {
     {"fold_vertices", fold_vertices, METH_VARARGS, "fold_vertices(vertices, faces, nv) -> bytearray mask"},
     {"face_keys", face_keys, METH_VARARGS, "face_keys(vertices, faces) -> bytearray of uint64 keys"},
     {"same_corners", same_corners, METH_VARARGS, "same_corners(P, Q) -> bytearray mask"},
+    {"same_corners_at", same_corners_at, METH_VARARGS,
+     "same_corners_at(va, fa, ia, vb, fb, ib) -> bytearray mask: same_corners(va[fa[ia]], vb[fb[ib]])"},
     {"orient2d_projections", orient2d_projections, METH_VARARGS,
      "orient2d_projections(p, q, r) -> (signs: int8 (m, 3), 2 where unsure; dropped axis: int8 (m), -1 there)"},
     {"several_fans", several_fans, METH_VARARGS,

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from scanreg.geometry import Mesh, area_weighted_draws, barycentric_sample, in_cells_around, points_on_faces
-from scanreg.mesh.intersect import face_boxes, face_keys, largest_sides, same_corners, stable_order
+from scanreg.mesh.intersect import face_boxes, face_keys, largest_sides, same_faces, stable_order
 from scanreg.mesh.topology import _face_areas
 
 
@@ -76,7 +76,7 @@ def shared_faces(a: Mesh, b: Mesh) -> tuple[np.ndarray, np.ndarray]:
     at = np.minimum(np.searchsorted(sk, ka), max(len(sk) - 1, 0))
     i = np.flatnonzero(sk[at] == ka) if len(sk) else np.zeros(0, np.int64)
     j = order[at[i]]
-    same = same_corners(va[a.faces[i]], vb[b.faces[j]])
+    same = same_faces(va, a.faces, i, vb, b.faces, j)
     in_a, in_b = np.zeros(len(a.faces), bool), np.zeros(len(b.faces), bool)
     in_a[i[same]] = True
     in_b[j[same]] = True  # (of a face b has twice, the copy a's lookup found)

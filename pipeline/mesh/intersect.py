@@ -619,6 +619,17 @@ def same_corners(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
                                                      np.ascontiguousarray(Q, dtype=np.float64)), np.bool_)
 
 
+def same_faces(va: np.ndarray, fa: np.ndarray, ia: np.ndarray, vb: np.ndarray, fb: np.ndarray,
+               ib: np.ndarray) -> np.ndarray:
+    """:func:`same_corners` of the faces ``fa[ia]`` of the vertices ``va`` and ``fb[ib]`` of ``vb``: by the compiled
+    kernel without gathering the triangles when there is one (the same answers)."""
+    if native.kernels is None or not len(ia):
+        return same_corners(va[fa[ia]], vb[fb[ib]])
+    c = [np.ascontiguousarray(x, dtype=t) for x, t in ((va, np.float64), (fa, np.int64), (ia, np.int64),
+                                                        (vb, np.float64), (fb, np.int64), (ib, np.int64))]
+    return np.frombuffer(native.kernels.same_corners_at(*c), np.bool_)
+
+
 def same_corners_numpy(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """:func:`same_corners` in NumPy, coordinate by coordinate."""
     pc = [[np.ascontiguousarray(P[:, k, x]) for x in range(3)] for k in range(3)]
@@ -660,7 +671,7 @@ def _incremental(v: np.ndarray, f: np.ndarray, new: Intersections, old: Intersec
     old_of = np.where(match, old_order[k], -1)
     m = np.flatnonzero(match)
     # (a face with a repeated corner is degenerate in both, so tested in neither: sets of corners suffice)
-    same = same_corners(v[f[m]], old.vertices[old.faces[old_of[m]]])
+    same = same_faces(v, f, m, old.vertices, old.faces, old_of[m])
     old_of[m[~same]] = -1
     new_of_old = np.full(len(old.faces), -1, np.int64)
     kept = old_of >= 0
