@@ -343,3 +343,18 @@ def test_projection_axes_are_numpy_s_on_collinear_and_grid_triangles():
         np.testing.assert_array_equal(got[1], want[1])
         unsure.append((np.frombuffer(native.kernels.orient2d_projections(p, q, r)[1], np.int8) < 0).mean())
     assert max(unsure) > 0.3 and min(unsure) == 0  # both paths taken
+
+
+def test_face_boxes_are_numpy_s_to_the_bit():
+    """Each face's box from the vertices and faces, as np.minimum / np.maximum give it from the gathered corners:
+    the same values, the same signed zeros (NumPy keeps the second of two equal values), NaN propagated."""
+    from scanreg.mesh.intersect import face_boxes, mesh_face_boxes
+
+    m = bunny()
+    v = m.vertices.copy()
+    rng = np.random.default_rng(4)
+    v[rng.permutation(len(v))[:2000]] = rng.choice([0.0, -0.0], (2000, 3))
+    v[rng.permutation(len(v))[:50], 1] = np.nan
+    for got, want in zip(mesh_face_boxes(v, m.faces), face_boxes(v[m.faces])):
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(want))

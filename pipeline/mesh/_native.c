@@ -11,6 +11,7 @@
  *   fold_vertices         broad_phase.fold_vertices_numpy      fans leaving the normal cone or turning twice
  *   face_keys             intersect.face_keys_numpy            a hash of each face's corner coordinates
  *   same_corners(_at)     intersect.same_corners_numpy         triangles with the same corners (by index)
+ *   face_boxes            intersect.face_boxes                 each face's box, from the vertices and faces
  *   stable_order          np.argsort(kind="stable")            of uint64 keys, by a radix sort
  *   several_fans          topology.non_manifold_vertex_mask    vertices whose corners form several fans
  *   orient2d_projections  predicates.projection_axes_numpy     non-degenerate projections, the axis dropped
@@ -946,6 +947,51 @@ out:
     return result;
 }
 
+
+/* ---- face_boxes ---- */
+
+/* intersect.face_boxes of the faces f of the vertices v: each face's box (the corners' minimum and maximum per
+ * axis, as np.minimum / np.maximum take them: a NaN corner gives NaN), without gathering the corners first. */
+static void boxes_run(const double *v, const int64_t *f, int64_t m, double *lo, double *hi) {
+    for (int64_t i = 0; i < m; i++)
+        for (int k = 0; k < 3; k++) {
+            double a = v[3 * f[3 * i] + k], b = v[3 * f[3 * i + 1] + k], c = v[3 * f[3 * i + 2] + k];
+            double l = a < b || a != a ? a : b, h = a > b || a != a ? a : b;  /* np.minimum: NaN propagates */
+            lo[3 * i + k] = l < c || l != l ? l : c;
+            hi[3 * i + k] = h > c || h != h ? h : c;
+        }
+}
+
+static PyObject *face_boxes(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *vo, *fo;
+    if (!PyArg_ParseTuple(args, "OO", &vo, &fo)) return NULL;
+    Py_buffer v, f;
+    if (get_buffer(vo, &v, "d", -1, "vertices", 3) < 0) return NULL;
+    if (get_buffer(fo, &f, "q", -1, "faces", 3) < 0) { PyBuffer_Release(&v); return NULL; }
+    PyObject *result = NULL, *lo = NULL, *hi = NULL;
+    int64_t m = f.len / 24, nv = v.len / 24;
+    const int64_t *fl = f.buf;
+    for (int64_t t = 0; t < 3 * m; t++)
+        if (fl[t] < 0 || fl[t] >= nv) {
+            PyErr_SetString(PyExc_ValueError, "face_boxes: a vertex out of range");
+            goto out;
+        }
+    lo = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(m * 24));
+    hi = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(m * 24));
+    if (!lo || !hi) goto out;
+    Py_BEGIN_ALLOW_THREADS
+    boxes_run(v.buf, fl, m, (double *)PyByteArray_AS_STRING(lo), (double *)PyByteArray_AS_STRING(hi));
+    Py_END_ALLOW_THREADS
+    result = PyTuple_Pack(2, lo, hi);
+out:
+    Py_XDECREF(lo);
+    Py_XDECREF(hi);
+    PyBuffer_Release(&v);
+    PyBuffer_Release(&f);
+    return result;
+}
+
 /* ---- stable_order ---- */
 
 /* np.argsort(keys, kind="stable") of uint64 keys: an LSD radix sort, a byte per pass (stable, so equal keys keep
@@ -1180,6 +1226,7 @@ static PyMethodDef methods[] = {
      "orient2d_projections(p, q, r) -> (signs: int8 (m, 3), 2 where unsure; dropped axis: int8 (m), -1 there)"},
     {"several_fans", several_fans, METH_VARARGS,
      "several_fans(faces, r1, r2, nv) -> bytearray mask of the vertices whose corners form several fans"},
+    {"face_boxes", face_boxes, METH_VARARGS, "face_boxes(vertices, faces) -> (lo, hi): float64 (m, 3) bytearrays"},
     {"stable_order", stable_order, METH_VARARGS, "stable_order(keys) -> bytearray of int64: a stable argsort"},
     {"sheets", sheets, METH_VARARGS,
      "sheets(a, span, cnt, nrm, p0, f1, f2, dims, base, org, cell) -> (face, ckey, present, sheet, n_sheets)"},

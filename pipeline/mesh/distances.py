@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from scanreg.geometry import Mesh, area_weighted_draws, barycentric_sample, in_cells_around, points_on_faces
-from scanreg.mesh.intersect import face_boxes, face_keys, largest_sides, same_faces, stable_order
+from scanreg.mesh.intersect import face_keys, largest_sides, mesh_face_boxes, same_faces, stable_order
 from scanreg.mesh.topology import _face_areas
 
 
@@ -98,7 +98,7 @@ def distances_near(mesh: Mesh, points: np.ndarray, reach: float, measure, _retry
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if not len(points) or not len(mesh.faces):
         return measure(mesh, points)
-    side, s = largest_sides(*face_boxes(mesh.vertices[mesh.faces]))
+    side, s = largest_sides(*mesh_face_boxes(mesh.vertices, mesh.faces))
     cells = in_cells_around(mesh.vertices[mesh.faces[:, 0]], points, reach + s)
     if cells is None:
         return measure(mesh, points)

@@ -408,6 +408,17 @@ def _pair_hits(P: np.ndarray, fl: np.ndarray, i: np.ndarray, j: np.ndarray,
     return hit
 
 
+def mesh_face_boxes(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`face_boxes` of the faces ``f`` of the vertices ``v`` (``face_boxes(v[f])``), by the compiled kernel
+    without gathering the corners when there is one (the same boxes)."""
+    f = np.asarray(f)
+    if native.kernels is None or not len(f):
+        return face_boxes(v[f])
+    lo, hi = native.kernels.face_boxes(np.ascontiguousarray(v, dtype=np.float64),
+                                       np.ascontiguousarray(f, dtype=np.int64))
+    return np.frombuffer(lo, np.float64).reshape(-1, 3), np.frombuffer(hi, np.float64).reshape(-1, 3)
+
+
 def face_boxes(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The bounding boxes (lo, hi) of faces given by their corners ``P`` (m, 3, 3): ``P.min(axis=1)`` and
     ``P.max(axis=1)``, the same values, faster."""
@@ -442,7 +453,7 @@ def intersecting_across(vertices: np.ndarray, faces: np.ndarray, groups: np.ndar
     k = int(g.max()) + 1
     face_order = np.arange(len(f)) if (g[1:] >= g[:-1]).all() else np.argsort(g, kind="stable")
     start = np.searchsorted(g[face_order], np.arange(k + 1))
-    lo, hi = face_boxes(v[f[face_order]])  # the faces by group
+    lo, hi = mesh_face_boxes(v, f[face_order])  # the faces by group
     present = np.flatnonzero(start[1:] > start[:-1])
     if len(present) < 2:
         return out
@@ -691,7 +702,7 @@ def _pairs_with(v: np.ndarray, f: np.ndarray, fresh: np.ndarray) -> np.ndarray:
     themselves only: a pair's outcome depends on its two faces and on the fans of the vertices they share, and
     a face of such a fan shares a point with a fresh face, so its box reaches it. The same pairs as the test of
     the whole mesh (an edit's test: the cost of its neighbourhood)."""
-    sub = _near_boxes(*face_boxes(v[f]), fresh)
+    sub = _near_boxes(*mesh_face_boxes(v, f), fresh)
     ids, own = np.unique(f[sub], return_inverse=True)
     vw, fw, live = _welded(v[ids], own.reshape(-1, 3))
     pairs = _all_pairs(vw, fw, live, among=fresh[sub] & live)
