@@ -201,7 +201,7 @@ def test_near_boxes_keep_every_box_that_overlaps_a_seed(n_wide):
     """The incremental test's search starts from the boxes near its new faces (_near_boxes): every box that
     overlaps a seed box is among them, with a few or many seeds far wider than most boxes (a long face across a
     filled hole), and most boxes far from the seeds are not."""
-    from scanreg.mesh.intersect import WIDE_SEEDS, _near_boxes
+    from scanreg.mesh.boxes import WIDE_SEEDS, _near_boxes
 
     rng = np.random.default_rng(n_wide)
     n = 4000

@@ -11,7 +11,7 @@ import scanreg.mesh.broad_phase as broad_phase
 from scanreg.io import read_mesh
 from scanreg.mesh import native
 from scanreg.mesh.census import census
-from scanreg.mesh.intersect import candidate_pairs, candidate_pairs_numpy, face_boxes
+from scanreg.mesh.boxes import candidate_pairs, candidate_pairs_numpy, face_boxes
 from tests.test_census import sphere
 
 
@@ -348,7 +348,7 @@ def test_projection_axes_are_numpy_s_on_collinear_and_grid_triangles():
 def test_face_boxes_are_numpy_s_to_the_bit():
     """Each face's box from the vertices and faces, as np.minimum / np.maximum give it from the gathered corners:
     the same values, the same signed zeros (NumPy keeps the second of two equal values), NaN propagated."""
-    from scanreg.mesh.intersect import face_boxes, mesh_face_boxes
+    from scanreg.mesh.boxes import face_boxes, mesh_face_boxes
 
     m = bunny()
     v = m.vertices.copy()

@@ -4,14 +4,14 @@
  * place when this module was built (scanreg.mesh.native.kernels); the NumPy function stays as the reference and
  * the fallback, and tests/test_native.py compares the two. The kernels, by section of this file:
  *
- *   box_pairs             intersect.candidate_pairs_numpy      overlapping pairs of boxes (a set; another order)
+ *   box_pairs             boxes.candidate_pairs_numpy          overlapping pairs of boxes (a set; another order)
  *   sheets                broad_phase._sheets_numpy            one broad-phase level's instances and sheets
  *   cross_sheet_pairs     broad_phase._cross_sheet_pairs_numpy the face pairs a level looks at (a multiset)
  *   candidate_filter      broad_phase._candidates_among_numpy  the broad phase's end: box, shared vertex, planes
  *   fold_vertices         broad_phase.fold_vertices_numpy      fans leaving the normal cone or turning twice
  *   face_keys             intersect.face_keys_numpy            a hash of each face's corner coordinates
  *   same_corners(_at)     intersect.same_corners_numpy         triangles with the same corners (by index)
- *   face_boxes            intersect.face_boxes                 each face's box, from the vertices and faces
+ *   face_boxes            boxes.face_boxes                     each face's box, from the vertices and faces
  *   stable_order          np.argsort(kind="stable")            of uint64 keys, by a radix sort
  *   several_fans          topology.non_manifold_vertex_mask    vertices whose corners form several fans
  *   orient2d_projections  predicates.projection_axes_numpy     non-degenerate projections, the axis dropped
@@ -950,7 +950,7 @@ out:
 
 /* ---- face_boxes ---- */
 
-/* intersect.face_boxes of the faces f of the vertices v: each face's box (the corners' minimum and maximum per
+/* boxes.face_boxes of the faces f of the vertices v: each face's box (the corners' minimum and maximum per
  * axis, as np.minimum / np.maximum take them: a NaN corner gives NaN), without gathering the corners first. */
 static void boxes_run(const double *v, const int64_t *f, int64_t m, double *lo, double *hi) {
     for (int64_t i = 0; i < m; i++)

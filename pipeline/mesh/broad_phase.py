@@ -19,7 +19,7 @@ from scipy.sparse.csgraph import connected_components
 
 from scanreg.geometry import Mesh, col_max, col_min, rows_any
 from scanreg.mesh import native
-from scanreg.mesh.intersect import candidate_pairs
+from scanreg.mesh.boxes import candidate_pairs
 from scanreg.mesh.predicates import orient3d_filter
 from scanreg.mesh.topology import _cross_columns, _mesh_edges_sorted
 

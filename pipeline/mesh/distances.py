@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from scanreg.geometry import Mesh, area_weighted_draws, barycentric_sample, in_cells_around, points_on_faces
-from scanreg.mesh.intersect import face_keys, largest_sides, mesh_face_boxes, same_faces, stable_order
+from scanreg.mesh.boxes import largest_sides, mesh_face_boxes
+from scanreg.mesh.intersect import face_keys, same_faces, stable_order
 from scanreg.mesh.topology import _face_areas
 
 
@@ -92,7 +93,7 @@ def distances_near(mesh: Mesh, points: np.ndarray, reach: float, measure, _retry
     of the whole mesh.
 
     The faces kept are found on a grid of cells of side ``reach`` plus the faces' largest box side (at its
-    :data:`~scanreg.mesh.intersect.NARROW_QUANTILE`, :func:`~scanreg.geometry.in_cells_around`): a face within
+    :data:`~scanreg.mesh.boxes.NARROW_QUANTILE`, :func:`~scanreg.geometry.in_cells_around`): a face within
     ``reach`` of a point has its first corner in the point's cell or in a neighbouring one; the longer faces are
     always kept."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
