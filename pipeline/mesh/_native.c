@@ -85,6 +85,13 @@ static int push(Pairs *out, int64_t i, int64_t j) {
     return 0;
 }
 
+/* Whether every x[t], t < n, lies in [0, limit). */
+static int below(const int64_t *x, int64_t n, int64_t limit) {
+    for (int64_t t = 0; t < n; t++)
+        if (x[t] < 0 || x[t] >= limit) return 0;
+    return 1;
+}
+
 /* Sorts the entries by key, stably (LSD radix sort, a byte per pass, as many passes as the largest key needs). */
 static int sort_entries(Entry *at, int64_t n) {
     uint64_t most = 0;
@@ -362,8 +369,7 @@ static const char *sheet_input_error(const SheetInput *in, int64_t *n) {
         if (in->cnt[i] < 0 || (uint64_t)in->cnt[i] != c) return "cnt is not each face's cells in all";
         if (__builtin_add_overflow(total, c, &total) || total >> 59) return "too many instances";
     }
-    for (int64_t k = 0; k < in->e; k++)
-        if (in->f1[k] < 0 || in->f1[k] >= in->m || in->f2[k] < 0 || in->f2[k] >= in->m) return "f1, f2 out of range";
+    if (!below(in->f1, in->e, in->m) || !below(in->f2, in->e, in->m)) return "f1, f2 out of range";
     *n = (int64_t)total;
     return NULL;
 }
@@ -699,11 +705,10 @@ static PyObject *cross_sheet_pairs(PyObject *self, PyObject *args) {
     }
     int64_t n = b[0].len / 8;
     const int64_t *sheet = b[3].buf;
-    for (int64_t t = 0; t < n; t++)
-        if (sheet[t] < 0 || sheet[t] >= n_sheets) {
-            PyErr_SetString(PyExc_ValueError, "cross_sheet_pairs: a sheet label out of range");
-            goto out;
-        }
+    if (!below(sheet, n, n_sheets)) {
+        PyErr_SetString(PyExc_ValueError, "cross_sheet_pairs: a sheet label out of range");
+        goto out;
+    }
     Pairs pairs = {0};
     int rc;
     Py_BEGIN_ALLOW_THREADS
@@ -727,24 +732,13 @@ static PyObject *candidate_filter(PyObject *self, PyObject *args) {
     for (; got < 6; got++) {
         Py_ssize_t n = got == 1 ? b[0].len / 8 : got == 3 || got == 4 ? b[2].len / 8 : -1;
         if (get_buffer(o[got], &b[got], fmts[got], n, names[got], got < 2 ? 0 : 3) < 0) goto out;
-        if ((got == 2 || got == 5) && b[got].len % 24) {
-            PyErr_Format(PyExc_ValueError, "candidate_filter: %s must be rows of 3", names[got]);
-            got++;
-            goto out;
-        }
     }
     int64_t n = b[0].len / 8, m = b[2].len / 24, nv = b[5].len / 24;
     const int64_t *pi = b[0].buf, *pj = b[1].buf, *fl = b[4].buf;
-    for (int64_t t = 0; t < n; t++)
-        if (pi[t] < 0 || pi[t] >= m || pj[t] < 0 || pj[t] >= m) {
-            PyErr_SetString(PyExc_ValueError, "candidate_filter: a face out of range");
-            goto out;
-        }
-    for (int64_t t = 0; t < 3 * m; t++)
-        if (fl[t] < 0 || fl[t] >= nv) {
-            PyErr_SetString(PyExc_ValueError, "candidate_filter: a vertex out of range");
-            goto out;
-        }
+    if (!below(pi, n, m) || !below(pj, n, m) || !below(fl, 3 * m, nv)) {
+        PyErr_SetString(PyExc_ValueError, "candidate_filter: a face or vertex out of range");
+        goto out;
+    }
     Pairs pairs = {0};
     int rc;
     Py_BEGIN_ALLOW_THREADS
@@ -767,15 +761,14 @@ static PyObject *fold_vertices(PyObject *self, PyObject *args) {
     PyObject *result = NULL;
     int64_t m = f.len / 24;
     const int64_t *fl = f.buf;
-    if (v.len % 24 || f.len % 24 || nv < 0 || nv > v.len / 24) {
-        PyErr_SetString(PyExc_ValueError, "fold_vertices: vertices and faces must be rows of 3, nv at most the vertices");
+    if (nv < 0 || nv > v.len / 24) {
+        PyErr_SetString(PyExc_ValueError, "fold_vertices: nv must be at most the vertices");
         goto out;
     }
-    for (int64_t t = 0; t < 3 * m; t++)
-        if (fl[t] < 0 || fl[t] >= nv) {
-            PyErr_SetString(PyExc_ValueError, "fold_vertices: a vertex out of range");
-            goto out;
-        }
+    if (!below(fl, 3 * m, nv)) {
+        PyErr_SetString(PyExc_ValueError, "fold_vertices: a vertex out of range");
+        goto out;
+    }
     result = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)nv);
     if (!result) goto out;
     memset(PyByteArray_AS_STRING(result), 0, (size_t)nv);
@@ -843,15 +836,10 @@ static PyObject *face_keys(PyObject *self, PyObject *args) {
     PyObject *result = NULL;
     int64_t nv = v.len / 24, m = f.len / 24;
     const int64_t *fl = f.buf;
-    if (v.len % 24 || f.len % 24) {
-        PyErr_SetString(PyExc_ValueError, "face_keys: vertices and faces must be rows of 3");
+    if (!below(fl, 3 * m, nv)) {
+        PyErr_SetString(PyExc_ValueError, "face_keys: a vertex out of range");
         goto out;
     }
-    for (int64_t t = 0; t < 3 * m; t++)
-        if (fl[t] < 0 || fl[t] >= nv) {
-            PyErr_SetString(PyExc_ValueError, "face_keys: a vertex out of range");
-            goto out;
-        }
     result = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(m * 8));
     if (!result) goto out;
     int rc;
@@ -874,10 +862,6 @@ static PyObject *same_corners(PyObject *self, PyObject *args) {
     if (get_buffer(qo, &Q, "d", P.len / 8, "Q", 9) < 0) { PyBuffer_Release(&P); return NULL; }
     PyObject *result = NULL;
     int64_t m = P.len / 72;
-    if (P.len % 72) {
-        PyErr_SetString(PyExc_ValueError, "same_corners: P and Q must be triangles (m, 3, 3)");
-        goto out;
-    }
     result = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)m);
     if (!result) goto out;
     Py_BEGIN_ALLOW_THREADS
@@ -972,11 +956,10 @@ static PyObject *face_boxes(PyObject *self, PyObject *args) {
     PyObject *result = NULL, *lo = NULL, *hi = NULL;
     int64_t m = f.len / 24, nv = v.len / 24;
     const int64_t *fl = f.buf;
-    for (int64_t t = 0; t < 3 * m; t++)
-        if (fl[t] < 0 || fl[t] >= nv) {
-            PyErr_SetString(PyExc_ValueError, "face_boxes: a vertex out of range");
-            goto out;
-        }
+    if (!below(fl, 3 * m, nv)) {
+        PyErr_SetString(PyExc_ValueError, "face_boxes: a vertex out of range");
+        goto out;
+    }
     lo = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(m * 24));
     hi = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(m * 24));
     if (!lo || !hi) goto out;
@@ -1090,20 +1073,14 @@ static PyObject *several_fans(PyObject *self, PyObject *args) {
     PyObject *result = NULL;
     int64_t nf = f.len / 24, e = a.len / 8;
     const int64_t *fl = f.buf, *r1 = a.buf, *r2 = b.buf;
-    if (f.len % 24 || nv < 0) {
-        PyErr_SetString(PyExc_ValueError, "several_fans: faces must be rows of 3");
+    if (nv < 0) {
+        PyErr_SetString(PyExc_ValueError, "several_fans: nv < 0");
         goto out;
     }
-    for (int64_t t = 0; t < 3 * nf; t++)
-        if (fl[t] < 0 || fl[t] >= nv) {
-            PyErr_SetString(PyExc_ValueError, "several_fans: a vertex out of range");
-            goto out;
-        }
-    for (int64_t k = 0; k < e; k++)
-        if (r1[k] < 0 || r1[k] >= 3 * nf || r2[k] < 0 || r2[k] >= 3 * nf) {
-            PyErr_SetString(PyExc_ValueError, "several_fans: an edge row out of range");
-            goto out;
-        }
+    if (!below(fl, 3 * nf, nv) || !below(r1, e, 3 * nf) || !below(r2, e, 3 * nf)) {
+        PyErr_SetString(PyExc_ValueError, "several_fans: a vertex or an edge row out of range");
+        goto out;
+    }
     result = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)nv);
     if (!result) goto out;
     memset(PyByteArray_AS_STRING(result), 0, (size_t)nv);
@@ -1190,10 +1167,6 @@ static PyObject *orient2d_projections(PyObject *self, PyObject *args) {
     PyObject *result = NULL;
     for (; got < 3; got++)
         if (get_buffer(o[got], &b[got], "d", got ? b[0].len / 8 : -1, names[got], 3) < 0) goto out;
-    if (b[0].len % 24) {
-        PyErr_SetString(PyExc_ValueError, "orient2d_projections: p, q, r must be rows of 3");
-        goto out;
-    }
     int64_t m = b[0].len / 24;
     PyObject *sign = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(3 * m));
     PyObject *drop = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)m);

@@ -39,18 +39,19 @@ def fold_vertices(vertices: np.ndarray, faces: np.ndarray, live: np.ndarray | No
     lies within rounding of the margin (its angles are glibc's ``atan2``, NumPy's ``arctan2`` differs from it in
     the last bit for some arguments, and between machines), which a fan built for it shows and no scanned mesh
     tried has."""
-    if native.kernels is None:
-        return fold_vertices_numpy(vertices, faces, live, geometry)
+    v, f, nv = _live_faces(vertices, faces, live)
+    if native.kernels is None or not len(f) or nv > len(v) or f.min() < 0:  # (an index past the vertices: NumPy's
+        return fold_vertices_numpy(vertices, faces, live, geometry)             # IndexError)
+    return np.flatnonzero(np.frombuffer(native.kernels.fold_vertices(v, np.ascontiguousarray(f), nv), np.uint8))
+
+
+def _live_faces(vertices: np.ndarray, faces: np.ndarray, live: np.ndarray | None) -> tuple:
+    """The vertices (float64), the ``live`` faces (int64) and the number of vertices they index (at least all)."""
     v = np.ascontiguousarray(vertices, dtype=np.float64)
-    f = np.ascontiguousarray(faces, dtype=np.int64)
+    f = np.asarray(faces, dtype=np.int64)
     if live is not None:
         f = f[live]
-    if not len(f):
-        return np.zeros(0, np.int64)
-    nv = max(len(v), int(f.max()) + 1)
-    if nv > len(v) or f.min() < 0:  # an index past the vertices: the NumPy version's IndexError
-        return fold_vertices_numpy(vertices, faces, live, geometry)
-    return np.flatnonzero(np.frombuffer(native.kernels.fold_vertices(v, f, nv), np.uint8))
+    return v, f, max(len(v), int(f.max()) + 1) if len(f) else len(v)
 
 
 def fold_vertices_numpy(vertices: np.ndarray, faces: np.ndarray, live: np.ndarray | None = None,
@@ -62,14 +63,10 @@ def fold_vertices_numpy(vertices: np.ndarray, faces: np.ndarray, live: np.ndarra
     manifold and consistently oriented (the census reports the vertices and edges that are not), is a graph
     over its mean plane: two of its faces meet only along what they share. ``geometry``: :func:`face_geometry`
     of the live faces when already made."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    if live is not None:
-        f = f[live]
+    v, f, nv = _live_faces(vertices, faces, live)
     if not len(f):
         return np.zeros(0, np.int64)
     _, e, n = geometry if geometry is not None else face_geometry(v, f)
-    nv = max(len(v), int(f.max()) + 1)
     vid = f.T.ravel()  # corner 0 of every face, then corner 1, then corner 2
     mean = [np.bincount(vid, np.tile(nk, 3), minlength=nv) for nk in n]
     length = np.sqrt(mean[0] * mean[0] + mean[1] * mean[1] + mean[2] * mean[2])
