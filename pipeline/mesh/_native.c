@@ -471,11 +471,22 @@ static int sort_by_key(int64_t *pos, int64_t n, const int64_t *key) {
     return 0;
 }
 
-/* broad_phase._cross_sheet_pairs: in each cell, its main sheet is its largest (ties: the lowest label); the instances of
- * a cell's other sheets (and, on the last level, of a sheet that is not a graph) are paired with every instance of
- * the cell of another sheet (of a bad sheet on the last level: with every other instance). Pairs of faces. */
+/* Whether faces i and j of fl share a vertex index. */
+static int shares(const int64_t *fl, int64_t i, int64_t j) {
+    for (int x = 0; x < 3; x++)
+        for (int y = 0; y < 3; y++)
+            if (fl[3 * i + x] == fl[3 * j + y]) return 1;
+    return 0;
+}
+
+/* broad_phase._cross_sheet_pairs: in each cell, its main sheet is its largest (ties: the lowest label); the
+ * instances of a cell's other sheets (and, on the last level, of a sheet that is not a graph) are paired with every
+ * instance of the cell of another sheet (of a bad sheet on the last level: with every other instance). Pairs of
+ * faces; with the faces' boxes lo, hi and vertex indices fl (else NULL), only those whose boxes overlap and that
+ * share no vertex index (broad_phase._overlapping_apart: the end's first conditions, applied there anyway). */
 static int cross_run(int64_t n, const int64_t *face, const int64_t *ckey, const unsigned char *present,
-                     const int64_t *sheet, int64_t n_sheets, const unsigned char *bad, int last, Pairs *out) {
+                     const int64_t *sheet, int64_t n_sheets, const unsigned char *bad, int last, const double *lo,
+                     const double *hi, const int64_t *fl, Pairs *out) {
     int64_t *size = calloc((size_t)(n_sheets ? n_sheets : 1), sizeof(int64_t));
     unsigned char *source = calloc((size_t)(n_sheets ? n_sheets : 1), 1);
     int64_t *pos = malloc((size_t)(n ? n : 1) * sizeof(int64_t));
@@ -504,7 +515,9 @@ static int cross_run(int64_t n, const int64_t *face, const int64_t *ckey, const 
             if (!source[si]) continue;
             for (int64_t y = a; y < b; y++) {
                 int64_t J = pos[y], sj = sheet[J];
-                if ((si != sj || (bad[si] && I != J && last)) && push(out, face[I], face[J])) goto done;
+                if (!(si != sj || (bad[si] && I != J && last))) continue;
+                if (lo && (!overlap(lo, hi, face[I], face[J]) || shares(fl, face[I], face[J]))) continue;
+                if (push(out, face[I], face[J])) goto done;
             }
         }
         a = b;
@@ -555,11 +568,7 @@ static int filter_run(int64_t n, const int64_t *pi, const int64_t *pj, int64_t m
     int64_t k = 0;
     for (int64_t t = 0; t < n; t++) {
         int64_t i = pi[t], j = pj[t];
-        if (!overlap(lo, hi, i, j)) continue;
-        int share = 0;
-        for (int x = 0; x < 3; x++)
-            for (int y = 0; y < 3; y++) share |= fl[3 * i + x] == fl[3 * j + y];
-        if (share) continue;
+        if (!overlap(lo, hi, i, j) || shares(fl, i, j)) continue;
         key[k] = (i < j ? i : j) * m + (i < j ? j : i);
         pos[k] = k;
         k++;
@@ -686,33 +695,36 @@ static PyObject *pairs_result(Pairs *pairs, int rc) {
 
 static PyObject *cross_sheet_pairs(PyObject *self, PyObject *args) {
     (void)self;
-    PyObject *o[5];
+    PyObject *o[8] = {NULL, NULL, NULL, NULL, NULL, Py_None, Py_None, Py_None};
     long long n_sheets;
     int last;
-    if (!PyArg_ParseTuple(args, "OOOOLOp", &o[0], &o[1], &o[2], &o[3], &n_sheets, &o[4], &last)) return NULL;
+    if (!PyArg_ParseTuple(args, "OOOOLOp|OOO", &o[0], &o[1], &o[2], &o[3], &n_sheets, &o[4], &last, &o[5], &o[6],
+                          &o[7]))
+        return NULL;
     if (n_sheets < 0) {
         PyErr_SetString(PyExc_ValueError, "cross_sheet_pairs: n_sheets < 0");
         return NULL;
     }
-    Py_buffer b[5];
-    const char *names[5] = {"face", "ckey", "present", "sheet", "bad_sheet"};
-    const char *fmts[5] = {"q", "q", "B", "q", "B"};
-    int got = 0;
+    Py_buffer b[8];
+    const char *names[8] = {"face", "ckey", "present", "sheet", "bad_sheet", "lo", "hi", "fl"};
+    const char *fmts[8] = {"q", "q", "B", "q", "B", "d", "d", "q"};
+    int filtered = o[5] != Py_None, got = 0;
     PyObject *result = NULL;
-    for (; got < 5; got++) {
-        Py_ssize_t n = got == 4 ? (Py_ssize_t)n_sheets : got ? b[0].len / 8 : -1;
-        if (get_buffer(o[got], &b[got], fmts[got], n, names[got], 0) < 0) goto out;
+    for (; got < (filtered ? 8 : 5); got++) {
+        Py_ssize_t n = got == 4 ? (Py_ssize_t)n_sheets : got > 5 ? b[5].len / 8 : got && got < 5 ? b[0].len / 8 : -1;
+        if (get_buffer(o[got], &b[got], fmts[got], n, names[got], got < 5 ? 0 : 3) < 0) goto out;
     }
     int64_t n = b[0].len / 8;
     const int64_t *sheet = b[3].buf;
-    if (!below(sheet, n, n_sheets)) {
-        PyErr_SetString(PyExc_ValueError, "cross_sheet_pairs: a sheet label out of range");
+    if (!below(sheet, n, n_sheets) || (filtered && !below(b[0].buf, n, b[5].len / 24))) {
+        PyErr_SetString(PyExc_ValueError, "cross_sheet_pairs: a sheet label or a face out of range");
         goto out;
     }
     Pairs pairs = {0};
     int rc;
     Py_BEGIN_ALLOW_THREADS
-    rc = cross_run(n, b[0].buf, b[1].buf, b[2].buf, sheet, n_sheets, b[4].buf, last, &pairs);
+    rc = cross_run(n, b[0].buf, b[1].buf, b[2].buf, sheet, n_sheets, b[4].buf, last, filtered ? b[5].buf : NULL,
+                   filtered ? b[6].buf : NULL, filtered ? b[7].buf : NULL, &pairs);
     Py_END_ALLOW_THREADS
     result = pairs_result(&pairs, rc);
 out:
@@ -1187,7 +1199,8 @@ out:
 static PyMethodDef methods[] = {
     {"box_pairs", box_pairs, METH_VARARGS, "box_pairs(lo, hi, among, base) -> bytearray of int64 (i, j) rows"},
     {"cross_sheet_pairs", cross_sheet_pairs, METH_VARARGS,
-     "cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last) -> bytearray of int64 face pairs"},
+     "cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last[, lo, hi, fl]) -> bytearray of int64 "
+     "face pairs"},
     {"candidate_filter", candidate_filter, METH_VARARGS,
      "candidate_filter(i, j, lo, hi, fl, v) -> bytearray of int64 (i, j) rows, sorted"},
     {"fold_vertices", fold_vertices, METH_VARARGS, "fold_vertices(vertices, faces, nv) -> bytearray mask"},

@@ -163,7 +163,7 @@ def intersection_candidates(vertices: np.ndarray, faces: np.ndarray, live: np.nd
         local = np.full(len(fl), -1, np.int64)
         local[sel] = np.arange(len(sel))
         i, j, bad = _sheet_pairs(a, span, cnt, nrm[sel], suspect[sel], local[f1[link]], local[f2[link]],
-                                 level == REFINE, (org, cell, p0[sel]))
+                                 level == REFINE, (org, cell, p0[sel]), (lo[sel], hi[sel], fl[sel]))
         ii.append(sel[i])
         jj.append(sel[j])
         if not len(bad):
@@ -192,20 +192,26 @@ def _candidates_among_numpy(i: np.ndarray, j: np.ndarray, lo: np.ndarray, hi: np
                             v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_candidates_among` in NumPy."""
     if len(i):
-        keep = _boxes_overlap(lo, hi, i, j)
+        keep = _overlapping_apart(i, j, lo, hi, fl)
         i, j = i[keep], j[keep]
-        fc = [np.ascontiguousarray(fl[:, k]) for k in range(3)]
-        share = np.zeros(len(i), bool)
-        for x in range(3):
-            fi = fc[x][i]
-            for y in range(3):
-                share |= fi == fc[y][j]
-        key = np.unique(np.minimum(i[~share], j[~share]) * len(fl) + np.maximum(i[~share], j[~share]))
+        key = np.unique(np.minimum(i, j) * len(fl) + np.maximum(i, j))
         i, j = key // len(fl), key % len(fl)
         Pi, Pj = v[fl[i]], v[fl[j]]
         keep = ~(_separated(Pi, Pj) | _separated(Pj, Pi))
         i, j = i[keep], j[keep]
     return i, j
+
+
+def _overlapping_apart(i: np.ndarray, j: np.ndarray, lo: np.ndarray, hi: np.ndarray, fl: np.ndarray) -> np.ndarray:
+    """Which pairs ``(i, j)`` of the faces ``fl`` (boxes ``lo``, ``hi``) have overlapping boxes and share no vertex
+    index: the candidates' first two conditions."""
+    keep = _boxes_overlap(lo, hi, i, j)
+    fc = [np.ascontiguousarray(fl[:, k]) for k in range(3)]
+    for x in range(3):
+        fi = fc[x][i]
+        for y in range(3):
+            keep &= fi != fc[y][j]
+    return keep
 
 
 MAX_CELLS = 4096
@@ -262,14 +268,17 @@ def _separated(Pi: np.ndarray, Pj: np.ndarray) -> np.ndarray:
 
 
 def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarray, suspect: np.ndarray,
-                 f1: np.ndarray, f2: np.ndarray, last: bool, frame: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 f1: np.ndarray, f2: np.ndarray, last: bool, frame: tuple,
+                 faces: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One level of :func:`intersection_candidates` on m faces: the pairs it looks at (face positions 0..m-1,
     repeats possible) and the faces of sheets that are not graphs, to be looked at in smaller cells (none when
     ``last``: their pairs are then among the pairs). ``a``: each face's first cell (integer coordinates),
     ``span``: its cells per axis, ``cnt``: its cells in all (0: the face takes no part), ``nrm``: normals (any
     length), ``suspect``: faces whose sheet is not a graph whatever their normals, ``f1``, ``f2``: the faces
     joined across an edge (:func:`_manifold_neighbours`), ``frame``: the grid's origin, the cell side and a corner
-    of each face (a face spanning several cells is in those its plane passes through)."""
+    of each face (a face spanning several cells is in those its plane passes through), ``faces``: their boxes
+    (lo, hi) and vertex indices, to keep only the pairs that overlap and share no vertex (the candidates' first
+    conditions, which the end applies anyway: fewer pairs to carry there)."""
     m = len(a)
     none = np.zeros(0, np.int64)
     if not cnt.any():
@@ -288,7 +297,7 @@ def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarr
     bad_face = np.zeros(m, bool)
     bad_face[face[bad_sheet[sheet]]] = True
     bad = none if last else np.flatnonzero(bad_face)
-    return (*_cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last), bad)
+    return (*_cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last, faces), bad)
 
 
 def _sheets(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarray, f1: np.ndarray, f2: np.ndarray,
@@ -360,15 +369,23 @@ def _sheets_numpy(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndar
     return face, ckey, present, sheet, n_sheets
 
 
-def _cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last) -> tuple[np.ndarray, np.ndarray]:
+def _cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last,
+                       faces: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The pairs of faces one level of :func:`_sheet_pairs` looks at (:func:`_cross_sheet_pairs_numpy`), by the
-    compiled kernel when there is one (the same pairs, in another order)."""
+    compiled kernel when there is one (the same pairs, in another order); with ``faces`` (lo, hi, vertex indices)
+    only those that overlap and share no vertex (:func:`_overlapping_apart`)."""
     if native.kernels is None:
-        return _cross_sheet_pairs_numpy(face, ckey, present, sheet, n_sheets, bad_sheet, last)
+        i, j = _cross_sheet_pairs_numpy(face, ckey, present, sheet, n_sheets, bad_sheet, last)
+        if faces is None:
+            return i, j
+        keep = _overlapping_apart(i, j, *faces)
+        return i[keep], j[keep]
+    lo, hi, fl = (None, None, None) if faces is None else (np.ascontiguousarray(x, dtype=t) for x, t in zip(
+        faces, (np.float64, np.float64, np.int64)))
     pairs = np.frombuffer(native.kernels.cross_sheet_pairs(
         np.ascontiguousarray(face, dtype=np.int64), np.ascontiguousarray(ckey, dtype=np.int64),
         np.ascontiguousarray(present, dtype=np.uint8), np.ascontiguousarray(sheet, dtype=np.int64), int(n_sheets),
-        np.ascontiguousarray(bad_sheet, dtype=np.uint8), bool(last)), np.int64).reshape(-1, 2)
+        np.ascontiguousarray(bad_sheet, dtype=np.uint8), bool(last), lo, hi, fl), np.int64).reshape(-1, 2)
     return pairs[:, 0], pairs[:, 1]
 
 
