@@ -482,8 +482,8 @@ static int shares(const int64_t *fl, int64_t i, int64_t j) {
 /* broad_phase._cross_sheet_pairs: in each cell, its main sheet is its largest (ties: the lowest label); the
  * instances of a cell's other sheets (and, on the last level, of a sheet that is not a graph) are paired with every
  * instance of the cell of another sheet (of a bad sheet on the last level: with every other instance). Pairs of
- * faces; with the faces' boxes lo, hi and vertex indices fl (else NULL), only those whose boxes overlap and that
- * share no vertex index (broad_phase._overlapping_apart: the end's first conditions, applied there anyway). */
+ * faces, of them those whose boxes overlap (the faces' boxes lo, hi) and that share no vertex index (their
+ * vertex indices fl) (broad_phase._overlapping_apart: the end's first conditions, applied there anyway). */
 static int cross_run(int64_t n, const int64_t *face, const int64_t *ckey, const unsigned char *present,
                      const int64_t *sheet, int64_t n_sheets, const unsigned char *bad, int last, const double *lo,
                      const double *hi, const int64_t *fl, Pairs *out) {
@@ -516,7 +516,7 @@ static int cross_run(int64_t n, const int64_t *face, const int64_t *ckey, const 
             for (int64_t y = a; y < b; y++) {
                 int64_t J = pos[y], sj = sheet[J];
                 if (!(si != sj || (bad[si] && I != J && last))) continue;
-                if (lo && (!overlap(lo, hi, face[I], face[J]) || shares(fl, face[I], face[J]))) continue;
+                if (!overlap(lo, hi, face[I], face[J]) || shares(fl, face[I], face[J])) continue;
                 if (push(out, face[I], face[J])) goto done;
             }
         }
@@ -695,10 +695,10 @@ static PyObject *pairs_result(Pairs *pairs, int rc) {
 
 static PyObject *cross_sheet_pairs(PyObject *self, PyObject *args) {
     (void)self;
-    PyObject *o[8] = {NULL, NULL, NULL, NULL, NULL, Py_None, Py_None, Py_None};
+    PyObject *o[8];
     long long n_sheets;
     int last;
-    if (!PyArg_ParseTuple(args, "OOOOLOp|OOO", &o[0], &o[1], &o[2], &o[3], &n_sheets, &o[4], &last, &o[5], &o[6],
+    if (!PyArg_ParseTuple(args, "OOOOLOpOOO", &o[0], &o[1], &o[2], &o[3], &n_sheets, &o[4], &last, &o[5], &o[6],
                           &o[7]))
         return NULL;
     if (n_sheets < 0) {
@@ -708,23 +708,23 @@ static PyObject *cross_sheet_pairs(PyObject *self, PyObject *args) {
     Py_buffer b[8];
     const char *names[8] = {"face", "ckey", "present", "sheet", "bad_sheet", "lo", "hi", "fl"};
     const char *fmts[8] = {"q", "q", "B", "q", "B", "d", "d", "q"};
-    int filtered = o[5] != Py_None, got = 0;
+    int got = 0;
     PyObject *result = NULL;
-    for (; got < (filtered ? 8 : 5); got++) {
+    for (; got < 8; got++) {
         Py_ssize_t n = got == 4 ? (Py_ssize_t)n_sheets : got > 5 ? b[5].len / 8 : got && got < 5 ? b[0].len / 8 : -1;
         if (get_buffer(o[got], &b[got], fmts[got], n, names[got], got < 5 ? 0 : 3) < 0) goto out;
     }
     int64_t n = b[0].len / 8;
     const int64_t *sheet = b[3].buf;
-    if (!below(sheet, n, n_sheets) || (filtered && !below(b[0].buf, n, b[5].len / 24))) {
+    if (!below(sheet, n, n_sheets) || !below(b[0].buf, n, b[5].len / 24)) {
         PyErr_SetString(PyExc_ValueError, "cross_sheet_pairs: a sheet label or a face out of range");
         goto out;
     }
     Pairs pairs = {0};
     int rc;
     Py_BEGIN_ALLOW_THREADS
-    rc = cross_run(n, b[0].buf, b[1].buf, b[2].buf, sheet, n_sheets, b[4].buf, last, filtered ? b[5].buf : NULL,
-                   filtered ? b[6].buf : NULL, filtered ? b[7].buf : NULL, &pairs);
+    rc = cross_run(n, b[0].buf, b[1].buf, b[2].buf, sheet, n_sheets, b[4].buf, last, b[5].buf, b[6].buf, b[7].buf,
+                   &pairs);
     Py_END_ALLOW_THREADS
     result = pairs_result(&pairs, rc);
 out:
@@ -1199,7 +1199,7 @@ out:
 static PyMethodDef methods[] = {
     {"box_pairs", box_pairs, METH_VARARGS, "box_pairs(lo, hi, among, base) -> bytearray of int64 (i, j) rows"},
     {"cross_sheet_pairs", cross_sheet_pairs, METH_VARARGS,
-     "cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last[, lo, hi, fl]) -> bytearray of int64 "
+     "cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last, lo, hi, fl) -> bytearray of int64 "
      "face pairs"},
     {"candidate_filter", candidate_filter, METH_VARARGS,
      "candidate_filter(i, j, lo, hi, fl, v) -> bytearray of int64 (i, j) rows, sorted"},

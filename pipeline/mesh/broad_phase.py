@@ -269,7 +269,7 @@ def _separated(Pi: np.ndarray, Pj: np.ndarray) -> np.ndarray:
 
 def _sheet_pairs(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndarray, suspect: np.ndarray,
                  f1: np.ndarray, f2: np.ndarray, last: bool, frame: tuple,
-                 faces: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 faces: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One level of :func:`intersection_candidates` on m faces: the pairs it looks at (face positions 0..m-1,
     repeats possible) and the faces of sheets that are not graphs, to be looked at in smaller cells (none when
     ``last``: their pairs are then among the pairs). ``a``: each face's first cell (integer coordinates),
@@ -370,18 +370,15 @@ def _sheets_numpy(a: np.ndarray, span: np.ndarray, cnt: np.ndarray, nrm: np.ndar
 
 
 def _cross_sheet_pairs(face, ckey, present, sheet, n_sheets, bad_sheet, last,
-                       faces: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The pairs of faces one level of :func:`_sheet_pairs` looks at (:func:`_cross_sheet_pairs_numpy`), by the
-    compiled kernel when there is one (the same pairs, in another order); with ``faces`` (lo, hi, vertex indices)
-    only those that overlap and share no vertex (:func:`_overlapping_apart`)."""
+                       faces: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of faces one level of :func:`_sheet_pairs` looks at (:func:`_cross_sheet_pairs_numpy`) whose
+    boxes overlap and that share no vertex (:func:`_overlapping_apart`; ``faces``: the level's boxes lo, hi and
+    vertex indices), by the compiled kernel when there is one (the same pairs, in another order)."""
     if native.kernels is None:
         i, j = _cross_sheet_pairs_numpy(face, ckey, present, sheet, n_sheets, bad_sheet, last)
-        if faces is None:
-            return i, j
         keep = _overlapping_apart(i, j, *faces)
         return i[keep], j[keep]
-    lo, hi, fl = (None, None, None) if faces is None else (np.ascontiguousarray(x, dtype=t) for x, t in zip(
-        faces, (np.float64, np.float64, np.int64)))
+    lo, hi, fl = (np.ascontiguousarray(x, dtype=t) for x, t in zip(faces, (np.float64, np.float64, np.int64)))
     pairs = np.frombuffer(native.kernels.cross_sheet_pairs(
         np.ascontiguousarray(face, dtype=np.int64), np.ascontiguousarray(ckey, dtype=np.int64),
         np.ascontiguousarray(present, dtype=np.uint8), np.ascontiguousarray(sheet, dtype=np.int64), int(n_sheets),

@@ -216,8 +216,15 @@ def non_manifold_vertex_mask(mesh: Mesh) -> np.ndarray:
         several = np.frombuffer(native.kernels.several_fans(np.ascontiguousarray(f, dtype=np.int64),
                                                             np.ascontiguousarray(r1), np.ascontiguousarray(r2), nv),
                                 np.bool_).copy()
-        several[directed[counts[edge] > 2].ravel()] = False
-        return several
+    else:
+        several = _several_fans_numpy(nf, vert, r1, r2, nv)
+    several[directed[counts[edge] > 2].ravel()] = False
+    return several
+
+
+def _several_fans_numpy(nf: int, vert: np.ndarray, r1: np.ndarray, r2: np.ndarray, nv: int) -> np.ndarray:
+    """Which of ``nv`` vertices have corners in more than one group, the corners (``vert``: the flat faces) joined
+    across each two-face edge (``r1``, ``r2``: its rows in the directed edge table of ``nf`` faces)."""
     nxt = np.array([1, 2, 0])
     j1, k1 = np.divmod(r1, nf)  # local edge j runs from corner j to corner j + 1 of face r % nf
     j2, k2 = np.divmod(r2, nf)
@@ -235,7 +242,6 @@ def non_manifold_vertex_mask(mesh: Mesh) -> np.ndarray:
     one[vert] = fan  # one of each vertex's groups; a corner in another group makes the vertex non-manifold
     several = np.zeros(nv, bool)
     several[vert[fan != one[vert]]] = True
-    several[directed[counts[edge] > 2].ravel()] = False
     return several
 
 
