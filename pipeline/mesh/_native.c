@@ -452,18 +452,23 @@ out:
 
 /* ---- cross_sheet_pairs ---- */
 
-/* Stable LSD radix sort of positions pos[0:n] by key[pos] (keys >= 0). */
-static int sort_by_key(int64_t *pos, int64_t n, const int64_t *key) {
-    uint64_t most = 0;
-    for (int64_t t = 0; t < n; t++) most |= (uint64_t)key[pos[t]];
+/* Sorts the positions pos[0:n] by key[pos] (unsigned), stably: an LSD radix sort, a byte per pass, skipping the
+ * bytes where every key agrees (the same order: a stable sort's is unique). */
+static int sort_by_key(int64_t *pos, int64_t n, const uint64_t *key) {
+    uint64_t all_or = 0, all_and = ~0ull;
+    for (int64_t t = 0; t < n; t++) {
+        all_or |= key[pos[t]];
+        all_and &= key[pos[t]];
+    }
     int64_t *tmp = malloc((size_t)(n ? n : 1) * sizeof(int64_t));
     if (!tmp) return -1;
     int64_t *src = pos, *dst = tmp;
-    for (int shift = 0; shift < 64 && (most >> shift); shift += 8) {
+    for (int shift = 0; shift < 64; shift += 8) {
+        if ((((all_or ^ all_and) >> shift) & 255) == 0) continue;  /* this byte the same in every key */
         int64_t count[257] = {0};
-        for (int64_t t = 0; t < n; t++) count[(((uint64_t)key[src[t]] >> shift) & 255) + 1]++;
+        for (int64_t t = 0; t < n; t++) count[((key[src[t]] >> shift) & 255) + 1]++;
         for (int b = 0; b < 256; b++) count[b + 1] += count[b];
-        for (int64_t t = 0; t < n; t++) dst[count[((uint64_t)key[src[t]] >> shift) & 255]++] = src[t];
+        for (int64_t t = 0; t < n; t++) dst[count[(key[src[t]] >> shift) & 255]++] = src[t];
         int64_t *x = src; src = dst; dst = x;
     }
     if (src != pos) memcpy(pos, src, (size_t)n * sizeof(int64_t));
@@ -496,7 +501,8 @@ static int cross_run(int64_t n, const int64_t *face, const int64_t *ckey, const 
     int64_t k = 0;
     for (int64_t t = 0; t < n; t++)
         if (present[t]) pos[k++] = t;
-    if (sort_by_key(pos, k, ckey)) goto done;  /* the present instances by cell, each cell's in index order */
+    /* the present instances by cell (keys >= 0), each cell's in index order */
+    if (sort_by_key(pos, k, (const uint64_t *)ckey)) goto done;
     for (int64_t a = 0; a < k;) {
         int64_t b = a, main = -1;
         while (b < k && ckey[pos[b]] == ckey[pos[a]]) {
@@ -573,7 +579,7 @@ static int filter_run(int64_t n, const int64_t *pi, const int64_t *pj, int64_t m
         pos[k] = k;
         k++;
     }
-    if (sort_by_key(pos, k, key)) goto done;
+    if (sort_by_key(pos, k, (const uint64_t *)key)) goto done;  /* (keys >= 0) */
     for (int64_t t = 0; t < k; t++) {
         int64_t kk = key[pos[t]];
         if (t && kk == key[pos[t - 1]]) continue;
@@ -989,29 +995,10 @@ out:
 
 /* ---- stable_order ---- */
 
-/* np.argsort(keys, kind="stable") of uint64 keys: an LSD radix sort, a byte per pass (stable, so equal keys keep
- * their order), skipping the bytes where every key agrees. */
+/* np.argsort(keys, kind="stable") of uint64 keys (sort_by_key of every position). */
 static int order_run(const uint64_t *key, int64_t n, int64_t *order) {
-    int64_t *tmp = malloc((size_t)(n ? n : 1) * sizeof(int64_t));
-    if (!tmp) return -1;
-    uint64_t all_or = 0, all_and = ~0ull;
-    for (int64_t t = 0; t < n; t++) {
-        order[t] = t;
-        all_or |= key[t];
-        all_and &= key[t];
-    }
-    int64_t *src = order, *dst = tmp;
-    for (int shift = 0; shift < 64; shift += 8) {
-        if ((((all_or ^ all_and) >> shift) & 255) == 0) continue;  /* this byte the same in every key */
-        int64_t count[257] = {0};
-        for (int64_t t = 0; t < n; t++) count[((key[src[t]] >> shift) & 255) + 1]++;
-        for (int b = 0; b < 256; b++) count[b + 1] += count[b];
-        for (int64_t t = 0; t < n; t++) dst[count[(key[src[t]] >> shift) & 255]++] = src[t];
-        int64_t *x = src; src = dst; dst = x;
-    }
-    if (src != order) memcpy(order, src, (size_t)n * sizeof(int64_t));
-    free(tmp);
-    return 0;
+    for (int64_t t = 0; t < n; t++) order[t] = t;
+    return sort_by_key(order, n, key);
 }
 
 static PyObject *stable_order(PyObject *self, PyObject *args) {
